@@ -1,0 +1,5 @@
+import sys
+
+from cmcan.cli import main
+
+sys.exit(main())

@@ -1,0 +1,47 @@
+"""The ``cmcan`` command line: one module per subcommand, as cantools lays out its CLI."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from collections.abc import Sequence
+
+from cmcan import __version__
+from cmcan.cli.errors import EX_SOFTWARE, CliError
+
+SUBCOMMANDS = ("simulate",)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="cmcan",
+        description="Condition monitoring of hydrostatic drives on CAN: simulate, train, monitor, replay.",
+    )
+    parser.add_argument("--version", action="version", version=f"cmcan {__version__}")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv: debug)")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name in SUBCOMMANDS:
+        importlib.import_module(f"cmcan.cli.{name}").add_subparser(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    level = logging.WARNING - 10 * min(args.verbose, 2)
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    try:
+        return int(args.func(args) or 0)
+    except CliError as exc:
+        print(f"cmcan {args.command}: {exc}", file=sys.stderr)
+        return exc.code
+    except KeyboardInterrupt:
+        return 130
+    except BrokenPipeError:
+        return 0
+    except Exception as exc:  # the last line of defence: say what broke, never a bare traceback
+        logging.getLogger("cmcan").debug("unexpected error", exc_info=True)
+        print(f"cmcan {args.command}: internal error: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return EX_SOFTWARE

@@ -1,0 +1,1 @@
+"""File formats at the edge: run CSVs and CAN logs."""

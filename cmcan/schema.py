@@ -1,0 +1,223 @@
+"""Validation of YAML documents (scenarios, configuration) against small declarative specs.
+
+Every error names the file, the dotted field path and what was expected, e.g.
+``scenario.yaml: duty.pump_speed_rpm: expected a number in [800, 3400] rpm, got 9000``.
+A field the spec does not know is an error too: a mistyped key must not be silently ignored.
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+
+class SchemaError(ValueError):
+    """A document does not match its spec; ``str()`` is the message for the user."""
+
+    def __init__(self, source: str, path: str, message: str) -> None:
+        self.source = source
+        self.path = path
+        self.detail = message
+        where = f"{source}: {path}: " if path else f"{source}: "
+        super().__init__(where + message)
+
+
+_REQUIRED = object()
+
+
+@dataclass(frozen=True)
+class Num:
+    lo: float = -math.inf
+    hi: float = math.inf
+    unit: str = ""
+    default: Any = _REQUIRED
+    integer: bool = False
+
+    def describe(self) -> str:
+        kind = "an integer" if self.integer else "a number"
+        rng = "" if math.isinf(self.lo) and math.isinf(self.hi) else f" in [{_fmt(self.lo)}, {_fmt(self.hi)}]"
+        return f"{kind}{rng}{' ' + self.unit if self.unit else ''}"
+
+    def check(self, value: Any, src: str, path: str) -> float | int | None:
+        if value is None and self.default is None:  # an optional field left unset
+            return None
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise SchemaError(src, path, f"expected {self.describe()}, got {value!r}")
+        if self.integer and not float(value).is_integer():
+            raise SchemaError(src, path, f"expected {self.describe()}, got {value!r}")
+        if not math.isfinite(value) or not (self.lo <= value <= self.hi):
+            raise SchemaError(src, path, f"expected {self.describe()}, got {value!r}")
+        return int(value) if self.integer else float(value)
+
+
+@dataclass(frozen=True)
+class Bool:
+    default: Any = _REQUIRED
+
+    def describe(self) -> str:
+        return "true or false"
+
+    def check(self, value: Any, src: str, path: str) -> bool:
+        if not isinstance(value, bool):
+            raise SchemaError(src, path, f"expected true or false, got {value!r}")
+        return value
+
+
+@dataclass(frozen=True)
+class Str:
+    default: Any = _REQUIRED
+    choices: tuple[str, ...] = ()
+
+    def describe(self) -> str:
+        if self.choices:
+            return "one of " + ", ".join(repr(c) for c in self.choices)
+        return "a string"
+
+    def check(self, value: Any, src: str, path: str) -> str:
+        if not isinstance(value, str) or (self.choices and value not in self.choices):
+            raise SchemaError(src, path, f"expected {self.describe()}, got {value!r}")
+        return value
+
+
+@dataclass(frozen=True)
+class Seq:
+    item: Any
+    default: Any = _REQUIRED
+    min_len: int = 0
+    max_len: int = 10**9
+
+    def describe(self) -> str:
+        return f"a list of {self.item.describe()}"
+
+    def check(self, value: Any, src: str, path: str) -> list[Any]:
+        if not isinstance(value, list):
+            raise SchemaError(src, path, f"expected {self.describe()}, got {value!r}")
+        if not (self.min_len <= len(value) <= self.max_len):
+            raise SchemaError(src, path, f"expected between {self.min_len} and {self.max_len} items, got {len(value)}")
+        return [self.item.check(v, src, f"{path}[{i}]") for i, v in enumerate(value)]
+
+
+@dataclass(frozen=True)
+class Obj:
+    fields: Mapping[str, Any]
+    default: Any = _REQUIRED
+    # Cross-field rule run after the fields: returns an error message (field path, text) or None.
+    rule: Callable[[dict[str, Any]], tuple[str, str] | None] | None = None
+    extra: Any = None  # spec for keys not in ``fields`` (a free mapping), or None to reject them
+
+    def describe(self) -> str:
+        return "a mapping with keys " + ", ".join(self.fields)
+
+    def check(self, value: Any, src: str, path: str) -> dict[str, Any]:
+        if value is None and all(_has_default(s) for s in self.fields.values()):
+            value = {}
+        if not isinstance(value, dict):
+            raise SchemaError(src, path, f"expected a mapping, got {value!r}")
+        out: dict[str, Any] = {}
+        for key, raw in value.items():
+            sub = _join(path, str(key))
+            if key in self.fields:
+                out[key] = self.fields[key].check(raw, src, sub)
+            elif self.extra is not None:
+                out[key] = self.extra.check(raw, src, sub)
+            else:
+                hint = difflib.get_close_matches(str(key), list(self.fields), n=1)
+                known = f"did you mean {hint[0]!r}?" if hint else "known keys: " + ", ".join(self.fields)
+                raise SchemaError(src, sub, f"unknown field ({known})")
+        for key, spec in self.fields.items():
+            if key in out:
+                continue
+            if not _has_default(spec):
+                raise SchemaError(src, _join(path, key), f"missing; expected {spec.describe()}")
+            out[key] = _default_of(spec, src, _join(path, key))
+        if self.rule is not None:
+            problem = self.rule(out)
+            if problem is not None:
+                sub, message = problem
+                raise SchemaError(src, _join(path, sub), message)
+        return out
+
+
+@dataclass(frozen=True)
+class OneOf:
+    """A tagged union: the value of ``tag`` picks the spec that checks the whole mapping."""
+
+    tag: str
+    variants: Mapping[str, Obj]
+    default: Any = _REQUIRED
+
+    def describe(self) -> str:
+        return f"a mapping with {self.tag!r} one of " + ", ".join(repr(k) for k in self.variants)
+
+    def check(self, value: Any, src: str, path: str) -> dict[str, Any]:
+        if not isinstance(value, dict):
+            raise SchemaError(src, path, f"expected {self.describe()}, got {value!r}")
+        kind = value.get(self.tag)
+        if kind not in self.variants:
+            raise SchemaError(
+                src,
+                _join(path, self.tag),
+                "expected one of " + ", ".join(repr(k) for k in self.variants) + f", got {kind!r}",
+            )
+        spec = self.variants[kind]
+        fields = {self.tag: Str(choices=(kind,)), **spec.fields}
+        return Obj(fields, rule=spec.rule).check(value, src, path)
+
+
+@dataclass(frozen=True)
+class Any_:
+    default: Any = _REQUIRED
+
+    def describe(self) -> str:
+        return "any value"
+
+    def check(self, value: Any, src: str, path: str) -> Any:
+        return value
+
+
+def _has_default(spec: Any) -> bool:
+    return getattr(spec, "default", _REQUIRED) is not _REQUIRED
+
+
+def _default_of(spec: Any, src: str, path: str) -> Any:
+    default = spec.default
+    if isinstance(spec, Obj) and isinstance(default, dict):
+        return spec.check(default, src, path)
+    if isinstance(default, (list, dict)):
+        return type(default)(default)
+    return default
+
+
+def _join(path: str, key: str) -> str:
+    return f"{path}.{key}" if path else key
+
+
+def _fmt(x: float) -> str:
+    return str(int(x)) if float(x).is_integer() else f"{x:g}"
+
+
+def load_yaml(path: str | Path) -> Any:
+    """Read a YAML file; a missing file or a syntax error names the file (and line)."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise SchemaError(str(p), "", "file not found") from None
+    except OSError as exc:
+        raise SchemaError(str(p), "", f"cannot read: {exc.strerror}") from None
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+        problem = getattr(exc, "problem", None) or str(exc)
+        raise SchemaError(str(p), "", f"invalid YAML: {where}{problem}") from None
+
+
+__all__ = ["Any_", "Bool", "Num", "Obj", "OneOf", "SchemaError", "Seq", "Str", "load_yaml"]

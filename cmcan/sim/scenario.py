@@ -1,0 +1,348 @@
+"""Scenario files: the YAML that describes one simulated run, validated field by field."""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+from cmcan.schema import Bool, Num, Obj, OneOf, SchemaError, Seq, Str, load_yaml
+from cmcan.sim.physics import DriveParams, UnitLosses
+
+INF = math.inf
+
+
+def _term(coeff_key: str, hi: float) -> Obj:
+    return Obj({"enabled": Bool(default=True), coeff_key: Num(0.0, hi, default=None)}, default={})
+
+
+def _unit_losses() -> Obj:
+    return Obj(
+        {
+            "laminar": _term("cs", 1e-6),
+            "turbulent": _term("ct", 1e-2),
+            "compressibility": _term("factor", 10.0),
+        },
+        default={},
+    )
+
+
+_DRIVE = Obj(
+    {
+        "pump_disp_max_cc": Num(1, 1000, "cm3/rev", default=None),
+        "motor_disp_max_cc": Num(1, 1000, "cm3/rev", default=None),
+        "motor_disp_setting": Num(0.05, 1.0, "(fraction of max)", default=None),
+        "charge_pressure_bar": Num(0, 60, "bar", default=None),
+        "relief_dp_bar": Num(50, 650, "bar", default=None),
+        "relief_gain_lpm_per_bar": Num(0.1, 1000, "l/min/bar", default=None),
+        "bulk_modulus_bar": Num(1000, 30000, "bar", default=None),
+        "line_volume_l": Num(0.01, 100, "l", default=None),
+        "motor_inertia_kgm2": Num(0.001, 1000, "kg m2", default=None),
+        "motor_friction_nm": Num(0, 500, "Nm", default=None),
+        "motor_viscous_nm_per_krpm": Num(0, 500, "Nm/krpm", default=None),
+        "heat_capacity_kj_per_k": Num(1, 10000, "kJ/K", default=None),
+        "cooler_w_per_k": Num(1, 100000, "W/K", default=None),
+        "hm_loss_fraction": Num(0, 0.5, default=None),
+    },
+    default={},
+)
+
+_PHASE_TABLE_POINT = Obj(
+    {
+        "t_s": Num(0, INF, "s"),
+        "pump_speed_rpm": Num(0, 3600, "rpm"),
+        "pump_disp_pct": Num(0, 100, "%"),
+        "dp_bar": Num(0, 600, "bar"),
+    }
+)
+
+
+def _table_rule(d: dict[str, Any]) -> tuple[str, str] | None:
+    ts = [p["t_s"] for p in d["points"]]
+    if any(b <= a for a, b in itertools.pairwise(ts)):
+        return "points", "t_s must increase strictly from point to point"
+    return None
+
+
+def _sweep_rule(d: dict[str, Any]) -> tuple[str, str] | None:
+    for key in ("pump_speed_rpm", "pump_disp_pct", "dp_bar", "hold_s"):
+        lo, hi = d[key]
+        if hi < lo:
+            return key, f"expected [low, high] with low <= high, got {d[key]}"
+    return None
+
+
+_MIXED = Obj(
+    {
+        "ramp_s": Num(0.05, 10, "s", default=0.8),
+        "speed_scale": Num(0.5, 1.5, default=1.0),
+        "load_scale": Num(0.2, 1.2, default=1.0),
+    }
+)
+_DUTY = OneOf(
+    "kind",
+    {
+        "constant": Obj(
+            {
+                "pump_speed_rpm": Num(0, 3600, "rpm"),
+                "pump_disp_pct": Num(0, 100, "%"),
+                "dp_bar": Num(0, 600, "bar"),
+            }
+        ),
+        "wheel_loader": _MIXED,
+        "excavator": _MIXED,
+        "sweep": Obj(
+            {
+                "pump_speed_rpm": Seq(Num(0, 3600, "rpm"), min_len=2, max_len=2),
+                "pump_disp_pct": Seq(Num(0, 100, "%"), min_len=2, max_len=2),
+                "dp_bar": Seq(Num(0, 600, "bar"), min_len=2, max_len=2),
+                "hold_s": Seq(Num(0.5, 3600, "s"), min_len=2, max_len=2, default=[4.0, 12.0]),
+                "ramp_s": Num(0.05, 10, "s", default=0.8),
+            },
+            rule=_sweep_rule,
+        ),
+        "table": Obj(
+            {
+                "points": Seq(_PHASE_TABLE_POINT, min_len=1),
+                "interpolation": Str(default="linear", choices=("linear", "step")),
+                "repeat": Bool(default=False),
+            },
+            rule=_table_rule,
+        ),
+    },
+)
+
+_OIL = OneOf(
+    "model",
+    {
+        "heat_balance": Obj(
+            {
+                "ambient_c": Num(-40, 60, "C", default=25.0),
+                "ambient_swing_c": Num(0, 30, "C", default=0.0),
+                "ambient_period_h": Num(0.1, 1000, "h", default=24.0),
+                "initial_c": Num(-30, 120, "C", default=None),
+            }
+        ),
+        "prescribed": Obj(
+            {
+                "temp_c": Num(-30, 120, "C"),
+                "swing_c": Num(0, 50, "C", default=0.0),
+                "period_h": Num(0.01, 1000, "h", default=24.0),
+            }
+        ),
+        "profile": Obj(
+            {"points": Seq(Seq(Num(-1e9, 1e9), min_len=2, max_len=2), min_len=2), "repeat": Bool(default=False)}
+        ),
+    },
+)
+
+_REF = {"ref_dp_bar": Num(10, 600, "bar", default=480.0), "ref_temp_c": Num(0, 120, "C", default=60.0)}
+_COMPONENT = Str(choices=("pump", "motor"))
+
+
+def _wear_rule(e: dict[str, Any]) -> tuple[str, str] | None:
+    if e["fail_h"] <= e["start_h"]:
+        return "fail_h", f"must be later than start_h ({e['start_h']} h), got {e['fail_h']}"
+    return None
+
+
+def _mis_rule(e: dict[str, Any]) -> tuple[str, str] | None:
+    if e["mode"] == "drift" and (e["end_h"] is None or e["end_h"] <= e["start_h"]):
+        return "end_h", f"a drift needs end_h later than start_h ({e['start_h']} h)"
+    if e["fail_h"] is not None and e["fail_h"] < e["start_h"]:
+        return "fail_h", f"must not be earlier than start_h ({e['start_h']} h)"
+    return None
+
+
+_EVENT = OneOf(
+    "type",
+    {
+        "leakage": Obj(
+            {
+                "component": Str(default="loop", choices=("loop", "pump", "motor")),
+                "start_h": Num(0, INF, "h"),
+                "extra_lpm": Num(0, 200, "l/min"),
+                "ref_dp_bar": Num(10, 600, "bar", default=480.0),
+                "ramp_h": Num(0, INF, "h", default=0.0),
+            }
+        ),
+        "wear": Obj(
+            {
+                "component": _COMPONENT,
+                "start_h": Num(0, INF, "h"),
+                "fail_h": Num(0, INF, "h"),
+                "fail_extra_lpm": Num(0.1, 200, "l/min", default=40.0),
+                "shape": Num(1, 8, default=3.0),
+                **_REF,
+            },
+            rule=_wear_rule,
+        ),
+        "misposition": Obj(
+            {
+                "mode": Str(choices=("step", "drift")),
+                "start_h": Num(0, INF, "h"),
+                "end_h": Num(0, INF, "h", default=None),
+                "pct": Num(-50, 50, "% of motor displacement"),
+                "fail_h": Num(0, INF, "h", default=None),
+            },
+            rule=_mis_rule,
+        ),
+        "failure": Obj(
+            {
+                "component": _COMPONENT,
+                "at_h": Num(0, INF, "h"),
+                "extra_lpm": Num(1, 500, "l/min", default=120.0),
+                **_REF,
+            }
+        ),
+        "replace": Obj({"component": _COMPONENT, "at_h": Num(0, INF, "h")}),
+    },
+)
+
+_SENSORS = Obj(
+    {
+        "noise": Obj(
+            {
+                "pump_speed_rpm": Num(0, 100, "rpm", default=1.5),
+                "pump_disp_cc": Num(0, 10, "cm3/rev", default=0.15),
+                "high_pressure_bar": Num(0, 50, "bar", default=1.5),
+                "low_pressure_bar": Num(0, 50, "bar", default=0.3),
+                "temp_c": Num(0, 10, "C", default=0.1),
+                "motor_speed_rpm": Num(0, 100, "rpm", default=3.0),
+            },
+            default={},
+        ),
+        "jitter_ms": Num(0, 5, "ms", default=0.0),
+    },
+    default={},
+)
+
+
+def _sampling_rule(s: dict[str, Any]) -> tuple[str, str] | None:
+    if s["mode"] == "bursts" and s["burst_s"] > s["every_min"] * 60:
+        return "burst_s", f"must not exceed the burst interval ({s['every_min']} min)"
+    return None
+
+
+_SCENARIO = Obj(
+    {
+        "name": Str(),
+        "description": Str(default=""),
+        "seed": Num(0, 2**32 - 1, integer=True),
+        "duration_h": Num(1e-4, 20000, "h"),
+        "sample_rate_hz": Num(10, 1000, "Hz", default=100.0),
+        "start_epoch_s": Num(0, 4e9, "s", default=1767225600.0),
+        "sampling": Obj(
+            {
+                "mode": Str(default="continuous", choices=("continuous", "bursts")),
+                "burst_s": Num(0.5, 3600, "s", default=10.0),
+                "every_min": Num(0.1, 1440, "min", default=10.0),
+            },
+            default={},
+            rule=_sampling_rule,
+        ),
+        "drive": _DRIVE,
+        "losses": Obj({"pump": _unit_losses(), "motor": _unit_losses()}, default={}),
+        "oil": _OIL,
+        "duty": _DUTY,
+        "events": Seq(_EVENT, default=[]),
+        "sensors": _SENSORS,
+    }
+)
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str
+    source: str
+    raw: dict[str, Any]
+    params: DriveParams
+
+    @property
+    def seed(self) -> int:
+        return int(self.raw["seed"])
+
+    @property
+    def duration_h(self) -> float:
+        return float(self.raw["duration_h"])
+
+    @property
+    def events(self) -> list[dict[str, Any]]:
+        return list(self.raw["events"])
+
+    def with_overrides(self, **top: Any) -> Scenario:
+        """A copy with top-level fields replaced (e.g. ``seed=``, ``duration_h=``), validated again.
+
+        Shortening a run drops the events that would start after its new end."""
+        raw = {**self.raw, **top}
+        if "duration_h" in top and "events" not in top:
+            raw["events"] = [e for e in self.raw["events"] if e.get("start_h", e.get("at_h", 0.0)) <= top["duration_h"]]
+        return from_dict(raw, source=self.source)
+
+
+def _params_from(raw: dict[str, Any]) -> DriveParams:
+    p = DriveParams()
+    overrides = {k: v for k, v in raw["drive"].items() if v is not None}
+    p = replace(p, **overrides)
+    units = {}
+    for unit in ("pump", "motor"):
+        base: UnitLosses = getattr(p, unit)
+        spec = raw["losses"][unit]
+        units[unit] = UnitLosses(
+            laminar_cs=_coeff(spec["laminar"], "cs", base.laminar_cs),
+            turbulent_ct=_coeff(spec["turbulent"], "ct", base.turbulent_ct),
+            compress_factor=_coeff(spec["compressibility"], "factor", base.compress_factor),
+        )
+    return replace(p, **units)
+
+
+def _coeff(term: dict[str, Any], key: str, default: float) -> float:
+    if not term["enabled"]:
+        return 0.0
+    return default if term[key] is None else float(term[key])
+
+
+def _check_events(raw: dict[str, Any], source: str) -> None:
+    for i, ev in enumerate(raw["events"]):
+        t0 = ev.get("start_h", ev.get("at_h"))
+        if t0 is not None and t0 > raw["duration_h"]:
+            raise SchemaError(
+                source, f"events[{i}]", f"starts at {t0} h, after the end of the run ({raw['duration_h']} h)"
+            )
+
+
+def from_dict(data: Any, source: str = "<scenario>") -> Scenario:
+    raw = _SCENARIO.check(data, source, "")
+    _check_events(raw, source)
+    return Scenario(name=raw["name"], source=source, raw=raw, params=_params_from(raw))
+
+
+def load(path: str | Path) -> Scenario:
+    return from_dict(load_yaml(path), source=str(path))
+
+
+def shipped_dir() -> Path:
+    return Path(__file__).resolve().parent / "scenarios"
+
+
+def shipped(name: str) -> Path:
+    """Path of a scenario shipped with cmcan (``name`` with or without ``.yaml``)."""
+    stem = name[:-5] if name.endswith(".yaml") else name
+    path = shipped_dir() / f"{stem}.yaml"
+    if not path.exists():
+        names = ", ".join(sorted(p.stem for p in shipped_dir().glob("*.yaml")))
+        raise FileNotFoundError(f"no shipped scenario {name!r}; shipped: {names}")
+    return path
+
+
+def resolve(name_or_path: str | Path) -> Path:
+    """A scenario given as a path, or by the name of a shipped one."""
+    p = Path(name_or_path)
+    if p.exists() or (p.suffix in (".yaml", ".yml") and p.parent != Path(".")):
+        return p
+    try:
+        return shipped(str(name_or_path))
+    except FileNotFoundError:
+        return p

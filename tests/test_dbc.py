@@ -1,0 +1,110 @@
+"""The DBC contract: strict loading, documented signals, named nodes, round trips."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from cmcan import codec
+from cmcan.signals import DEFAULT_INPUTS
+
+INPUT_IDS = {0x100, 0x101, 0x102, 0x103}
+
+
+def all_signals(db):
+    return [(m, s) for m in db.messages for s in m.signals]
+
+
+def test_loads_strictly_with_expected_messages(db):
+    names = {m.name for m in db.messages}
+    assert {"PUMP_STATUS", "LOOP_PRESSURE", "MOTOR_STATUS", "OIL_STATUS", "CM_RATIO", "CM_SPEED", "CM_WARNING"} == names
+    assert all(not m.is_extended_frame and m.frame_id <= 0x7FF for m in db.messages)
+    assert {m.frame_id for m in db.messages if "DRIVE_CTRL" in m.senders} == INPUT_IDS
+
+
+def test_every_signal_has_unit_range_scaling_comment(db):
+    for m, s in all_signals(db):
+        assert s.unit, f"{m.name}.{s.name} has no unit"
+        assert s.minimum is not None and s.maximum is not None, f"{m.name}.{s.name} has no range"
+        assert s.scale > 0
+        assert s.comment, f"{m.name}.{s.name} has no comment"
+        assert s.receivers, f"{m.name}.{s.name} has no receivers"
+    for m in db.messages:
+        assert m.comment and m.senders and m.cycle_time
+
+
+def test_senders_and_receivers_are_declared_nodes(db):
+    nodes = {n.name for n in db.nodes}
+    assert nodes == {"DRIVE_CTRL", "CMCAN", "DISPLAY", "TELEMATICS"}
+    for m, s in all_signals(db):
+        assert set(m.senders) <= nodes and set(s.receivers) <= nodes
+
+
+def test_outputs_carry_what_the_contract_names(db):
+    ratio = {s.name: s for s in db.get_message_by_name("CM_RATIO").signals}
+    assert ratio["cm_ratio_raw_pct"].scale == 0.01 and ratio["cm_ratio_filt_pct"].scale == 0.01
+    assert ratio["extra_leakage_lpm"].unit == "l/min"
+    warn = db.get_message_by_name("CM_WARNING")
+    choices = warn.get_signal_by_name("warning_level").choices
+    assert {str(v) for v in choices.values()} == {"ok", "low", "high", "fault"}
+
+
+def test_input_mapping_points_at_real_signals(db):
+    for msg, sig in DEFAULT_INPUTS.values():
+        db.get_message_by_name(msg).get_signal_by_name(sig)
+
+
+def signal_values(m, s):
+    lo, hi = s.minimum, s.maximum
+    return st.floats(min_value=lo, max_value=hi, allow_nan=False, allow_infinity=False)
+
+
+@pytest.mark.parametrize(
+    "name", ["PUMP_STATUS", "LOOP_PRESSURE", "MOTOR_STATUS", "OIL_STATUS", "CM_RATIO", "CM_SPEED", "CM_WARNING"]
+)
+@settings(max_examples=60, deadline=None)
+@given(data=st.data())
+def test_every_signal_round_trips_within_its_resolution(db, name, data):
+    m = db.get_message_by_name(name)
+    values = {s.name: data.draw(signal_values(m, s), label=s.name) for s in m.signals}
+    frame = m.encode(values, strict=True)
+    back = m.decode(frame, decode_choices=False)
+    for s in m.signals:
+        assert abs(back[s.name] - values[s.name]) <= s.scale / 2 + 1e-9 * max(1.0, abs(values[s.name]))
+
+
+@pytest.mark.parametrize(
+    "name", ["PUMP_STATUS", "LOOP_PRESSURE", "MOTOR_STATUS", "OIL_STATUS", "CM_RATIO", "CM_SPEED", "CM_WARNING"]
+)
+@settings(max_examples=40, deadline=None)
+@given(data=st.data())
+def test_vectorized_codec_equals_cantools(db, name, data):
+    m = db.get_message_by_name(name)
+    n = data.draw(st.integers(1, 6))
+    cols = {s.name: np.array([data.draw(signal_values(m, s)) for _ in range(n)]) for s in m.signals}
+    frames = codec.encode(m, cols)
+    for i in range(n):
+        row = {k: float(codec.quantize(m, k, v[i : i + 1])[0]) for k, v in cols.items()}
+        assert bytes(frames[i]) == m.encode(row, strict=False)
+    decoded = codec.decode(m, frames)
+    for i in range(n):
+        ref = m.decode(bytes(frames[i]), decode_choices=False)
+        for k in cols:
+            assert decoded[k][i] == pytest.approx(ref[k], abs=1e-9)
+
+
+@settings(max_examples=100, deadline=None)
+@given(payload=st.binary(min_size=8, max_size=8))
+def test_vectorized_decode_of_arbitrary_payloads_equals_cantools(db, payload):
+    for m in db.messages:
+        ours = codec.decode(m, np.frombuffer(payload, dtype=np.uint8).reshape(1, 8))
+        ref = m.decode(payload, decode_choices=False)
+        for k, v in ref.items():
+            assert ours[k][0] == pytest.approx(v, abs=1e-9)
+
+
+def test_out_of_range_values_saturate_instead_of_failing(db):
+    m = db.get_message_by_name("PUMP_STATUS")
+    frames = codec.encode(m, {"pump_speed_rpm": np.array([-5.0, 1e9]), "pump_disp_cc": np.array([0.0, 0.0])})
+    back = codec.decode(m, frames)
+    assert list(back["pump_speed_rpm"]) == [0.0, 8000.0]
