@@ -6,6 +6,19 @@ maps the same roles onto its own messages and signals in its configuration.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class SignalRef:
+    """Where a role is on the bus: value_in_role_unit = physical_value * scale + offset."""
+
+    message: str
+    signal: str
+    scale: float = 1.0
+    offset: float = 0.0
+
+
 # role -> (DBC message, DBC signal) in dbc/cmcan.dbc
 DEFAULT_INPUTS: dict[str, tuple[str, str]] = {
     "pump_speed_rpm": ("PUMP_STATUS", "pump_speed_rpm"),

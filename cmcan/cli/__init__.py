@@ -11,7 +11,7 @@ from collections.abc import Sequence
 from cmcan import __version__
 from cmcan.cli.errors import EX_SOFTWARE, CliError
 
-SUBCOMMANDS = ("simulate",)
+SUBCOMMANDS = ("simulate", "train", "evaluate")
 
 
 def build_parser() -> argparse.ArgumentParser:

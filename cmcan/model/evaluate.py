@@ -1,0 +1,166 @@
+"""The paper's protocol: D_trn (start of a healthy run), D_tst (its rest), D_val (another run that
+degrades after t_dam), plus any further healthy runs; the figures that say whether a model is good."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cmcan.model.features import OperatingPoints
+
+
+class Predictor(Protocol):
+    def predict(self, x: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]: ...
+
+
+@dataclass(frozen=True)
+class SetResult:
+    name: str
+    hours: NDArray[np.float64]
+    measured_rpm: NDArray[np.float64]
+    pred_rpm: NDArray[np.float64]
+    whitebox_rpm: NDArray[np.float64]
+
+    @property
+    def ratio(self) -> NDArray[np.float64]:
+        return self.measured_rpm / self.pred_rpm
+
+    def figures(self) -> dict[str, Any]:
+        if len(self.hours) == 0:
+            return {"points": 0}
+        r = self.ratio * 100.0
+        return {
+            "points": len(self.hours),
+            "rmse_graybox_rpm": _rmse(self.pred_rpm - self.measured_rpm),
+            "rmse_whitebox_rpm": _rmse(self.whitebox_rpm - self.measured_rpm),
+            "ratio_mean_pct": float(np.mean(r)),
+            "ratio_p1_pct": float(np.percentile(r, 1)),
+            "ratio_p99_pct": float(np.percentile(r, 99)),
+            "ratio_halfwidth_pct": float((np.percentile(r, 99) - np.percentile(r, 1)) / 2),
+        }
+
+
+def _rmse(e: NDArray[np.float64]) -> float:
+    return float(np.sqrt(np.mean(e**2))) if len(e) else float("nan")
+
+
+def run_set(model: Predictor, op: OperatingPoints, mask: NDArray[np.bool_], name: str) -> SetResult:
+    sub = op.select(mask & op.steady)
+    if len(sub.t_s) == 0:
+        return SetResult(name, np.empty(0), np.empty(0), np.empty(0), np.empty(0))
+    pred, wb = model.predict(sub.x)
+    return SetResult(name, sub.hours, sub.motor_speed_rpm, pred, wb)
+
+
+def protocol(
+    model: Predictor,
+    train_op: OperatingPoints,
+    t_trn_h: float,
+    val_op: OperatingPoints | None = None,
+    t_dam_h: float | None = None,
+    healthy: dict[str, OperatingPoints] | None = None,
+) -> tuple[dict[str, Any], list[SetResult]]:
+    """Figures of every set, and the sets themselves for plotting."""
+    sets = [
+        run_set(model, train_op, train_op.hours < t_trn_h, "D_trn"),
+        run_set(model, train_op, train_op.hours >= t_trn_h, "D_tst"),
+    ]
+    report: dict[str, Any] = {"t_trn_h": t_trn_h}
+    for name, op in (healthy or {}).items():
+        sets.append(run_set(model, op, np.ones(len(op.t_s), dtype=bool), name))
+    if val_op is not None:
+        if t_dam_h is None:
+            raise ValueError("D_val needs its damage onset t_dam")
+        report["t_dam_h"] = t_dam_h
+        sets.append(run_set(model, val_op, val_op.hours < t_dam_h, "D_val_healthy"))
+        sets.append(run_set(model, val_op, val_op.hours >= t_dam_h, "D_val_damaged"))
+    report["sets"] = {s.name: s.figures() for s in sets}
+    by = {s.name: s for s in sets}
+    checks: dict[str, Any] = {}
+    for s in sets:
+        f = report["sets"][s.name]
+        if s.name in ("D_trn", "D_val_damaged") or f["points"] == 0:
+            continue
+        checks[f"{s.name}: graybox_rmse <= whitebox_rmse / 3"] = bool(
+            f["rmse_graybox_rpm"] <= f["rmse_whitebox_rpm"] / 3
+        )
+        checks[f"{s.name}: ratio p1..p99 within 99..101 %"] = bool(
+            f["ratio_p1_pct"] >= 99.0 and f["ratio_p99_pct"] <= 101.0
+        )
+    if val_op is not None and by["D_val_healthy"].hours.size and by["D_val_damaged"].hours.size:
+        h, d = report["sets"]["D_val_healthy"], report["sets"]["D_val_damaged"]
+        shift = d["ratio_mean_pct"] - h["ratio_mean_pct"]
+        report["damage_shift_pct"] = shift
+        report["damage_shift_in_halfwidths"] = abs(shift) / h["ratio_halfwidth_pct"]
+        checks["D_val: |shift after t_dam| >= 3 healthy p1..p99 half-widths"] = bool(
+            report["damage_shift_in_halfwidths"] >= 3.0
+        )
+    report["checks"] = checks
+    report["passed"] = all(checks.values())
+    return report, sets
+
+
+def format_report(report: dict[str, Any]) -> str:
+    lines = [f"{'set':<16}{'points':>8}{'RMSE gray':>11}{'RMSE white':>12}{'ratio mean':>12}{'p1':>9}{'p99':>9}"]
+    for name, f in report["sets"].items():
+        if f["points"] == 0:
+            lines.append(f"{name:<16}{0:>8}  (no steady points)")
+            continue
+        lines.append(
+            f"{name:<16}{f['points']:>8}{f['rmse_graybox_rpm']:>10.2f} {f['rmse_whitebox_rpm']:>11.2f} "
+            f"{f['ratio_mean_pct']:>11.3f}%{f['ratio_p1_pct']:>8.3f}%{f['ratio_p99_pct']:>8.3f}%"
+        )
+    if "damage_shift_pct" in report:
+        lines.append(
+            f"damage shift after t_dam: {report['damage_shift_pct']:+.3f} %-points "
+            f"= {report['damage_shift_in_halfwidths']:.1f} healthy half-widths"
+        )
+    for name, ok in report["checks"].items():
+        lines.append(f"  [{'ok' if ok else 'FAIL'}] {name}")
+    return "\n".join(lines)
+
+
+def plot(sets: list[SetResult], report: dict[str, Any], path: str) -> None:
+    """Predicted minus actual motor speed over time, training end and damage onset marked (paper
+    Figures 6 and 7): one panel for the training run, one for the validation run."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    by = {s.name: s for s in sets}
+    panels = [("training run", ["D_trn", "D_tst"], report.get("t_trn_h"), "end of training")]
+    if "D_val_healthy" in by:
+        panels.append(("validation run", ["D_val_healthy", "D_val_damaged"], report.get("t_dam_h"), "damage onset"))
+    extra = [s.name for s in sets if s.name not in ("D_trn", "D_tst", "D_val_healthy", "D_val_damaged")]
+    for name in extra:
+        panels.append((name, [name], None, ""))
+    fig, axes = plt.subplots(len(panels), 1, figsize=(10, 3.2 * len(panels)), squeeze=False)
+    colors = {"D_trn": "tab:blue", "D_tst": "tab:green", "D_val_healthy": "tab:green", "D_val_damaged": "tab:red"}
+    for ax, (title, names, mark, label) in zip(axes[:, 0], panels, strict=True):
+        for n in names:
+            s = by[n]
+            ax.plot(s.hours, s.pred_rpm - s.measured_rpm, ".", ms=1.5, color=colors.get(n, "tab:gray"), label=n)
+            ax.plot(
+                s.hours,
+                s.whitebox_rpm - s.measured_rpm,
+                ".",
+                ms=0.8,
+                alpha=0.25,
+                color="tab:orange",
+                label=f"{n} white-box" if n == names[0] else None,
+            )
+        if mark is not None:
+            ax.axvline(mark, color="k", ls="--", lw=1)
+            ax.text(mark, ax.get_ylim()[1], f" {label}", va="top", fontsize=8)
+        ax.axhline(0, color="k", lw=0.5)
+        ax.set_title(title)
+        ax.set_xlabel("time (h)")
+        ax.set_ylabel("predicted - measured (rpm)")
+        ax.legend(loc="lower left", fontsize=7, markerscale=6)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

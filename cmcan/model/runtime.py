@@ -1,0 +1,95 @@
+"""Running a cmcan model with onnxruntime on the gateway: CPU, one thread, metadata checked."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cmcan.model.metadata import INPUT_NAME, OUTPUT_PRED, OUTPUT_WHITEBOX, ModelError, ModelMeta
+from cmcan.signals import MODEL_INPUTS, MODEL_UNITS
+
+
+class GrayBoxModel:
+    """A loaded model: ``predict`` for batches, ``predict_one`` for the monitor's per-tick call."""
+
+    def __init__(
+        self, path: str | Path, expected_inputs: dict[str, str] | None = None, motor_disp_cc: float | None = None
+    ) -> None:
+        import onnxruntime as ort
+
+        self.path = Path(path)
+        if not self.path.exists():
+            raise ModelError(f"{self.path}: model file not found")
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = 1
+        opts.inter_op_num_threads = 1
+        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        opts.log_severity_level = 3
+        try:
+            self.session = ort.InferenceSession(str(self.path), sess_options=opts, providers=["CPUExecutionProvider"])
+        except Exception as exc:  # onnxruntime raises its own exception types for bad files
+            raise ModelError(f"{self.path}: not a loadable ONNX model: {exc}") from None
+        props = self.session.get_modelmeta().custom_metadata_map
+        self.meta = ModelMeta.from_props(props, str(self.path))
+        self._check(expected_inputs or MODEL_UNITS, motor_disp_cc)
+        self._one = np.zeros((1, len(MODEL_INPUTS)), dtype=np.float32)
+        self._outputs = [OUTPUT_PRED, OUTPUT_WHITEBOX]
+
+    def _check(self, expected: dict[str, str], motor_disp_cc: float | None) -> None:
+        src = str(self.path)
+        declared = {d["name"]: d["unit"] for d in self.meta.inputs}
+        names = self.meta.input_names
+        if names != list(expected):
+            raise ModelError(f"{src}: model inputs are {names}, the configuration feeds {list(expected)}")
+        for name, unit in expected.items():
+            if declared[name] != unit:
+                raise ModelError(f"{src}: input {name!r} is in {declared[name]!r}, the configuration gives {unit!r}")
+        graph_in = self.session.get_inputs()
+        if len(graph_in) != 1 or graph_in[0].name != INPUT_NAME or graph_in[0].shape[-1] != len(names):
+            raise ModelError(f"{src}: graph input must be {INPUT_NAME!r} of shape [N, {len(names)}]")
+        outs = {o.name for o in self.session.get_outputs()}
+        if not {OUTPUT_PRED, OUTPUT_WHITEBOX} <= outs:
+            raise ModelError(f"{src}: graph outputs {sorted(outs)} lack {OUTPUT_PRED!r} or {OUTPUT_WHITEBOX!r}")
+        if motor_disp_cc is not None and abs(self.meta.motor_disp_cc - motor_disp_cc) > 1e-6 * motor_disp_cc:
+            raise ModelError(
+                f"{src}: trained for a motor displacement of {self.meta.motor_disp_cc:g} cm3/rev, "
+                f"the configuration says {motor_disp_cc:g} cm3/rev"
+            )
+
+    @property
+    def envelope(self) -> dict[str, tuple[float, float]]:
+        return {k: (float(v[0]), float(v[1])) for k, v in self.meta.envelope.items()}
+
+    @property
+    def motor_disp_cc(self) -> float:
+        return float(self.meta.motor_disp_cc)
+
+    def predict(self, x: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """(predicted, white-box) motor speed in rpm for inputs (n, 4) in the model's input order."""
+        xx = np.ascontiguousarray(np.atleast_2d(x), dtype=np.float32)
+        pred, wb = self.session.run(self._outputs, {INPUT_NAME: xx})
+        return pred[:, 0].astype(float), wb[:, 0].astype(float)
+
+    def predict_one(
+        self, pump_speed_rpm: float, pump_disp_cc: float, dp_bar: float, temp_c: float
+    ) -> tuple[float, float]:
+        one = self._one
+        one[0, 0] = pump_speed_rpm
+        one[0, 1] = pump_disp_cc
+        one[0, 2] = dp_bar
+        one[0, 3] = temp_c
+        pred, wb = self.session.run(self._outputs, {INPUT_NAME: one})
+        return float(pred[0, 0]), float(wb[0, 0])
+
+
+def load_model(
+    path: str | Path, expected_inputs: dict[str, str] | None = None, motor_disp_cc: float | None = None
+) -> GrayBoxModel:
+    return GrayBoxModel(path, expected_inputs, motor_disp_cc)
+
+
+def default_model_path() -> Path:
+    return Path(__file__).resolve().parent / "default.onnx"

@@ -1,0 +1,132 @@
+"""The gray-box model: training, the one-graph ONNX export, metadata, and the runtime's checks."""
+
+import json
+
+import numpy as np
+import onnx
+import pytest
+
+from cmcan import config as cfgmod
+from cmcan.model import ModelError, load_model
+from cmcan.model.features import operating_points, series_from_columns
+from cmcan.model.train import train_on_points
+from cmcan.signals import MODEL_INPUTS
+from cmcan.sim import scenario as scn
+from cmcan.sim.run import simulate
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    cfg = cfgmod.load()
+    run = simulate(scn.load(scn.shipped("training_healthy")).with_overrides(duration_h=0.6))
+    series, truth = series_from_columns(run.columns)
+    op = operating_points(series, cfg.gate_limits, 10.0, truth=truth)
+    blob, model, stats = train_on_points(op, 0.4, cfg.motor_disp_cc, "test")
+    path = tmp_path_factory.mktemp("model") / "m.onnx"
+    path.write_bytes(blob)
+    return path, model, stats, op
+
+
+def envelope_samples(model, n=4000, seed=1):
+    rng = np.random.default_rng(seed)
+    lo = np.array([model.envelope[k][0] for k in MODEL_INPUTS])
+    hi = np.array([model.envelope[k][1] for k in MODEL_INPUTS])
+    return lo + rng.random((n, len(MODEL_INPUTS))) * (hi - lo)
+
+
+def test_onnx_equals_python_reference_within_1e5_over_the_envelope(trained):
+    path, model, _, _ = trained
+    x = envelope_samples(model)
+    pred, wb = load_model(path).predict(x)
+    ref = model.predict(x)
+    assert np.max(np.abs(pred - ref) / np.abs(ref)) < 1e-5
+    np.testing.assert_allclose(wb, model.whitebox(x), rtol=1e-6)
+
+
+def test_single_sample_and_batch_agree(trained):
+    m = load_model(trained[0])
+    x = envelope_samples(trained[1], n=20)
+    pred, wb = m.predict(x)
+    for i in range(len(x)):
+        p1, w1 = m.predict_one(*x[i])
+        assert p1 == pytest.approx(pred[i], rel=1e-7) and w1 == pytest.approx(wb[i], rel=1e-7)
+
+
+def test_one_graph_holds_scaling_whitebox_and_network(trained):
+    g = onnx.load(str(trained[0])).graph
+    ops = {n.op_type for n in g.node}
+    assert {"Scaler", "MatMul", "Tanh", "Abs", "Mul", "Add"} <= ops or {"Sub", "Div", "MatMul", "Tanh"} <= ops
+    assert [o.name for o in g.output] == ["motor_speed_pred_rpm", "motor_speed_whitebox_rpm"]
+    assert [i.name for i in g.input] == ["x"]
+
+
+def test_metadata_names_inputs_units_envelope_and_training(trained):
+    path, _model, _stats, op = trained
+    props = {p.key: json.loads(p.value) for p in onnx.load(str(path)).metadata_props}
+    assert props["cmcan.inputs"] == [
+        {"name": "pump_speed_rpm", "unit": "rpm", "index": 0},
+        {"name": "pump_disp_cc", "unit": "cm3/rev", "index": 1},
+        {"name": "dp_bar", "unit": "bar", "index": 2},
+        {"name": "temp_c", "unit": "degC", "index": 3},
+    ]
+    assert props["cmcan.motor_disp_cc"] == 44.0
+    env = props["cmcan.envelope"]
+    trn = op.steady & (op.hours < 0.4)
+    assert env["dp_bar"] == [pytest.approx(op.x[trn, 2].min()), pytest.approx(op.x[trn, 2].max())]
+    assert props["cmcan.residual_stats"]["set"] == "D_tst" and props["cmcan.residual_stats"]["rmse_rpm"] > 0
+    assert len(props["cmcan.training"]["fingerprint"]) == 64
+    assert props["cmcan.model_version"].endswith(props["cmcan.training"]["fingerprint"][:12])
+
+
+def test_graybox_beats_whitebox_on_held_out_points(trained):
+    path, _, _stats, op = trained
+    tst = op.steady & (op.hours >= 0.4)
+    pred, wb = load_model(path).predict(op.x[tst])
+    y = op.motor_speed_rpm[tst]
+    assert np.sqrt(np.mean((pred - y) ** 2)) < np.sqrt(np.mean((wb - y) ** 2)) / 3
+
+
+def test_refuses_a_model_for_another_motor_displacement(trained):
+    with pytest.raises(ModelError, match="motor displacement of 44 cm3/rev, the configuration says 55"):
+        load_model(trained[0], motor_disp_cc=55.0)
+
+
+def test_refuses_inputs_in_other_units(trained):
+    expected = {"pump_speed_rpm": "rpm", "pump_disp_cc": "%", "dp_bar": "bar", "temp_c": "degC"}
+    with pytest.raises(ModelError, match="'pump_disp_cc' is in 'cm3/rev', the configuration gives '%'"):
+        load_model(trained[0], expected_inputs=expected)
+
+
+def test_refuses_other_inputs(trained):
+    with pytest.raises(ModelError, match="model inputs are"):
+        load_model(trained[0], expected_inputs={"pump_speed_rpm": "rpm", "dp_bar": "bar"})
+
+
+def test_refuses_a_foreign_onnx_file(tmp_path):
+    from onnx import TensorProto, helper
+
+    g = helper.make_graph(
+        [helper.make_node("Identity", ["x"], ["y"])],
+        "g",
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, [None, 4])],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, [None, 4])],
+    )
+    p = tmp_path / "foreign.onnx"
+    onnx.save(helper.make_model(g), str(p))
+    with pytest.raises(ModelError, match="not a cmcan model"):
+        load_model(p)
+
+
+def test_refuses_garbage_and_missing_files(tmp_path):
+    p = tmp_path / "garbage.onnx"
+    p.write_bytes(b"not onnx at all")
+    with pytest.raises(ModelError, match="not a loadable ONNX model"):
+        load_model(p)
+    with pytest.raises(ModelError, match="not found"):
+        load_model(tmp_path / "missing.onnx")
+
+
+def test_too_little_training_data_is_refused(trained):
+    op = trained[3]
+    with pytest.raises(ValueError, match="steady points before t_trn"):
+        train_on_points(op, 0.001, 44.0, "tiny")

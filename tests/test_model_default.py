@@ -1,0 +1,77 @@
+"""The shipped default model: the paper protocol's figures, and that it rebuilds to the same model."""
+
+import numpy as np
+import pytest
+
+from cmcan import config as cfgmod
+from cmcan.model import load_model
+from cmcan.model.evaluate import protocol
+from cmcan.model.features import operating_points, series_from_columns
+from cmcan.model.rebuild_default import build
+from cmcan.model.runtime import default_model_path
+from cmcan.signals import MODEL_INPUTS
+from cmcan.sim import scenario as scn
+from cmcan.sim.run import simulate
+
+pytestmark = pytest.mark.slow
+
+
+def points(name, **over):
+    cfg = cfgmod.load()
+    s = scn.load(scn.shipped(name))
+    run = simulate(s.with_overrides(**over) if over else s)
+    series, truth = series_from_columns(run.columns, name)
+    return operating_points(series, cfg.gate_limits, 10.0, truth=truth)
+
+
+@pytest.fixture(scope="module")
+def report():
+    model = load_model(default_model_path(), motor_disp_cc=cfgmod.load().motor_disp_cc)
+    rep, _ = protocol(
+        model,
+        points("training_healthy"),
+        1.0,
+        points("two_set_validation"),
+        1.0,
+        {"two_set_train": points("two_set_train")},
+    )
+    return rep
+
+
+@pytest.mark.parametrize("name", ["D_tst", "two_set_train", "D_val_healthy"])
+def test_graybox_rmse_is_at_most_a_third_of_whitebox(report, name):
+    f = report["sets"][name]
+    print(name, f)
+    assert f["points"] > 1000
+    assert f["rmse_graybox_rpm"] <= f["rmse_whitebox_rpm"] / 3
+
+
+@pytest.mark.parametrize("name", ["D_tst", "two_set_train", "D_val_healthy"])
+def test_healthy_ratio_stays_within_one_percent(report, name):
+    f = report["sets"][name]
+    assert f["ratio_p1_pct"] >= 99.0 and f["ratio_p99_pct"] <= 101.0
+
+
+def test_five_lpm_leakage_moves_the_ratio_by_three_halfwidths(report):
+    print("shift", report["damage_shift_pct"], "halfwidths", report["damage_shift_in_halfwidths"])
+    assert report["damage_shift_pct"] < 0
+    assert report["damage_shift_in_halfwidths"] >= 3.0
+
+
+def test_rebuild_matches_the_shipped_model(tmp_path):
+    out = tmp_path / "rebuilt.onnx"
+    build(out)
+    shipped = load_model(default_model_path())
+    rebuilt = load_model(out)
+    assert rebuilt.meta.training["fingerprint"] == shipped.meta.training["fingerprint"]
+    assert rebuilt.meta.eta_vol == pytest.approx(shipped.meta.eta_vol, rel=1e-9)
+    for k in MODEL_INPUTS:
+        assert rebuilt.envelope[k] == pytest.approx(shipped.envelope[k])
+    rng = np.random.default_rng(0)
+    lo = np.array([shipped.envelope[k][0] for k in MODEL_INPUTS])
+    hi = np.array([shipped.envelope[k][1] for k in MODEL_INPUTS])
+    x = lo + rng.random((5000, 4)) * (hi - lo)
+    a, _ = shipped.predict(x)
+    b, _ = rebuilt.predict(x)
+    # Same data and seed; only floating-point summation order of another BLAS may differ.
+    assert np.max(np.abs(a - b) / a) < 2e-3
