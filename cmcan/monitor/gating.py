@@ -9,6 +9,7 @@ about to define), so transients never teach the model.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from enum import IntEnum
 
@@ -102,47 +103,80 @@ def window_stats(
     return WindowStats(mean, std, count, age)
 
 
+def gate_point(
+    mean: dict[str, float],
+    std: dict[str, float],
+    count: dict[str, int],
+    age_s: dict[str, float],
+    limits: GateLimits,
+    max_age_s: dict[str, float] | None = None,
+    envelope: dict[str, tuple[float, float]] | None = None,
+) -> Gate:
+    """The gate of one operating point; the first failing rule in the order of :class:`Gate` wins.
+
+    The monitor calls this per evaluation tick and training per window, so both apply the very same
+    rules. All inputs silent (the machine is off, the bus idle) is ``NO_INPUT``, not a fault; some
+    inputs silent while others arrive is ``STALE_INPUT``.
+    """
+    roles = [r for r in GATED_ROLES if r in mean]
+    missing = 0
+    for r in roles:
+        a = age_s[r]
+        if a == math.inf or (max_age_s is not None and a > max_age_s.get(r, math.inf)):
+            missing += 1
+    if missing == len(roles):
+        return Gate.NO_INPUT
+    if missing:
+        return Gate.STALE_INPUT
+    for r in roles:
+        if count[r] < limits.min_samples:
+            return Gate.WARMING_UP
+    for r in roles:
+        lo, hi = limits.plausible.get(r, (-math.inf, math.inf))
+        m = mean[r]
+        if not (lo <= m <= hi):  # also catches NaN
+            return Gate.IMPLAUSIBLE_INPUT
+    if (
+        mean["pump_speed_rpm"] < limits.min_pump_speed_rpm
+        or abs(mean["pump_disp_cc"]) < limits.min_pump_disp_cc
+        or mean["motor_speed_rpm"] < limits.min_motor_speed_rpm
+    ):
+        return Gate.LOW_SPEED
+    for r, lim in limits.max_std.items():
+        if r in std and std[r] > lim:
+            return Gate.TRANSIENT
+    if envelope is not None:
+        for r, (lo, hi) in envelope.items():
+            if not (lo <= mean[r] <= hi):
+                return Gate.OUTSIDE_ENVELOPE
+    return Gate.EVALUATING
+
+
 def gate(
     stats: WindowStats,
     limits: GateLimits,
     max_age_s: dict[str, float] | None = None,
     envelope: dict[str, tuple[float, float]] | None = None,
 ) -> NDArray[np.int64]:
-    """Gate code per evaluation time; the first failing rule in the order of :class:`Gate` wins."""
-    n = len(next(iter(stats.mean.values())))
-    code = np.full(n, int(Gate.EVALUATING))
-
-    def mark(mask: NDArray[np.bool_], g: Gate) -> None:
-        code[(code == Gate.EVALUATING) & mask] = int(g)
-
+    """:func:`gate_point` over many windows (training and evaluation)."""
     roles = [r for r in GATED_ROLES if r in stats.mean]
-    mark(np.any([~np.isfinite(stats.age_s[r]) for r in roles], axis=0), Gate.NO_INPUT)
-    if max_age_s is not None:
-        mark(np.any([stats.age_s[r] > max_age_s.get(r, np.inf) for r in roles], axis=0), Gate.STALE_INPUT)
-    mark(np.any([stats.count[r] < limits.min_samples for r in roles], axis=0), Gate.WARMING_UP)
-    implausible = np.zeros(n, dtype=bool)
-    for r in roles:
-        lo, hi = limits.plausible.get(r, (-np.inf, np.inf))
-        m = stats.mean[r]
-        implausible |= ~np.isfinite(m) | (m < lo) | (m > hi)
-    mark(implausible, Gate.IMPLAUSIBLE_INPUT)
-    low = (
-        (stats.mean["pump_speed_rpm"] < limits.min_pump_speed_rpm)
-        | (np.abs(stats.mean["pump_disp_cc"]) < limits.min_pump_disp_cc)
-        | (stats.mean["motor_speed_rpm"] < limits.min_motor_speed_rpm)
-    )
-    mark(low, Gate.LOW_SPEED)
-    transient = np.zeros(n, dtype=bool)
-    for r, lim in limits.max_std.items():
-        if r in stats.std:
-            transient |= stats.std[r] > lim
-    mark(transient, Gate.TRANSIENT)
-    if envelope is not None:
-        outside = np.zeros(n, dtype=bool)
-        for r, (lo, hi) in envelope.items():
-            outside |= (stats.mean[r] < lo) | (stats.mean[r] > hi)
-        mark(outside, Gate.OUTSIDE_ENVELOPE)
-    return code
+    cols = {
+        r: (stats.mean[r].tolist(), stats.std[r].tolist(), stats.count[r].tolist(), stats.age_s[r].tolist())
+        for r in roles
+    }
+    n = len(stats.mean[roles[0]]) if roles else 0
+    out = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        out[i] = gate_point(
+            {r: c[0][i] for r, c in cols.items()},
+            {r: c[1][i] for r, c in cols.items()},
+            {r: c[2][i] for r, c in cols.items()},
+            {r: c[3][i] for r, c in cols.items()},
+            limits,
+            max_age_s,
+            envelope,
+        )
+    return out
 
 
 def eval_times(t_first: float, t_last: float, rate_hz: float) -> NDArray[np.float64]:

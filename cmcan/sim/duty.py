@@ -131,6 +131,11 @@ def _sweep(duty: dict[str, Any], t_s: NDArray[np.float64], rng: np.random.Genera
     n = int(end / lo_hold) + 2
     ranges = np.array([duty["pump_speed_rpm"], duty["pump_disp_pct"], duty["dp_bar"]], dtype=float)
     values = ranges[:, 0] + rng.random((n, 3)) * (ranges[:, 1] - ranges[:, 0])
+    # Machines spend much time at the ends of a range (full stroke, relief pressure, top engine speed):
+    # a share of the set points sits exactly there so the model's envelope includes them.
+    at_edge = rng.random((n, 3)) < duty["edge_share"]
+    high_end = rng.random((n, 3)) < 0.5
+    values = np.where(at_edge, np.where(high_end, ranges[:, 1], ranges[:, 0]), values)
     holds = lo_hold + rng.random(n) * (hi_hold - lo_hold)
     starts = np.concatenate([[0.0], np.cumsum(holds[:-1])])
     return _interp(_knots(starts, values, duty["ramp_s"]), t_s)

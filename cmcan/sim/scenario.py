@@ -99,6 +99,7 @@ _DUTY = OneOf(
                 "pump_disp_pct": Seq(Num(0, 100, "%"), min_len=2, max_len=2),
                 "dp_bar": Seq(Num(0, 600, "bar"), min_len=2, max_len=2),
                 "hold_s": Seq(Num(0.5, 3600, "s"), min_len=2, max_len=2, default=[4.0, 12.0]),
+                "edge_share": Num(0, 1, default=0.0),
                 "ramp_s": Num(0.05, 10, "s", default=0.8),
             },
             rule=_sweep_rule,

@@ -1,0 +1,63 @@
+"""``cmcan check``: configuration, DBC and model validated together, each problem said exactly."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from cmcan.cli.errors import CliError
+from cmcan.setup import check_channel, load_config, prepare
+
+
+def add_subparser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "check",
+        help="validate configuration, DBC and model together",
+        description="Exit 0 when the configuration, its DBC, the signal mapping, the model and "
+        "(with --channel-check) the CAN channel fit together; otherwise print what is wrong and "
+        "exit with a sysexits code.",
+    )
+    p.add_argument("--config", help="configuration (default: the shipped config/cmcan.yaml)")
+    p.add_argument("--channel-check", action="store_true", help="also check the bus channel exists on this machine")
+    p.add_argument("--state", action="store_true", help="also check the state directory is writable")
+    p.add_argument("--json", action="store_true", help="print the result as JSON")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        cfg = load_config(args.config)
+        if args.channel_check:
+            check_channel(cfg)
+        prep = prepare(cfg, need_state=args.state)
+    except CliError as exc:
+        if args.json:
+            json.dump({"ok": False, "error": str(exc), "exit_code": exc.code}, sys.stdout, indent=2)
+            sys.stdout.write("\n")
+            return exc.code
+        raise
+    m = prep.model.meta
+    result = {
+        "ok": True,
+        "config": cfg.source,
+        "dbc": str(cfg.dbc_path),
+        "model": str(cfg.model_path),
+        "model_version": m.model_version,
+        "inputs": {r: f"{s.message}.{s.signal}" for r, s in cfg.signals.items()},
+        "envelope": m.envelope,
+        "motor_disp_cc": m.motor_disp_cc,
+        "bus": f"{cfg.raw['bus']['interface']}:{cfg.raw['bus']['channel']}",
+    }
+    if args.json:
+        json.dump(result, sys.stdout, indent=2)
+        sys.stdout.write("\n")
+    else:
+        print(f"ok: {cfg.source}")
+        print(f"  dbc    {result['dbc']}")
+        print(f"  model  {result['model']} ({m.model_version}, V_M {m.motor_disp_cc:g} cm3/rev)")
+        for r, s in result["inputs"].items():
+            lo, hi = m.envelope.get(r, (None, None))
+            env = f"  envelope {lo:.1f}..{hi:.1f}" if lo is not None else ""
+            print(f"  {r:<18} <- {s}{env}")
+    return 0

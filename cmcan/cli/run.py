@@ -1,0 +1,59 @@
+"""``cmcan run``: the daemon on the machine's bus."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+from types import FrameType
+
+import can
+
+from cmcan.daemon import Daemon, DaemonOptions, bus_kwargs, tune_socketcan
+from cmcan.sdnotify import Notifier
+from cmcan.setup import check_channel, load_config, prepare
+
+log = logging.getLogger("cmcan")
+
+
+def add_subparser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "run",
+        help="run the monitoring daemon on the CAN bus",
+        description="Monitor the drive on the configured bus and broadcast CM ratio and warnings. "
+        "Under systemd it reports READY, WATCHDOG and STATUS; SIGTERM or SIGINT stop it.",
+    )
+    p.add_argument("--config", help="configuration (default: the shipped config/cmcan.yaml)")
+    p.add_argument("--interface", help="python-can interface (overrides bus.interface)")
+    p.add_argument("--channel", help="channel, e.g. can0 (overrides bus.channel)")
+    p.add_argument("--state-dir", help="state directory (overrides state.directory)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.verbose == 0:
+        logging.getLogger().setLevel(logging.INFO)
+    cfg = load_config(args.config, args.interface, args.channel, args.state_dir)
+    check_channel(cfg)
+    prep = prepare(cfg)
+    ids = list(prep.monitor.inputs)
+    rcvbuf = int(cfg.raw["bus"]["receive_buffer_bytes"])
+
+    def open_bus() -> can.BusABC:
+        bus = can.Bus(**bus_kwargs(cfg, ids))
+        if cfg.raw["bus"]["interface"] == "socketcan":
+            tune_socketcan(bus, rcvbuf)
+        return bus
+
+    daemon = Daemon(cfg, prep.monitor, prep.store, open_bus, Notifier(), DaemonOptions())
+
+    def on_signal(signum: int, _frame: FrameType | None) -> None:
+        log.info("received %s, stopping", signal.Signals(signum).name)
+        daemon.stop()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    sys.stdout.flush()
+    daemon.run()
+    return 0

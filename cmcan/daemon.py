@@ -1,0 +1,278 @@
+"""The daemon: the imperative shell around the monitor core on a live bus.
+
+It owns its receive loop (python-can's Notifier thread would stop for good on the first receive
+error), asks the kernel to filter the input identifiers, feeds every frame to the core and sends what
+the core returns. Bus errors (network down, a full transmit queue, bus-off) are logged with rate
+limits and recovered from by reopening the bus with a growing back-off; no frame and no bus error
+stops it. Under systemd it reports READY, WATCHDOG and STATUS; SIGTERM and SIGINT stop it cleanly.
+"""
+
+from __future__ import annotations
+
+import errno
+import logging
+import math
+import socket
+import struct
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import can
+
+from cmcan.config import Config
+from cmcan.monitor.core import Monitor, OutputFrame
+from cmcan.sdnotify import Notifier
+from cmcan.statefile import StateStore
+
+log = logging.getLogger("cmcan.daemon")
+
+SO_RCVBUFFORCE = 33
+SOL_CAN_RAW = 101
+CAN_RAW_ERR_FILTER = 2
+# Error classes worth hearing about: controller problems, bus-off, restarts after bus-off.
+CAN_ERR_MASK = 0x04 | 0x40 | 0x100
+
+
+@dataclass
+class DaemonOptions:
+    recv_timeout_s: float = 0.1
+    idle_after_s: float = 1.0  # no frame for this long: advance the core's time on the wall clock
+    backoff_min_s: float = 0.5
+    backoff_max_s: float = 10.0
+    status_every_s: float = 5.0
+    send_timeout_s: float = 0.005
+
+
+class RateLimitedLog:
+    """Logs the first occurrence of a problem, then at most one summary line per interval."""
+
+    def __init__(self, interval_s: float = 30.0, clock: Callable[[], float] = time.monotonic) -> None:
+        self.interval = interval_s
+        self.clock = clock
+        self.last: dict[str, float] = {}
+        self.suppressed: dict[str, int] = {}
+
+    def __call__(self, level: int, key: str, msg: str, *args: Any, exc_info: bool = False) -> None:
+        now = self.clock()
+        if key in self.last and now - self.last[key] < self.interval:
+            self.suppressed[key] = self.suppressed.get(key, 0) + 1
+            return
+        n = self.suppressed.pop(key, 0)
+        self.last[key] = now
+        log.log(level, msg + (f" (and {n} more since the last report)" if n else ""), *args, exc_info=exc_info)
+
+
+def bus_kwargs(cfg: Config, input_ids: list[int]) -> dict[str, Any]:
+    b = cfg.raw["bus"]
+    kw: dict[str, Any] = {
+        "interface": b["interface"],
+        "channel": b["channel"],
+        "bitrate": b["bitrate"],
+        "can_filters": [{"can_id": i, "can_mask": 0x7FF, "extended": False} for i in sorted(input_ids)],
+        "receive_own_messages": False,
+    }
+    return kw
+
+
+def tune_socketcan(bus: can.BusABC, rcvbuf: int) -> None:
+    """A larger receive buffer (no loss when the bus is busy) and error frames for bus-off."""
+    sock = getattr(bus, "socket", None)
+    if not isinstance(sock, socket.socket):
+        return
+    if rcvbuf:
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, SO_RCVBUFFORCE, rcvbuf)
+        except OSError:  # needs CAP_NET_ADMIN; the plain option is capped by net.core.rmem_max
+            try:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
+            except OSError as exc:
+                log.warning("cannot enlarge the receive buffer: %s", exc)
+    try:
+        sock.setsockopt(SOL_CAN_RAW, CAN_RAW_ERR_FILTER, struct.pack("=I", CAN_ERR_MASK))
+    except OSError as exc:
+        log.debug("cannot subscribe to error frames: %s", exc)
+
+
+class Daemon:
+    def __init__(
+        self,
+        cfg: Config,
+        monitor: Monitor,
+        store: StateStore | None,
+        open_bus: Callable[[], can.BusABC],
+        notifier: Notifier | None = None,
+        options: DaemonOptions | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.cfg = cfg
+        self.monitor = monitor
+        self.store = store
+        self.open_bus = open_bus
+        self.notifier = notifier or Notifier(env={})
+        self.opt = options or DaemonOptions()
+        self.clock = clock
+        self.stop_event = threading.Event()
+        self.bus: can.BusABC | None = None
+        self.stats = {"bus_opens": 0, "bus_errors": 0, "tx_frames": 0, "tx_dropped": 0, "internal_errors": 0}
+        self.ratelog = RateLimitedLog(clock=clock)
+        self.save_every_s = float(cfg.raw["state"]["save_every_s"])
+
+    # -- the loop --------------------------------------------------------------------------------------
+
+    def run(self) -> None:
+        opt = self.opt
+        backoff = opt.backoff_min_s
+        last_rx_wall: float | None = None
+        last_frame_t = math.nan
+        next_wd = next_status = self.clock()
+        last_save = self.clock()
+        self.notifier.ready(self._status_text())
+        log.info("cmcan running on %s %s", self.cfg.raw["bus"]["interface"], self.cfg.raw["bus"]["channel"])
+        while not self.stop_event.is_set():
+            now = self.clock()
+            if self.notifier.watchdog_interval_s is not None and now >= next_wd:
+                self.notifier.watchdog()
+                next_wd = now + self.notifier.watchdog_interval_s
+            if now >= next_status:
+                self.notifier.status(self._status_text())
+                next_status = now + opt.status_every_s
+            if self.store is not None and (self.monitor.transitions_since_save or now - last_save >= self.save_every_s):
+                self._save()
+                last_save = now
+
+            if self.bus is None:
+                if not self._open():
+                    self.stop_event.wait(backoff)
+                    backoff = min(backoff * 2, opt.backoff_max_s)
+                    continue
+                backoff = opt.backoff_min_s
+            try:
+                msg = self.bus.recv(timeout=opt.recv_timeout_s)
+            except (can.CanError, OSError, ValueError) as exc:
+                self._bus_failed("receive", exc)
+                self.stop_event.wait(backoff)
+                backoff = min(backoff * 2, opt.backoff_max_s)
+                continue
+
+            now = self.clock()
+            try:
+                if msg is not None:
+                    if msg.is_error_frame:
+                        self.ratelog(
+                            logging.WARNING,
+                            "errframe",
+                            "error frame on the bus: id 0x%X data %s",
+                            msg.arbitration_id,
+                            bytes(msg.data).hex(),
+                        )
+                    out = self.monitor.feed(
+                        msg.timestamp,
+                        msg.arbitration_id,
+                        bytes(msg.data),
+                        msg.is_extended_id,
+                        msg.is_remote_frame,
+                        msg.is_error_frame,
+                    )
+                    last_rx_wall = now
+                    last_frame_t = msg.timestamp
+                elif last_rx_wall is not None and now - last_rx_wall >= opt.idle_after_s:
+                    out = self.monitor.advance(last_frame_t + (now - last_rx_wall))
+                else:
+                    out = []
+            except Exception:  # the core must never take the daemon down: log, count, go on
+                self.stats["internal_errors"] += 1
+                self.ratelog(logging.ERROR, "internal", "internal error processing a frame", exc_info=True)
+                out = []
+            if out:
+                self._send(out)
+        self._shutdown()
+
+    def stop(self) -> None:
+        self.stop_event.set()
+
+    # -- bus handling ----------------------------------------------------------------------------------
+
+    def _open(self) -> bool:
+        try:
+            self.bus = self.open_bus()
+        except (can.CanError, OSError, ValueError) as exc:
+            self.stats["bus_errors"] += 1
+            self.ratelog(logging.WARNING, "open", "cannot open the bus (%s); retrying", exc)
+            self.notifier.status(f"bus unavailable: {exc}")
+            return False
+        self.stats["bus_opens"] += 1
+        if self.stats["bus_opens"] > 1:
+            log.info("bus reopened")
+        self.notifier.status(self._status_text())
+        return True
+
+    def _close(self) -> None:
+        if self.bus is not None:
+            try:
+                self.bus.shutdown()
+            except Exception as exc:  # a failing shutdown of a dead bus is expected
+                log.debug("bus shutdown: %s", exc)
+            self.bus = None
+
+    def _bus_failed(self, what: str, exc: BaseException) -> None:
+        self.stats["bus_errors"] += 1
+        code = getattr(exc, "error_code", None) or getattr(exc, "errno", None)
+        hint = " (network down)" if code == errno.ENETDOWN else ""
+        self.ratelog(logging.WARNING, f"fail-{what}", "bus %s failed%s: %s; reopening", what, hint, exc)
+        self.notifier.status(f"bus {what} failed: {exc}")
+        self._close()
+
+    def _send(self, frames: list[OutputFrame]) -> None:
+        for f in frames:
+            if self.bus is None:
+                self.stats["tx_dropped"] += 1
+                continue
+            msg = can.Message(timestamp=f.timestamp_s, arbitration_id=f.frame_id, data=f.data, is_extended_id=False)
+            try:
+                self.bus.send(msg, timeout=self.opt.send_timeout_s)
+                self.stats["tx_frames"] += 1
+            except (can.CanError, OSError) as exc:
+                self.stats["tx_dropped"] += 1
+                code = getattr(exc, "error_code", None) or getattr(exc, "errno", None)
+                if code in (errno.ENETDOWN, errno.ENODEV, errno.EBADF):
+                    self._bus_failed("send", exc)
+                else:  # ENOBUFS, a full queue, bus-off while restarting: drop this frame, keep going
+                    self.ratelog(logging.WARNING, "tx", "cannot send 0x%X: %s; frame dropped", f.frame_id, exc)
+
+    # -- state and status ------------------------------------------------------------------------------
+
+    def _save(self) -> None:
+        assert self.store is not None
+        try:
+            self.store.save(self.monitor.save_totals())
+        except OSError as exc:
+            self.ratelog(logging.ERROR, "save", "cannot save state to %s: %s", self.store.path, exc)
+
+    def _status_text(self) -> str:
+        s = self.monitor.snapshot()
+        ratio = f"{s['ratio_filt_pct']:.2f} %" if s["ratio_filt_pct"] is not None else "n/a"
+        bus = "bus up" if self.bus is not None else "bus down"
+        return (
+            f"{s['level']} ({s['reason']}), ratio {ratio}, {s['counters']['frames_total']} frames, "
+            f"{s['warning_count']} warnings, {bus}"
+        )
+
+    def _shutdown(self) -> None:
+        self.notifier.stopping()
+        if self.store is not None:
+            self._save()
+        self._close()
+        c = self.monitor.counters
+        log.info(
+            "stopped: %d frames (%d inputs, %d unknown id, %d bad length, %d out of range), %d sent, %d dropped",
+            c["frames_total"],
+            c["accepted"],
+            c["unknown_id"],
+            c["bad_length"],
+            c["out_of_range"],
+            self.stats["tx_frames"],
+            self.stats["tx_dropped"],
+        )

@@ -1,0 +1,132 @@
+"""The warning state machine: ok, low (ratio below threshold), high (ratio above), fault (inputs).
+
+Two layers, each debounced in *evaluated* time (the sum of evaluation periods that counted):
+- the condition, from the filtered CM ratio: ok -> low after ``debounce_s`` below ``low_pct``,
+  ok -> high after ``debounce_s`` above ``high_pct``; back to ok only after ``debounce_s`` inside the
+  band narrowed by ``hysteresis_pct``; low <-> high directly after the debounce on the other side;
+- the fault, from the gate: inputs stale or implausible for ``fault_after_s`` of tick time raise it,
+  as many seconds of good input clear it. While faulted the published level is fault; the condition
+  underneath is kept and comes back when the fault clears.
+Time is the evaluation ticks' own (frame time); nothing here reads a clock.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntEnum
+
+from cmcan.monitor.gating import Gate
+
+
+class Level(IntEnum):
+    OK = 0
+    LOW = 1
+    HIGH = 2
+    FAULT = 3
+
+
+class Reason(IntEnum):
+    NONE = 0
+    RATIO_LOW = 1
+    RATIO_HIGH = 2
+    INPUT_STALE = 3
+    INPUT_IMPLAUSIBLE = 4
+    MODEL_ERROR = 5
+
+
+@dataclass(frozen=True)
+class Thresholds:
+    low_pct: float = 98.0
+    high_pct: float = 102.0
+    hysteresis_pct: float = 0.5
+    debounce_s: float = 60.0
+    fault_after_s: float = 5.0
+
+
+@dataclass(frozen=True)
+class Transition:
+    t_s: float
+    level_from: Level
+    level_to: Level
+    reason: Reason
+    ratio_pct: float | None
+
+
+_FAULT_GATES = {Gate.STALE_INPUT: Reason.INPUT_STALE, Gate.IMPLAUSIBLE_INPUT: Reason.INPUT_IMPLAUSIBLE}
+
+
+@dataclass
+class WarningMachine:
+    th: Thresholds
+    condition: Level = Level.OK
+    condition_reason: Reason = Reason.NONE
+    fault_reason: Reason = Reason.NONE
+    # debounce accumulators (seconds)
+    below_s: float = 0.0
+    above_s: float = 0.0
+    inside_s: float = 0.0
+    bad_input_s: float = 0.0
+    good_input_s: float = 0.0
+    time_below_s: float = 0.0  # evaluated time below low_pct in the current low episode
+
+    @property
+    def level(self) -> Level:
+        return Level.FAULT if self.fault_reason != Reason.NONE else self.condition
+
+    @property
+    def reason(self) -> Reason:
+        return self.fault_reason if self.fault_reason != Reason.NONE else self.condition_reason
+
+    def step(self, t_s: float, dt_s: float, gate: Gate, ratio_filt_pct: float | None) -> list[Transition]:
+        """Advance by one evaluation tick. ``ratio_filt_pct`` is given when this tick evaluated a
+        steady point and the filter is valid; it is None otherwise. Returns the level changes."""
+        before = self.level
+        self._fault(gate, dt_s)
+        if ratio_filt_pct is not None and gate == Gate.EVALUATING:
+            self._condition(ratio_filt_pct, dt_s)
+        after = self.level
+        if after == before:
+            return []
+        return [Transition(t_s, before, after, self.reason, ratio_filt_pct)]
+
+    def _fault(self, gate: Gate, dt_s: float) -> None:
+        reason = _FAULT_GATES.get(gate)
+        if reason is not None:
+            self.bad_input_s += dt_s
+            self.good_input_s = 0.0
+            if self.fault_reason == Reason.NONE and self.bad_input_s >= self.th.fault_after_s:
+                self.fault_reason = reason
+        elif gate == Gate.NO_INPUT:
+            # Bus idle: neither evidence of a fault nor of recovery.
+            pass
+        else:
+            self.good_input_s += dt_s
+            self.bad_input_s = 0.0
+            if self.fault_reason != Reason.NONE and self.good_input_s >= self.th.fault_after_s:
+                self.fault_reason = Reason.NONE
+
+    def _condition(self, r: float, dt_s: float) -> None:
+        th = self.th
+        below = r < th.low_pct
+        above = r > th.high_pct
+        inside = th.low_pct + th.hysteresis_pct <= r <= th.high_pct - th.hysteresis_pct
+        self.below_s = self.below_s + dt_s if below else 0.0
+        self.above_s = self.above_s + dt_s if above else 0.0
+        self.inside_s = self.inside_s + dt_s if inside else 0.0
+        if below:
+            self.time_below_s += dt_s
+        elif self.condition != Level.LOW:
+            self.time_below_s = 0.0
+
+        if self.condition != Level.LOW and self.below_s >= th.debounce_s:
+            self._set(Level.LOW, Reason.RATIO_LOW)
+        elif self.condition != Level.HIGH and self.above_s >= th.debounce_s:
+            self._set(Level.HIGH, Reason.RATIO_HIGH)
+        elif self.condition != Level.OK and self.inside_s >= th.debounce_s:
+            self._set(Level.OK, Reason.NONE)
+            self.time_below_s = 0.0
+
+    def _set(self, level: Level, reason: Reason) -> None:
+        self.condition = level
+        self.condition_reason = reason
+        self.below_s = self.above_s = self.inside_s = 0.0
