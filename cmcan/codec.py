@@ -166,3 +166,44 @@ def compile_encoder(msg: Message) -> Callable[[Mapping[str, float]], bytes]:
         return word.to_bytes(8, "little")[:length]
 
     return fast
+
+
+def compile_checked_decoder(
+    msg: Message, names: list[str], conv: list[tuple[float, float]]
+) -> Callable[[bytes], tuple[float, ...] | None]:
+    """Like :func:`compile_decoder`, with each value checked against its DBC range (None when one
+    is outside: an implausible frame) and converted by ``value * scale + offset`` to its role's unit.
+
+    For little-endian signals the decoder is generated as straight-line code, as ``namedtuple``
+    generates its classes: the monitor runs it for every received frame.
+    """
+    sigs = [msg.get_signal_by_name(n) for n in names]
+    ranges = [
+        (s.minimum if s.minimum is not None else -math.inf, s.maximum if s.maximum is not None else math.inf)
+        for s in sigs
+    ]
+    if not _vectorizable(msg):
+        plain = compile_decoder(msg, names)
+
+        def slow(data: bytes) -> tuple[float, ...] | None:
+            vals = plain(data)
+            for v, (lo, hi) in zip(vals, ranges, strict=True):
+                if not (lo <= v <= hi):
+                    return None
+            return tuple(v * sc + off for v, (sc, off) in zip(vals, conv, strict=True))
+
+        return slow
+    ns: dict[str, object] = {"from_bytes": int.from_bytes}
+    body = ["def decode(data):", "    w = from_bytes(data, 'little')"]
+    outs = []
+    for i, (s, (lo, hi), (sc, off)) in enumerate(zip(sigs, ranges, conv, strict=True)):
+        ns.update({f"sc{i}": s.scale, f"of{i}": s.offset, f"lo{i}": lo, f"hi{i}": hi, f"rs{i}": sc, f"ro{i}": off})
+        body.append(f"    r{i} = (w >> {s.start}) & {(1 << s.length) - 1}")
+        if s.is_signed:
+            body.append(f"    if r{i} & {1 << (s.length - 1)}: r{i} -= {1 << s.length}")
+        body.append(f"    v{i} = r{i} * sc{i} + of{i}")
+        body.append(f"    if not (lo{i} <= v{i} <= hi{i}): return None")
+        outs.append(f"v{i} * rs{i} + ro{i}")
+    body.append(f"    return ({', '.join(outs)},)")
+    exec("\n".join(body), ns)
+    return ns["decode"]  # type: ignore[return-value]

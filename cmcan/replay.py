@@ -10,6 +10,7 @@ from typing import Any
 
 import can
 
+from cmcan.io.candump import Frame
 from cmcan.monitor.core import LEVEL_NAMES, Monitor, OutputFrame, Tick
 
 TIMELINE_COLUMNS = (
@@ -36,19 +37,24 @@ class ReplayResult:
     last_t: float | None = None
 
 
-def replay(monitor: Monitor, messages: Iterable[can.Message], emit: bool = True) -> ReplayResult:
-    """Feed every message to the monitor in log order; the output frames it would have sent."""
+def replay(monitor: Monitor, frames_in: Iterable[Frame | can.Message], emit: bool = True) -> ReplayResult:
+    """Feed every frame to the monitor in log order; the output frames it would have sent.
+
+    ``frames_in`` holds ``can.Message`` objects or the plain tuples of :mod:`cmcan.io.candump`.
+    """
     res = ReplayResult()
     feed = monitor.feed
     out = res.frames_out
     first = None
     last = None
-    for m in messages:
-        t = m.timestamp
+    for m in frames_in:
+        if isinstance(m, can.Message):
+            m = (m.timestamp, m.arbitration_id, bytes(m.data), m.is_extended_id, m.is_remote_frame, m.is_error_frame)
+        t = m[0]
         if first is None:
             first = t
         last = t
-        frames = feed(t, m.arbitration_id, m.data, m.is_extended_id, m.is_remote_frame, m.is_error_frame)
+        frames = feed(*m)
         if frames and emit:
             out.extend(frames)
     tail = monitor.flush()

@@ -134,3 +134,19 @@ def test_compiled_decoder_of_arbitrary_payloads_equals_cantools(db, payload):
         ours = codec.compile_decoder(m, names)(payload)
         ref = m.decode(payload, decode_choices=False)
         assert ours == pytest.approx(tuple(ref[n] for n in names), abs=1e-9)
+
+
+@pytest.mark.parametrize("name", ["PUMP_STATUS", "LOOP_PRESSURE", "MOTOR_STATUS", "OIL_STATUS", "CM_RATIO"])
+@settings(max_examples=100, deadline=None)
+@given(payload=st.binary(min_size=8, max_size=8), scale=st.floats(-10, 10), offset=st.floats(-100, 100))
+def test_checked_decoder_converts_and_flags_out_of_range(db, name, payload, scale, offset):
+    m = db.get_message_by_name(name)
+    names = [s.name for s in m.signals]
+    fn = codec.compile_checked_decoder(m, names, [(scale, offset)] * len(names))
+    ref = m.decode(payload, decode_choices=False, scaling=True)
+    in_range = all(s.minimum <= ref[s.name] <= s.maximum for s in m.signals)
+    got = fn(payload)
+    if not in_range:
+        assert got is None
+    else:
+        assert got == pytest.approx(tuple(ref[n] * scale + offset for n in names), abs=1e-9)

@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cmcan.monitor.gating import Gate, GateLimits, eval_times, gate, window_stats
+from cmcan.monitor.gating import TIME_EPS_S, Gate, GateLimits, eval_times, gate, window_stats
 
 
 @settings(max_examples=80, deadline=None)
@@ -21,13 +21,13 @@ def test_window_stats_match_a_naive_computation(gaps, values, window, probes):
     t_eval = np.array(sorted(probes))
     s = window_stats({"x": (ts, vs)}, t_eval, window)
     for k, t in enumerate(t_eval):
-        inside = (ts > t - window) & (ts <= t)
+        inside = (ts > t - window + TIME_EPS_S) & (ts <= t + TIME_EPS_S)
         assert s.count["x"][k] == inside.sum()
         if inside.any():
             assert s.mean["x"][k] == pytest.approx(vs[inside].mean(), abs=1e-6 * (1 + abs(vs).max()))
             assert s.std["x"][k] == pytest.approx(vs[inside].std(), abs=1e-4 * (1 + abs(vs).max()))
             assert s.age_s["x"][k] == pytest.approx(t - ts[inside][-1])
-        earlier = ts <= t
+        earlier = ts <= t + TIME_EPS_S
         if not earlier.any():
             assert s.age_s["x"][k] == np.inf
 

@@ -28,9 +28,9 @@ def add_subparser(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     try:
         cfg = load_config(args.config)
+        prep = prepare(cfg, need_state=args.state)
         if args.channel_check:
             check_channel(cfg)
-        prep = prepare(cfg, need_state=args.state)
     except CliError as exc:
         if args.json:
             json.dump({"ok": False, "error": str(exc), "exit_code": exc.code}, sys.stdout, indent=2)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from cmcan.cli.common import load_config, load_model_for
 from cmcan.cli.errors import EX_DATAERR, EX_NOINPUT, EX_UNAVAILABLE, CliError, ensure_writable
-from cmcan.io.candump import read_messages
+from cmcan.io.candump import iter_frames
 from cmcan.monitor.build import build_monitor
 from cmcan.replay import plot_ratio, replay, warnings_summary, write_emitted, write_timeline
 from cmcan.schema import SchemaError
@@ -44,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
     except SchemaError as exc:
         raise CliError(str(exc), 78) from None
     try:
-        res = replay(mon, read_messages(args.log), emit=bool(args.emit))
+        res = replay(mon, iter_frames(args.log), emit=bool(args.emit))
     except (ValueError, OSError) as exc:
         raise CliError(f"{args.log}: cannot read as a CAN log: {exc}", EX_DATAERR) from None
     if res.first_t is None:

@@ -35,8 +35,8 @@ def run(args: argparse.Namespace) -> int:
     if args.verbose == 0:
         logging.getLogger().setLevel(logging.INFO)
     cfg = load_config(args.config, args.interface, args.channel, args.state_dir)
+    prep = prepare(cfg)  # files first (config, DBC, model, state), then the machine's channel
     check_channel(cfg)
-    prep = prepare(cfg)
     ids = list(prep.monitor.inputs)
     rcvbuf = int(cfg.raw["bus"]["receive_buffer_bytes"])
 

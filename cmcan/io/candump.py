@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gzip
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -49,9 +50,54 @@ def _hex_rows(data: NDArray[np.uint8], dlc: NDArray[np.int64]) -> list[str]:
     return [h[: 2 * int(n)] for h, n in zip(full, dlc.tolist(), strict=True)]
 
 
-def read_messages(path: str | Path) -> Iterator[can.Message]:
-    """Every frame of a log in any format python-can's LogReader reads (by extension, .gz too)."""
+CAN_ERR_FLAG = 0x20000000
+CAN_ERR_BUSERROR = 0x00000080
+
+# (timestamp, arbitration_id, data, is_extended_id, is_remote_frame, is_error_frame)
+Frame = tuple[float, int, bytes, bool, bool, bool]
+
+
+def iter_candump(path: str | Path) -> Iterator[Frame]:
+    """Frames of a ``candump -l`` log as plain tuples, with the semantics of python-can's
+    ``CanutilsLogReader`` (tests check both agree) but about three times faster: it builds no
+    ``can.Message``, which is what the replay's throughput comes down to."""
+    p = Path(path)
+    opener = gzip.open if p.suffix == ".gz" else open
+    with opener(p, "rt", encoding="ascii", errors="replace") as f:  # type: ignore[operator]
+        for n, line in enumerate(f, 1):
+            parts = line.split()
+            if not parts:
+                continue
+            try:
+                stamp, frame = parts[0], parts[2]
+                t = float(stamp[1:-1])
+                cid_s, data = frame.split("#", 1)
+                cid = int(cid_s, 16)
+            except (IndexError, ValueError):
+                raise ValueError(f"{p}: line {n}: not a candump -l line: {line.strip()[:80]!r}") from None
+            if data[:1] == "#":  # CAN FD: '##' and one flags digit
+                data = data[2:]
+            remote = data[:1] in ("R", "r")
+            if remote:
+                payload = b""
+            else:
+                try:
+                    payload = bytes.fromhex(data)
+                except ValueError:
+                    raise ValueError(f"{p}: line {n}: bad data {data[:40]!r}") from None
+            if cid & CAN_ERR_FLAG and cid & CAN_ERR_BUSERROR:
+                yield (t, 0, b"", True, False, True)  # as python-can builds it: Message(is_error_frame=True)
+            else:
+                yield (t, cid & 0x1FFFFFFF, payload, len(cid_s) > 3, remote, False)
+
+
+def iter_frames(path: str | Path) -> Iterator[Frame]:
+    """Frames of any log python-can reads; candump logs (.log, .log.gz) through the fast reader."""
     p = Path(path)
     if not p.exists():
         raise FileNotFoundError(f"{p}: log file not found")
-    yield from can.LogReader(str(p))
+    if p.name.endswith((".log", ".log.gz")):
+        yield from iter_candump(p)
+        return
+    for m in can.LogReader(str(p)):
+        yield (m.timestamp, m.arbitration_id, bytes(m.data), m.is_extended_id, m.is_remote_frame, m.is_error_frame)

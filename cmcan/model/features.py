@@ -17,7 +17,7 @@ from cantools.database.can import Database
 from numpy.typing import NDArray
 
 from cmcan import codec
-from cmcan.io.candump import read_messages
+from cmcan.io.candump import iter_frames
 from cmcan.io.runcsv import read_run_csv
 from cmcan.monitor.gating import Gate, GateLimits, WindowStats, eval_times, gate, window_stats
 from cmcan.signals import DEFAULT_INPUTS, MODEL_INPUTS, SignalRef
@@ -104,11 +104,10 @@ def series_from_log(path: str | Path, db: Database, mapping: Mapping[str, Any] |
     stamps: dict[int, list[float]] = {i: [] for i in wanted}
     payloads: dict[int, list[bytes]] = {i: [] for i in wanted}
     try:
-        for msg in read_messages(path):
-            fid = msg.arbitration_id
-            if fid in wanted and not msg.is_error_frame and len(msg.data) >= wanted[fid].length:
-                stamps[fid].append(msg.timestamp)
-                payloads[fid].append(bytes(msg.data[:8]).ljust(8, b"\0"))
+        for t, fid, data, ext, remote, err in iter_frames(path):
+            if fid in wanted and not (ext or remote or err) and len(data) >= wanted[fid].length:
+                stamps[fid].append(t)
+                payloads[fid].append(data[:8].ljust(8, b"\0"))
     except (FileNotFoundError, ValueError, OSError) as exc:
         raise DataError(f"{path}: cannot read CAN log: {exc}") from None
     series: Series = {}

@@ -41,22 +41,12 @@ def input_frames(cfg: Config, db: Database) -> dict[int, InputFrame]:
     for mname, items in by_msg.items():
         msg = db.get_message_by_name(mname)
         names = [sig for _, sig, _, _ in items]
-        ranges = []
-        for n in names:
-            s = msg.get_signal_by_name(n)
-            ranges.append(
-                (
-                    s.minimum if s.minimum is not None else -float("inf"),
-                    s.maximum if s.maximum is not None else float("inf"),
-                )
-            )
+        conv = [(sc, off) for _, _, sc, off in items]
         frames[msg.frame_id] = InputFrame(
             frame_id=msg.frame_id,
             length=msg.length,
-            decode=codec.compile_decoder(msg, names),
+            decode=codec.compile_checked_decoder(msg, names, conv),
             roles=tuple(role for role, _, _, _ in items),
-            conv=tuple((sc, off) for _, _, sc, off in items),
-            ranges=tuple(ranges),
         )
     return frames
 

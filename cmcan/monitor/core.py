@@ -12,13 +12,15 @@ import math
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from operator import mul
 from typing import Any, Protocol
 
-from cmcan.monitor.gating import GATED_ROLES, Gate, GateLimits, gate_point
+from cmcan.monitor.gating import GATED_ROLES, TIME_EPS_S, Gate, GateLimits, gate_point
 from cmcan.monitor.totals import HISTORY_MAX, Totals
 from cmcan.monitor.warnings import Level, Reason, Thresholds, WarningMachine
 
 LEVEL_NAMES = {Level.OK: "ok", Level.LOW: "low", Level.HIGH: "high", Level.FAULT: "fault"}
+_OTHER, _HIGH, _LOW = 0, 1, 2
 COUNTERS = (
     "frames_total",
     "accepted",
@@ -39,15 +41,13 @@ class Predictor(Protocol):
 
 @dataclass(frozen=True)
 class InputFrame:
-    """How to read one input message: a decoder, and per decoded signal its role, the conversion
-    to the role's unit and the DBC range outside which the frame is implausible."""
+    """How to read one input message: a decoder that returns each signal in its role's unit, or
+    None when a value is outside its DBC range (an implausible frame), and the roles in order."""
 
     frame_id: int
     length: int
-    decode: Callable[[bytes], tuple[float, ...]]
+    decode: Callable[[bytes], tuple[float, ...] | None]
     roles: tuple[str, ...]
-    conv: tuple[tuple[float, float], ...]
-    ranges: tuple[tuple[float, float], ...]
 
 
 @dataclass(frozen=True)
@@ -126,16 +126,17 @@ class _Window:
 
     def stats(self, t_end: float, window_s: float) -> tuple[float, float, int]:
         ts, vs = self.ts, self.vs
-        cut = t_end - window_s
+        cut = t_end - window_s + TIME_EPS_S
         while ts and ts[0] <= cut:
             ts.popleft()
             vs.popleft()
         n = len(vs)
         if n == 0:
             return math.nan, math.nan, 0
-        mean = math.fsum(vs) / n
-        var = math.fsum((v - mean) ** 2 for v in vs) / n
-        return mean, math.sqrt(var), n
+        # Plain sums in C: for sensor magnitudes (< 1e5) the one-pass variance loses < 1e-8 absolute.
+        mean = sum(vs) / n
+        var = sum(map(mul, vs, vs)) / n - mean * mean
+        return mean, math.sqrt(var) if var > 0.0 else 0.0, n
 
 
 @dataclass
@@ -152,10 +153,25 @@ class Monitor:
         self.period = 1.0 / p.rate_hz
         self.max_gap_s = max(p.limits.window_s, 1.0)
         self.windows = {r: _Window() for r in GATED_ROLES}
-        self.latest: dict[str, float] = {}
+        # Per input frame, per decoded value: the window it goes to, or what else it is.
+        self._plans = {
+            fid: tuple(
+                (
+                    self.windows.get(r),
+                    _HIGH
+                    if r == "high_pressure_bar" and p.dp_from_high_low
+                    else _LOW
+                    if r == "low_pressure_bar" and p.dp_from_high_low
+                    else _OTHER,
+                )
+                for r in spec.roles
+            )
+            for fid, spec in self.inputs.items()
+        }
+        self._low: float | None = None
         self.counters = dict.fromkeys(COUNTERS, 0)
         self.counters.update(ticks=0, evaluated=0, model_errors=0, time_resets=0)
-        self.next_k: int | None = None
+        self._set_next(None)
         self.last_frame_t = -math.inf
         self.machine = WarningMachine(p.thresholds)
         self.machine.condition = {"ok": Level.OK, "low": Level.LOW, "high": Level.HIGH}[self.totals.condition]
@@ -186,52 +202,68 @@ class Monitor:
         """Take one received frame; returns the output frames of the ticks it completes."""
         c = self.counters
         c["frames_total"] += 1
-        if is_error:
-            c["error_frame"] += 1
+        if is_error or is_remote or is_extended:
+            c["error_frame" if is_error else "remote_frame" if is_remote else "unknown_id"] += 1
             return []
-        if is_remote:
-            c["remote_frame"] += 1
-            return []
-        spec = None if is_extended else self.inputs.get(frame_id)
+        spec = self.inputs.get(frame_id)
         if spec is None:
             c["unknown_id"] += 1
             return []
         if len(data) < spec.length:
             c["bad_length"] += 1
             return []
-        if not math.isfinite(t):
-            c["late"] += 1
-            return []
         out: list[OutputFrame] = []
-        if self.next_k is not None:
-            if t < (self.next_k - 1) * self.period:
-                if t < (self.next_k - 1) * self.period - 60.0:
-                    self._reset_time()  # time went back a long way: a new log, or a clock reset
-                else:
-                    c["late"] += 1  # older than a tick already evaluated: cannot be used any more
-                    return []
-            else:
-                out = self._ticks_before(t)
+        if not (self._late_t <= t <= self._due_t):  # a tick is due, or the frame is late (or NaN)
+            ticks = self._time_step(t)
+            if ticks is None:
+                c["late"] += 1
+                return []
+            out = ticks
         values = spec.decode(data)
-        for v, (lo, hi) in zip(values, spec.ranges, strict=True):
-            if not (lo <= v <= hi):
-                c["out_of_range"] += 1
-                return out
+        if values is None:
+            c["out_of_range"] += 1
+            return out
         c["accepted"] += 1
         if self.next_k is None:
-            self.next_k = math.floor(t / self.period) + 1
-        self.last_frame_t = max(self.last_frame_t, t)
-        has_high = False
-        for v, role, (scale, offset) in zip(values, spec.roles, spec.conv, strict=True):
-            v = v * scale + offset
-            self.latest[role] = v
-            if role in self.windows:
-                self.windows[role].add(t, v)
-            elif role == "high_pressure_bar":
-                has_high = True
-        if has_high and self.params.dp_from_high_low and "low_pressure_bar" in self.latest:
-            self.windows["dp_bar"].add(t, self.latest["high_pressure_bar"] - self.latest["low_pressure_bar"])
+            self._set_next(math.floor(t / self.period) + 1)
+        if t > self.last_frame_t:
+            self.last_frame_t = t
+        high = None
+        for v, (win, kind) in zip(values, self._plans[frame_id], strict=True):
+            if win is not None:
+                win.ts.append(t)
+                win.vs.append(v)
+                if t > win.last_t:
+                    win.last_t = t
+            elif kind == _HIGH:
+                high = v
+            elif kind == _LOW:
+                self._low = v
+        if high is not None and self._low is not None:
+            w = self.windows["dp_bar"]
+            w.add(t, high - self._low)
         return out
+
+    def _time_step(self, t: float) -> list[OutputFrame] | None:
+        """Ticks due before ``t``, or None when the frame is too old to use."""
+        if not math.isfinite(t):
+            return None
+        if self.next_k is None:
+            return []
+        if t < self._late_t:
+            if t < self._late_t - 60.0:
+                self._reset_time()  # time went back a long way: a new log, or a clock reset
+                return []
+            return None  # older than a tick already evaluated: cannot be used any more
+        return self._ticks_before(t)
+
+    def _set_next(self, k: int | None) -> None:
+        self.next_k = k
+        if k is None:
+            self._due_t, self._late_t = math.inf, -math.inf
+        else:
+            self._due_t = k * self.period + TIME_EPS_S
+            self._late_t = (k - 1) * self.period - TIME_EPS_S
 
     def advance(self, t: float) -> list[OutputFrame]:
         """Time passes without frames (the daemon's idle timer): evaluate up to ``t``."""
@@ -244,9 +276,11 @@ class Monitor:
         if self.next_k is None:
             return []
         out = []
-        while self.next_k * self.period <= self.last_frame_t:
-            out += self._evaluate(self.next_k)
-            self.next_k += 1
+        k = self.next_k
+        while k * self.period <= self.last_frame_t + TIME_EPS_S:
+            out += self._evaluate(k)
+            k += 1
+        self._set_next(k)
         return out
 
     def _ticks_before(self, t: float, idle: bool = False) -> list[OutputFrame]:
@@ -258,21 +292,23 @@ class Monitor:
             if idle:
                 if k_last >= self.next_k:  # keep broadcasting while the bus is silent: the newest tick
                     out += self._evaluate(k_last)
-                    self.next_k = k_last + 1
+                    self._set_next(k_last + 1)
             else:
-                self.next_k = math.floor(t / self.period) + 1
+                self._set_next(math.floor(t / self.period) + 1)
             return out
-        while self.next_k * self.period < t:
-            out += self._evaluate(self.next_k)
-            self.next_k += 1
+        k = self.next_k
+        while k * self.period < t - TIME_EPS_S:
+            out += self._evaluate(k)
+            k += 1
+        self._set_next(k)
         return out
 
     def _reset_time(self) -> None:
         self.counters["time_resets"] += 1
         for w in self.windows.values():
             w.clear()
-        self.latest.clear()
-        self.next_k = None
+        self._low = None
+        self._set_next(None)
         self.last_frame_t = -math.inf
 
     # -- evaluation --------------------------------------------------------------------------------

@@ -16,6 +16,11 @@ from enum import IntEnum
 import numpy as np
 from numpy.typing import NDArray
 
+# Timestamps come from logs with microsecond resolution and from floats near 1.7e9 s (one ulp is
+# 0.24 us): a sample within half a microsecond of a tick or a window edge counts as on it, so the
+# same log gives the same windows whatever its format's time base.
+TIME_EPS_S = 5e-7
+
 # Roles the gate looks at (in this order), with the model's inputs among them.
 GATED_ROLES: tuple[str, ...] = ("pump_speed_rpm", "pump_disp_cc", "dp_bar", "temp_c", "motor_speed_rpm")
 
@@ -86,8 +91,8 @@ def window_stats(
     """
     mean, std, count, age = {}, {}, {}, {}
     for role, (ts, vs) in series.items():
-        hi = np.searchsorted(ts, eval_t, side="right")
-        lo = np.searchsorted(ts, eval_t - window_s, side="right")
+        hi = np.searchsorted(ts, eval_t + TIME_EPS_S, side="right")
+        lo = np.searchsorted(ts, eval_t - window_s + TIME_EPS_S, side="right")
         n = hi - lo
         ref = float(np.median(vs)) if len(vs) else 0.0  # centre the sums: less cancellation
         c1 = np.concatenate([[0.0], np.cumsum(vs - ref)])

@@ -52,6 +52,9 @@ class Transition:
     ratio_pct: float | None
 
 
+# Durations add up tick by tick in floating point: ten 0.1 s ticks are 0.9999999999999999 s.
+_EPS = 1e-6
+
 _FAULT_GATES = {Gate.STALE_INPUT: Reason.INPUT_STALE, Gate.IMPLAUSIBLE_INPUT: Reason.INPUT_IMPLAUSIBLE}
 
 
@@ -94,7 +97,7 @@ class WarningMachine:
         if reason is not None:
             self.bad_input_s += dt_s
             self.good_input_s = 0.0
-            if self.fault_reason == Reason.NONE and self.bad_input_s >= self.th.fault_after_s:
+            if self.fault_reason == Reason.NONE and self.bad_input_s >= self.th.fault_after_s - _EPS:
                 self.fault_reason = reason
         elif gate == Gate.NO_INPUT:
             # Bus idle: neither evidence of a fault nor of recovery.
@@ -102,7 +105,7 @@ class WarningMachine:
         else:
             self.good_input_s += dt_s
             self.bad_input_s = 0.0
-            if self.fault_reason != Reason.NONE and self.good_input_s >= self.th.fault_after_s:
+            if self.fault_reason != Reason.NONE and self.good_input_s >= self.th.fault_after_s - _EPS:
                 self.fault_reason = Reason.NONE
 
     def _condition(self, r: float, dt_s: float) -> None:
@@ -118,11 +121,11 @@ class WarningMachine:
         elif self.condition != Level.LOW:
             self.time_below_s = 0.0
 
-        if self.condition != Level.LOW and self.below_s >= th.debounce_s:
+        if self.condition != Level.LOW and self.below_s >= th.debounce_s - _EPS:
             self._set(Level.LOW, Reason.RATIO_LOW)
-        elif self.condition != Level.HIGH and self.above_s >= th.debounce_s:
+        elif self.condition != Level.HIGH and self.above_s >= th.debounce_s - _EPS:
             self._set(Level.HIGH, Reason.RATIO_HIGH)
-        elif self.condition != Level.OK and self.inside_s >= th.debounce_s:
+        elif self.condition != Level.OK and self.inside_s >= th.debounce_s - _EPS:
             self._set(Level.OK, Reason.NONE)
             self.time_below_s = 0.0
 

@@ -1,0 +1,60 @@
+"""Shared builders for monitor, replay and daemon tests."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import can
+import numpy as np
+
+from cmcan import config as cfgmod
+from cmcan.io.candump import write_candump
+from cmcan.model import load_model
+from cmcan.monitor.build import build_monitor
+from cmcan.sim import scenario as scn
+from cmcan.sim.frames import Frames, frames_from_run
+from cmcan.sim.run import Run, simulate
+
+
+def monitor(keep_timeline: bool = True, cfg: cfgmod.Config | None = None, totals=None):
+    cfg = cfg or cfgmod.load()
+    model = load_model(cfg.model_path, motor_disp_cc=cfg.motor_disp_cc)
+    return build_monitor(cfg, cfg.dbc(), model, model.envelope, totals=totals, keep_timeline=keep_timeline)
+
+
+def sim_frames(name: str = "two_set_validation", **over) -> tuple[Run, Frames]:
+    s = scn.load(scn.shipped(name))
+    s = s.with_overrides(**over) if over else s
+    cfg = cfgmod.load()
+    run = simulate(s, cfg.dbc())
+    return run, frames_from_run(run, cfg.dbc())
+
+
+def write_log(path: Path, frames: Frames) -> Path:
+    write_candump(path, frames.timestamp_s, frames.arbitration_id, frames.dlc, frames.data)
+    return path
+
+
+def messages(frames: Frames) -> list[can.Message]:
+    return [
+        can.Message(timestamp=t, arbitration_id=i, data=bytes(d), is_extended_id=False)
+        for t, i, d in zip(frames.timestamp_s.tolist(), frames.arbitration_id.tolist(), frames.data, strict=True)
+    ]
+
+
+def feed_all(mon, frames: Frames) -> list:
+    out = []
+    ts = frames.timestamp_s.tolist()
+    ids = frames.arbitration_id.tolist()
+    for t, i, d in zip(ts, ids, frames.data, strict=True):
+        out += mon.feed(t, i, bytes(d))
+    out += mon.flush()
+    return out
+
+
+def first_warnings(history: list[dict], start_epoch_s: float) -> list[tuple[float, str]]:
+    return [((h["t_s"] - start_epoch_s) / 3600.0, h["to"]) for h in history]
+
+
+def ratio_ok(x: np.ndarray) -> bool:
+    return bool(np.all(np.isfinite(x)))

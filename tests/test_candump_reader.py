@@ -1,0 +1,65 @@
+"""The fast candump reader has python-can's CanutilsLogReader semantics."""
+
+import can
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from cmcan.io.candump import iter_candump, iter_frames
+
+std_id = st.integers(0, 0x7FF).map(lambda i: f"{i:03X}")
+ext_id = st.integers(0, 0x1FFFFFFF).map(lambda i: f"{i:08X}")
+err_id = st.integers(0, 0xFF).map(lambda i: f"{0x20000080 | i:08X}")
+payload = st.binary(min_size=0, max_size=8).map(lambda b: b.hex().upper())
+remote = st.sampled_from(["R", "R0", "R8", "r"])
+fd = st.tuples(st.sampled_from("0123"), st.binary(min_size=0, max_size=64)).map(lambda x: "#" + x[0] + x[1].hex())
+line = st.tuples(
+    st.floats(0, 2e9, allow_nan=False).map(lambda t: f"({t:017.6f})"),
+    st.sampled_from(["can0", "vcan0", "1"]),
+    st.one_of(std_id, ext_id, err_id),
+    st.one_of(payload, remote, fd),
+    st.sampled_from(["", " R", " T"]),
+).map(lambda x: f"{x[0]} {x[1]} {x[2]}#{x[3]}{x[4]}")
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(line, min_size=1, max_size=20))
+def test_same_frames_as_python_can(tmp_path_factory, lines):
+    p = tmp_path_factory.mktemp("c") / "x.log"
+    p.write_text("\n".join(lines) + "\n\n")
+    ours = list(iter_candump(p))
+    ref = list(can.io.CanutilsLogReader(str(p)))
+    assert len(ours) == len(ref)
+    for o, m in zip(ours, ref, strict=True):
+        assert o == (
+            m.timestamp,
+            m.arbitration_id,
+            bytes(m.data or b""),
+            m.is_extended_id,
+            m.is_remote_frame,
+            m.is_error_frame,
+        )
+
+
+def test_gzipped_logs_and_other_formats(tmp_path):
+    import gzip
+
+    text = "(1767225600.000000) can0 100#0011223344556677\n(1767225600.010000) can0 18FEF100#01\n"
+    (tmp_path / "a.log").write_text(text)
+    with gzip.open(tmp_path / "a.log.gz", "wt") as f:
+        f.write(text)
+    a = list(iter_frames(tmp_path / "a.log"))
+    assert a == list(iter_frames(tmp_path / "a.log.gz"))
+    with can.Logger(str(tmp_path / "a.asc")) as w:
+        for m in can.LogReader(str(tmp_path / "a.log")):
+            w.on_message_received(m)
+    b = list(iter_frames(tmp_path / "a.asc"))
+    assert [x[1:] for x in b] == [x[1:] for x in a]
+
+
+def test_a_broken_line_names_file_and_line(tmp_path):
+    p = tmp_path / "b.log"
+    p.write_text("(1.0) can0 100#00\nnonsense\n")
+    import pytest
+
+    with pytest.raises(ValueError, match=r"b.log: line 2: not a candump -l line"):
+        list(iter_candump(p))

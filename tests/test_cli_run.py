@@ -1,0 +1,131 @@
+"""``cmcan run`` and ``cmcan check``: every configuration problem is named, with a sysexits code,
+before the bus is touched."""
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+import yaml
+
+from cmcan.cli.errors import EX_CANTCREAT, EX_CONFIG, EX_NOINPUT, EX_UNAVAILABLE
+from tests.conftest import ROOT, run_cli
+
+
+def config_copy(tmp_path: Path, **changes) -> Path:
+    raw = yaml.safe_load((ROOT / "config" / "cmcan.yaml").read_text())
+    raw["dbc"] = str(ROOT / "dbc" / "cmcan.dbc")
+    for dotted, value in changes.items():
+        node = raw
+        keys = dotted.split(".")
+        for k in keys[:-1]:
+            node = node[k]
+        if value is None:
+            del node[keys[-1]]
+        else:
+            node[keys[-1]] = value
+    p = tmp_path / "machine.yaml"
+    p.write_text(yaml.safe_dump(raw))
+    return p
+
+
+def run_and_check(tmp_path, cfg, *extra):
+    state = tmp_path / "state"
+    state.mkdir(exist_ok=True)
+    run = run_cli("run", "--config", str(cfg), "--state-dir", str(state), *extra, timeout=60)
+    check = run_cli("check", "--config", str(cfg), "--channel-check", "--json", *extra, timeout=60)
+    return run, check
+
+
+def test_check_passes_on_the_shipped_configuration():
+    res = run_cli("check", "--json")
+    assert res.returncode == 0, res.stderr
+    doc = json.loads(res.stdout)
+    assert (
+        doc["ok"]
+        and doc["motor_disp_cc"] == 44.0
+        and set(doc["envelope"]) == {"pump_speed_rpm", "pump_disp_cc", "dp_bar", "temp_c"}
+    )
+
+
+def test_missing_configuration_file(tmp_path):
+    res = run_cli("run", "--config", str(tmp_path / "none.yaml"))
+    assert res.returncode == EX_NOINPUT and "none.yaml: configuration file not found" in res.stderr
+
+
+@pytest.mark.parametrize(
+    ("change", "needle"),
+    [
+        ({"thresholds.low_pct": 120}, "thresholds.low_pct: expected a number in [50, 100] %, got 120"),
+        ({"signals.pump_speed_rpm": None}, "signals.pump_speed_rpm: missing"),
+        ({"gating.windw_s": 1.0}, "gating.windw_s: unknown field (did you mean 'window_s'?)"),
+        ({"signals.temp_c": {"message": "OIL_STATUS", "signal": "oil_temp"}}, "signals.temp_c.signal"),
+        ({"signals.temp_c": {"message": "OIL", "signal": "oil_temp_c"}}, "signals.temp_c.message: no message 'OIL'"),
+        ({"drive.motor_disp_cc": 55.0}, "trained for a motor displacement of 44 cm3/rev, the configuration says 55"),
+        ({"dbc": "/nonexistent/x.dbc"}, "/nonexistent/x.dbc: DBC file not found"),
+        ({"model": "/nonexistent/m.onnx"}, "/nonexistent/m.onnx: model file not found"),
+        ({"bus.interface": "socketcann"}, "unknown python-can interface 'socketcann'"),
+    ],
+)
+def test_invalid_configuration_is_named_and_exits_78(tmp_path, change, needle):
+    cfg = config_copy(tmp_path, **change)
+    run, check = run_and_check(tmp_path, cfg)
+    assert run.returncode == EX_CONFIG, run.stderr
+    assert needle in run.stderr and str(cfg) in run.stderr
+    doc = json.loads(check.stdout)
+    assert check.returncode == EX_CONFIG and not doc["ok"] and needle in doc["error"]
+
+
+def test_a_dbc_that_does_not_parse(tmp_path):
+    bad = tmp_path / "bad.dbc"
+    bad.write_text('VERSION ""\nBO_ 256 X: 8 Y\n SG_ a : 0|99@1+ (1,0) [0|1] "" Y\n')
+    run, _ = run_and_check(tmp_path, config_copy(tmp_path, dbc=str(bad)))
+    assert run.returncode == EX_CONFIG and "bad.dbc: not a valid DBC" in run.stderr
+
+
+def test_a_missing_can_channel_is_refused_before_opening(tmp_path):
+    cfg = config_copy(tmp_path, **{"bus.channel": "can9"})
+    run, check = run_and_check(tmp_path, cfg)
+    assert run.returncode == EX_UNAVAILABLE
+    assert "no network interface 'can9'" in run.stderr and "ip link set can9 up type can bitrate 250000" in run.stderr
+    assert check.returncode == EX_UNAVAILABLE
+
+
+def test_a_bad_channel_name(tmp_path):
+    run, _ = run_and_check(tmp_path, config_copy(tmp_path, **{"bus.channel": "can0; rm -rf /"}))
+    assert run.returncode == EX_CONFIG and "is not a network interface name" in run.stderr
+
+
+def test_an_unwritable_state_directory(tmp_path):
+    cfg = config_copy(tmp_path, **{"bus.interface": "virtual"})
+    res = run_cli("run", "--config", str(cfg), "--state-dir", str(tmp_path / "missing"))
+    assert res.returncode == EX_CANTCREAT and "state directory does not exist" in res.stderr
+
+
+def test_systemd_unit_verifies():
+    if shutil.which("systemd-analyze") is None:
+        pytest.fail("systemd-analyze is not installed (the CI installs the systemd package)")
+    import subprocess
+
+    exe = shutil.which("cmcan")
+    assert exe, "the cmcan entry point must be installed"
+    unit = (ROOT / "systemd" / "cmcan.service").read_text().replace("/usr/local/bin/cmcan", exe)
+    for key in (
+        "Type=notify",
+        "WatchdogSec=",
+        "Restart=on-failure",
+        "DynamicUser=yes",
+        "StateDirectory=cmcan",
+        "ProtectSystem=strict",
+        "RestrictAddressFamilies=AF_CAN",
+        "NoNewPrivileges=yes",
+    ):
+        assert key in unit
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "cmcan.service"
+        p.write_text(unit)
+        res = subprocess.run(["systemd-analyze", "verify", str(p)], capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0, res.stderr
+    assert "Unknown" not in res.stderr and "ignoring" not in res.stderr.lower(), res.stderr

@@ -1,0 +1,211 @@
+"""The daemon around the core: virtual bus, recovery from bus errors, systemd notify, signals, state."""
+
+import contextlib
+import errno
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+import can
+import pytest
+
+from cmcan import config as cfgmod
+from cmcan.daemon import Daemon, DaemonOptions
+from cmcan.demo import stream
+from cmcan.monitor.totals import Totals
+from cmcan.replay import replay
+from cmcan.statefile import StateStore
+from tests.helpers import messages, monitor, sim_frames
+
+
+@pytest.fixture(scope="module")
+def frames():
+    return sim_frames("two_set_validation", duration_h=0.15)[1]
+
+
+def test_daemon_on_a_virtual_bus_emits_exactly_what_replay_emits(frames, tmp_path):
+    expected = [(f.frame_id, f.data) for f in replay(monitor(), messages(frames)).frames_out]
+    received, sent, processed = stream(frames, cfgmod.load(), tmp_path, f"eq-{os.getpid()}")
+    got = [(m.arbitration_id, bytes(m.data)) for m in received]
+    assert processed == sent == len(frames)
+    assert len(expected) > 10_000
+    # After the log ends the daemon goes on broadcasting on its idle timer: those frames come after.
+    assert got[: len(expected)] == expected
+    assert all(m.timestamp >= received[len(expected) - 1].timestamp for m in received[len(expected) :])
+
+
+class ScriptedBus(can.BusABC):
+    """A bus that serves frames from a shared list and fails on cue, like a link going down."""
+
+    def __init__(self, source, fail_after=None, fail_send=None, **kw):
+        super().__init__(channel="scripted", **kw)
+        self.source = source
+        self.fail_after = fail_after
+        self.fail_send = fail_send
+        self.sent = []
+        self.served = 0
+
+    def _recv_internal(self, timeout):
+        if self.fail_after is not None and self.served >= self.fail_after:
+            raise can.CanOperationError("Failed to receive: Network is down", errno.ENETDOWN)
+        if not self.source:
+            time.sleep(min(timeout or 0, 0.01))
+            return None, False
+        self.served += 1
+        return self.source.pop(0), False
+
+    def send(self, msg, timeout=None):
+        if self.fail_send is not None:
+            raise can.CanOperationError("Failed to transmit: No buffer space available", self.fail_send)
+        self.sent.append(msg)
+
+
+def run_daemon_until(daemon, done, timeout=60.0):
+    th = threading.Thread(target=daemon.run, daemon=True)
+    th.start()
+    deadline = time.monotonic() + timeout
+    while not done() and time.monotonic() < deadline:
+        time.sleep(0.02)
+    daemon.stop()
+    th.join(5)
+    assert not th.is_alive()
+
+
+def test_network_down_is_recovered_by_reopening_the_bus(frames, tmp_path):
+    source = messages(frames)[:20000]
+    buses = []
+
+    def open_bus():
+        if len(buses) == 1:  # the link is still down on the first retry
+            buses.append(None)
+            raise can.CanOperationError("Failed to open: Network is down", errno.ENETDOWN)
+        bus = ScriptedBus(source, fail_after=5000 if not buses else None)
+        buses.append(bus)
+        return bus
+
+    mon = monitor()
+    d = Daemon(
+        cfgmod.load(),
+        mon,
+        StateStore(tmp_path),
+        open_bus,
+        options=DaemonOptions(backoff_min_s=0.01, backoff_max_s=0.05),
+    )
+    run_daemon_until(d, lambda: mon.counters["frames_total"] == 20000)
+    assert mon.counters["frames_total"] == 20000
+    assert d.stats["bus_opens"] == 2 and d.stats["bus_errors"] == 2
+    assert buses[-1].sent and (tmp_path / "state.json").exists()
+
+
+def test_a_full_transmit_queue_drops_frames_but_not_the_daemon(frames, tmp_path):
+    source = messages(frames)[:5000]
+    mon = monitor()
+    d = Daemon(cfgmod.load(), mon, None, lambda: ScriptedBus(source, fail_send=errno.ENOBUFS))
+    run_daemon_until(d, lambda: mon.counters["frames_total"] == 5000)
+    assert mon.counters["frames_total"] == 5000
+    assert d.stats["tx_dropped"] > 0 and d.stats["tx_frames"] == 0 and d.stats["bus_opens"] == 1
+
+
+def test_a_failing_core_never_stops_the_loop(frames):
+    source = messages(frames)[:3000]
+    mon = monitor()
+    calls = {"n": 0}
+    real_feed = mon.feed
+
+    def flaky_feed(*a, **k):
+        calls["n"] += 1
+        if calls["n"] % 100 == 0:
+            raise ZeroDivisionError("a bug")
+        return real_feed(*a, **k)
+
+    mon.feed = flaky_feed
+    d = Daemon(cfgmod.load(), mon, None, lambda: ScriptedBus(source))
+    run_daemon_until(d, lambda: calls["n"] == 3000)
+    assert d.stats["internal_errors"] == 30 and calls["n"] == 3000
+
+
+def notify_socket(tmp_path):
+    path = str(tmp_path / "notify.sock")
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(path)
+    sock.settimeout(0.2)
+    return sock, path
+
+
+def start_run(tmp_path, env_extra, state_dir):
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", **env_extra}
+    return subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "cmcan",
+            "run",
+            "--interface",
+            "virtual",
+            "--channel",
+            f"t{os.getpid()}",
+            "--state-dir",
+            str(state_dir),
+        ],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def read_notifications(sock, until, seconds):
+    got = []
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline and not until(got):
+        with contextlib.suppress(TimeoutError):
+            got.append(sock.recv(4096).decode())
+    return got
+
+
+def test_run_reports_ready_watchdog_status_and_stops_on_sigterm(tmp_path):
+    state = tmp_path / "state"
+    state.mkdir()
+    StateStore(state).save(Totals(warning_count=7, condition="low"))
+    sock, path = notify_socket(tmp_path)
+    proc = start_run(tmp_path, {"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "400000"}, state)
+    try:
+        got = read_notifications(sock, lambda g: sum("WATCHDOG=1" in x for x in g) >= 3, 30)
+        assert any("READY=1" in g for g in got), got
+        assert sum("WATCHDOG=1" in g for g in got) >= 3
+        assert any("STATUS=low (ratio_low)" in g and "7 warnings" in g for g in got), got
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=5)
+        assert time.monotonic() - t0 < 2.0
+        assert proc.returncode == 0, proc.stderr.read()
+        assert "received SIGTERM, stopping" in proc.stderr.read()
+    finally:
+        proc.kill()
+        sock.close()
+    back = StateStore(state).load()
+    assert back.warning_count == 7 and back.condition == "low"
+
+
+def test_sigint_stops_cleanly_and_state_survives_restart(tmp_path):
+    state = tmp_path / "state"
+    state.mkdir()
+    for _ in range(2):
+        proc = start_run(tmp_path, {}, state)
+        time.sleep(3.0)
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=5) == 0
+    doc = json.loads((state / "state.json").read_text())
+    assert doc["format"] == "cmcan-state/1" and doc["warning_count"] == 0
+
+
+def test_corrupt_state_is_kept_aside_not_lost(tmp_path):
+    (tmp_path / "state.json").write_text("{ half a docu")
+    totals = StateStore(tmp_path).load()
+    assert totals == Totals()
+    assert (tmp_path / "state.json.corrupt-1").read_text() == "{ half a docu"

@@ -1,0 +1,184 @@
+"""The monitor core: ticks on frame time, frames out, counters, the same gate as training."""
+
+import ast
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cmcan import config as cfgmod
+from cmcan.model.features import operating_points, series_from_log
+from cmcan.monitor.gating import Gate
+from cmcan.monitor.totals import Totals
+from cmcan.monitor.warnings import Level
+from tests.helpers import feed_all, monitor, sim_frames, write_log
+
+PUMP, PRESS, MOTOR, OIL = 0x100, 0x101, 0x102, 0x103
+
+
+@pytest.fixture(scope="module")
+def short():
+    return sim_frames("two_set_validation", duration_h=0.05)
+
+
+def test_ticks_at_the_evaluation_rate_and_frames_at_their_periods(short):
+    _run, frames = short
+    mon = monitor()
+    out = feed_all(mon, frames)
+    n_ticks = mon.counters["ticks"]
+    span = frames.timestamp_s[-1] - frames.timestamp_s[0]
+    assert abs(n_ticks - span * 10) <= 2
+    ids = [f.frame_id for f in out]
+    assert ids.count(0x3A0) == n_ticks and ids.count(0x3A1) == n_ticks
+    assert n_ticks / 10 - 2 <= ids.count(0x3A2) <= n_ticks / 10 + 20  # 1 s period plus changes
+    stamps = [f.timestamp_s for f in out]
+    assert stamps == sorted(stamps)
+    assert mon.counters["frames_total"] == mon.counters["accepted"] == len(frames)
+
+
+def test_same_input_same_output(short):
+    _, frames = short
+    assert feed_all(monitor(), frames) == feed_all(monitor(), frames)
+
+
+def test_core_gates_equal_the_training_features(short, tmp_path):
+    """Training and the monitor share the gate: the same windows get the same verdicts."""
+    _, frames = short
+    cfg = cfgmod.load()
+    mon = monitor()
+    feed_all(mon, frames)
+    log = write_log(tmp_path / "r.log", frames)
+    mdl = mon.model
+    op = operating_points(series_from_log(log, cfg.dbc(), cfg.signals), cfg.gate_limits, 10.0)
+    from cmcan.monitor.gating import gate
+
+    codes = gate(op.stats, cfg.gate_limits, envelope=mon.params.envelope)
+    by_t = {round(k.t_s, 3): k for k in mon.timeline}
+    matched = [
+        (by_t[round(t, 3)], int(c), op.x[i], op.motor_speed_rpm[i])
+        for i, (t, c) in enumerate(zip(op.t_s, codes, strict=True))
+        if round(t, 3) in by_t
+    ]
+    assert len(matched) >= len(op.t_s) - 2
+    agree = sum(tk.gate == c for tk, c, _, _ in matched)
+    assert agree / len(matched) > 0.999
+    for tk, c, x, meas in matched:
+        if tk.gate == Gate.EVALUATING and c == Gate.EVALUATING:
+            assert tk.motor_speed_meas_rpm == pytest.approx(meas, rel=1e-9)
+            assert tk.motor_speed_pred_rpm == pytest.approx(mdl.predict(x[None, :])[0][0], rel=1e-6)
+
+
+def test_bad_frames_are_counted_and_ignored(short):
+    _, frames = short
+    mon = monitor()
+    t0 = float(frames.timestamp_s[0])
+    good = bytes(frames.data[0])
+    mon.feed(t0, PUMP, good)
+    mon.feed(t0 + 0.001, 0x555, good)  # unknown identifier
+    mon.feed(t0 + 0.002, PUMP, good[:3])  # too short
+    mon.feed(t0 + 0.003, PUMP, good, is_extended=True)  # extended id with the same number
+    mon.feed(t0 + 0.004, PUMP, good, is_remote=True)
+    mon.feed(t0 + 0.005, 0x20000080, b"", is_error=True)
+    mon.feed(t0 + 0.006, PUMP, b"\xff\xff" + good[2:])  # 16383.75 rpm: beyond the DBC's 8000 rpm
+    mon.feed(t0 + 0.5, PUMP, good)
+    mon.feed(t0 + 0.2, PUMP, good)  # older than a tick already evaluated
+    c = mon.counters
+    assert c == {
+        **c,
+        "frames_total": 9,
+        "accepted": 2,
+        "unknown_id": 2,
+        "bad_length": 1,
+        "remote_frame": 1,
+        "error_frame": 1,
+        "out_of_range": 1,
+        "late": 1,
+    }
+    assert (
+        sum(
+            c[k]
+            for k in ("accepted", "unknown_id", "bad_length", "out_of_range", "error_frame", "remote_frame", "late")
+        )
+        == c["frames_total"]
+    )
+
+
+def test_a_gap_skips_ticks_and_keeps_the_time_base(short):
+    _, frames = short
+    mon = monitor()
+    n = len(frames) // 2
+    t, ids, data = frames.timestamp_s, frames.arbitration_id, frames.data
+    for k in range(n):
+        mon.feed(float(t[k]), int(ids[k]), bytes(data[k]))
+    ticks_before = mon.counters["ticks"]
+    for k in range(n, len(frames)):  # the rest one hour later: the machine was off in between
+        mon.feed(float(t[k]) + 3600.0, int(ids[k]), bytes(data[k]))
+    mon.flush()
+    assert mon.counters["ticks"] - ticks_before < (t[-1] - t[n]) * 10 + 15
+    assert mon.counters["time_resets"] == 0
+
+
+def test_stale_input_raises_a_fault_and_idle_does_not(short):
+    _, frames = short
+    cfg = cfgmod.load()
+    mon = monitor(cfg=cfg)
+    t, ids, data = frames.timestamp_s, frames.arbitration_id, frames.data
+    for k in range(len(frames)):
+        if ids[k] != OIL:  # the oil temperature sensor is silent
+            mon.feed(float(t[k]), int(ids[k]), bytes(data[k]))
+    assert mon.machine.level == Level.FAULT
+    assert mon.totals.fault_count == 1 and mon.totals.warning_count == 0
+    idle = monitor(cfg=cfg)
+    for k in range(2000):
+        idle.feed(float(t[k]), int(ids[k]), bytes(data[k]))
+    idle.advance(float(t[2000]) + 600.0)  # bus silent for ten minutes
+    assert idle.machine.level == Level.OK and idle.last_tick.gate == Gate.NO_INPUT
+
+
+def test_totals_round_trip_and_restore_the_condition():
+    t = Totals(warning_count=3, condition="low", filter_ratios=[97.0] * 60, filter_leaks=[4.0] * 60)
+    back = Totals.from_dict(t.to_dict())
+    assert back == t
+    mon = monitor(totals=back)
+    assert mon.machine.level == Level.LOW and len(mon.ring_ratio) == 60
+
+
+def test_the_core_never_reads_the_clock():
+    """Time is data: no module of the core imports time, datetime or calls a clock."""
+    core_dir = Path(__file__).resolve().parents[1] / "cmcan" / "monitor"
+    for path in core_dir.glob("*.py"):
+        tree = ast.parse(path.read_text())
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import | ast.ImportFrom):
+                names = [a.name for a in node.names] + [getattr(node, "module", "") or ""]
+                assert not any(n.split(".")[0] in ("time", "datetime") for n in names), path.name
+
+
+def test_model_failure_does_not_stop_the_core(short):
+    _, frames = short
+
+    class Broken:
+        def predict_one(self, *a):
+            raise RuntimeError("onnxruntime failed")
+
+    mon = monitor()
+    mon.model = Broken()
+    feed_all(mon, frames)
+    assert mon.counters["model_errors"] > 0 and mon.counters["evaluated"] == 0
+    assert math.isfinite(mon.last_tick.ratio_filt_pct)
+
+
+def test_leakage_raises_the_low_warning_and_estimates_the_flow():
+    run, frames = sim_frames("two_set_validation", duration_h=1.5)
+    mon = monitor()
+    feed_all(mon, frames)
+    warns = [(h["t_s"] - run.start_epoch_s) / 3600.0 for h in mon.totals.history if h["to"] == "low"]
+    assert len(warns) == 1 and 1.0 < warns[0] < 1.2
+    # the per-point estimate (predicted - measured) * V_M against the simulator's truth at the same instants
+    late = [k for k in mon.timeline if k.gate == Gate.EVALUATING and (k.t_s - run.start_epoch_s) / 3600 > 1.05]
+    est = np.array([(k.motor_speed_pred_rpm - k.motor_speed_meas_rpm) * 44.0 / 1000 for k in late])
+    idx = np.searchsorted(run["time_s"], [k.t_s - run.start_epoch_s for k in late])
+    truth = run["true_extra_leak_lpm"][np.minimum(idx, len(run) - 1)]
+    assert np.mean(est) == pytest.approx(np.mean(truth), rel=0.1)
+    assert 3.0 < np.mean(truth) < 7.0

@@ -1,0 +1,54 @@
+"""The product's promises on the shipped scenarios, with the shipped configuration and model."""
+
+import json
+
+import pytest
+
+from cmcan.sim import degradation
+from cmcan.sim import scenario as scn
+from tests.conftest import run_cli
+from tests.helpers import feed_all, monitor, sim_frames
+
+pytestmark = pytest.mark.slow
+
+
+def warnings_h(mon, start):
+    return [((h["t_s"] - start) / 3600.0, h["from"], h["to"]) for h in mon.totals.history]
+
+
+def test_run_to_failure_warns_before_each_failure():
+    run, frames = sim_frames("run_to_failure")
+    mon = monitor(keep_timeline=False)
+    feed_all(mon, frames)
+    events = warnings_h(mon, run.start_epoch_s)
+    print(events)
+    assert not [e for e in events if e[0] < 200.0]
+    previous = 0.0
+    for f in degradation.scheduled_failures(scn.load(scn.shipped("run_to_failure")).events):
+        raised = [e for e in events if e[2] in ("low", "high") and previous < e[0] <= f["fail_h"]]
+        assert raised, f"no warning before {f}"
+        lead = f["fail_h"] - raised[0][0]
+        print(f["component"], f["kind"], "warning at", raised[0][0], "lead", lead)
+        assert lead >= 10.0
+        assert raised[0][2] == ("high" if f["kind"] == "misposition" else "low")
+        previous = f["fail_h"]
+
+
+def test_healthy_mixed_duty_100h_with_oil_30_to_90_raises_no_warning():
+    run, frames = sim_frames("healthy_mixed_100h")
+    assert run["temp_c"].min() < 31 and run["temp_c"].max() > 89
+    mon = monitor(keep_timeline=False)
+    feed_all(mon, frames)
+    assert mon.totals.history == [] and mon.totals.warning_count == 0
+    assert mon.counters["evaluated"] > 10_000  # the drive was really evaluated, not gated out
+
+
+def test_demo_reports_lead_times_as_json(tmp_path):
+    res = run_cli("demo", "--json", "--out-dir", str(tmp_path), timeout=900)
+    assert res.returncode == 0, res.stderr + res.stdout
+    doc = json.loads(res.stdout)
+    assert doc["passed"] and doc["frames_sent"] == doc["frames_processed"] > 1_000_000
+    kinds = {f["kind"]: f for f in doc["failures"]}
+    assert kinds["misposition"]["level"] == "high"
+    assert all(f["lead_h"] >= 10 for f in doc["failures"])
+    assert (tmp_path / "demo.png").stat().st_size > 20_000

@@ -1,0 +1,84 @@
+"""``cmcan replay``: the same core over any log format, timeline, emitted frames, warnings, plot."""
+
+import csv
+import json
+
+import can
+import pytest
+
+from cmcan.cli.errors import EX_CANTCREAT, EX_DATAERR, EX_NOINPUT
+from tests.conftest import run_cli
+from tests.helpers import sim_frames, write_log
+
+
+@pytest.fixture(scope="module")
+def logs(tmp_path_factory):
+    d = tmp_path_factory.mktemp("replay")
+    run, frames = sim_frames("two_set_validation", duration_h=1.2)
+    log = write_log(d / "val.log", frames)
+    _, short = sim_frames("two_set_validation", duration_h=0.08)
+    write_log(d / "short.log", short)
+    return d, log, run
+
+
+def emitted(path):
+    return [(m.arbitration_id, bytes(m.data)) for m in can.LogReader(str(path))]
+
+
+def test_replay_writes_timeline_emit_plot_and_warnings(logs):
+    d, log, _run = logs
+    res = run_cli(
+        "replay",
+        str(log),
+        "--out",
+        str(d / "tl.csv"),
+        "--emit",
+        str(d / "emit.log"),
+        "--plot",
+        str(d / "ratio.png"),
+        "--json",
+    )
+    assert res.returncode == 0, res.stderr
+    summary = json.loads(res.stdout)
+    lows = [w for w in summary["warnings"] if w["to"] == "low"]
+    assert len(lows) == 1 and 1.0 < lows[0]["operating_h"] < 1.15
+    assert summary["final"]["counters"]["frames_total"] == summary["final"]["counters"]["accepted"]
+    with open(d / "tl.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == summary["final"]["counters"]["ticks"]
+    assert {r["gate"] for r in rows} >= {"evaluating", "low_speed"}
+    out = emitted(d / "emit.log")
+    assert {i for i, _ in out} == {0x3A0, 0x3A1, 0x3A2}
+    assert (d / "ratio.png").stat().st_size > 10_000
+
+
+@pytest.mark.parametrize("ext", ["asc", "blf", "csv", "trc"])
+def test_other_log_formats_give_the_same_frames(logs, ext):
+    d, _, _ = logs
+    log = d / "short.log"
+    ref = d / "ref_emit.log"
+    if not ref.exists():
+        assert run_cli("replay", str(log), "--emit", str(ref)).returncode == 0
+    other = d / f"val.{ext}"
+    with can.Logger(str(other)) as w:
+        for m in can.LogReader(str(log)):
+            w.on_message_received(m)
+    res = run_cli("replay", str(other), "--emit", str(d / f"emit_{ext}.log"), "--force")
+    assert res.returncode == 0, res.stderr
+    assert emitted(d / f"emit_{ext}.log") == emitted(ref)
+
+
+def test_replay_refuses_to_overwrite(logs):
+    d, log, _ = logs
+    keep = d / "keep.csv"
+    keep.write_text("mine")
+    res = run_cli("replay", str(log), "--out", str(keep))
+    assert res.returncode == EX_CANTCREAT and keep.read_text() == "mine"
+
+
+def test_replay_missing_and_garbage_logs(tmp_path):
+    assert run_cli("replay", str(tmp_path / "nope.log")).returncode == EX_NOINPUT
+    bad = tmp_path / "bad.log"
+    bad.write_text("this is not a candump line\n")
+    res = run_cli("replay", str(bad))
+    assert res.returncode == EX_DATAERR and "bad.log" in res.stderr
