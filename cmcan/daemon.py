@@ -42,7 +42,7 @@ class DaemonOptions:
     idle_after_s: float = 1.0  # no frame for this long: advance the core's time on the wall clock
     backoff_min_s: float = 0.5
     backoff_max_s: float = 10.0
-    status_every_s: float = 5.0
+    status_every_s: float = 2.0
     send_timeout_s: float = 0.005
 
 
@@ -253,11 +253,14 @@ class Daemon:
 
     def _status_text(self) -> str:
         s = self.monitor.snapshot()
+        c = s["counters"]
         ratio = f"{s['ratio_filt_pct']:.2f} %" if s["ratio_filt_pct"] is not None else "n/a"
         bus = "bus up" if self.bus is not None else "bus down"
         return (
-            f"{s['level']} ({s['reason']}), ratio {ratio}, {s['counters']['frames_total']} frames, "
-            f"{s['warning_count']} warnings, {bus}"
+            f"{s['level']} ({s['reason']}), ratio {ratio}, {s['warning_count']} warnings, {bus}; "
+            f"frames {c['frames_total']} (inputs {c['accepted']}, bad length {c['bad_length']}, "
+            f"out of range {c['out_of_range']}, unknown {c['unknown_id']}, late {c['late']}), "
+            f"sent {self.stats['tx_frames']}, dropped {self.stats['tx_dropped']}"
         )
 
     def _shutdown(self) -> None:
