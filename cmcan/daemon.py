@@ -129,6 +129,7 @@ class Daemon:
         last_frame_t = math.nan
         next_wd = next_status = self.clock()
         last_save = self.clock()
+        saved_ticks = -1
         self.notifier.ready(self._status_text())
         log.info("cmcan running on %s %s", self.cfg.raw["bus"]["interface"], self.cfg.raw["bus"]["channel"])
         while not self.stop_event.is_set():
@@ -139,9 +140,14 @@ class Daemon:
             if now >= next_status:
                 self.notifier.status(self._status_text())
                 next_status = now + opt.status_every_s
-            if self.store is not None and (self.monitor.transitions_since_save or now - last_save >= self.save_every_s):
+            # Save on every warning change at once, else periodically while the core evaluates;
+            # an idle gateway does not wear its flash rewriting unchanged totals.
+            ticks = self.monitor.counters["ticks"]
+            if self.store is not None and (
+                self.monitor.transitions_since_save or (now - last_save >= self.save_every_s and ticks != saved_ticks)
+            ):
                 self._save()
-                last_save = now
+                last_save, saved_ticks = now, ticks
 
             if self.bus is None:
                 if not self._open():

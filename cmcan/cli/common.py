@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 from cmcan import config as cfgmod
@@ -12,16 +11,17 @@ from cmcan.schema import SchemaError
 
 
 def load_config(path: str | None, check_dbc: bool = True) -> cfgmod.Config:
-    if path is not None and not Path(path).exists():
-        raise CliError(f"{path}: configuration file not found", EX_NOINPUT)
-    try:
-        cfg = cfgmod.load(path)
-        if check_dbc:
+    """The configuration (sysexits on any problem), with its DBC loaded and the mapping checked."""
+    from cmcan.setup import load_config as load
+
+    cfg = load(path)
+    if check_dbc:
+        try:
             cfgmod.check_against_dbc(cfg, cfg.dbc())
-    except SchemaError as exc:
-        raise CliError(str(exc), EX_CONFIG) from None
-    except DbcError as exc:
-        raise CliError(f"{exc} (dbc in {cfg.source if 'cfg' in locals() else path})", EX_CONFIG) from None
+        except SchemaError as exc:
+            raise CliError(str(exc), EX_CONFIG) from None
+        except DbcError as exc:
+            raise CliError(f"{exc} (dbc: in {cfg.source})", EX_CONFIG) from None
     return cfg
 
 
