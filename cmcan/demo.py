@@ -24,7 +24,7 @@ import numpy as np
 
 from cmcan import config as cfgmod
 from cmcan.daemon import Daemon, DaemonOptions, bus_kwargs
-from cmcan.setup import prepare
+from cmcan.preflight import prepare
 from cmcan.sim import scenario as scn
 from cmcan.sim.frames import Frames, frames_from_run
 from cmcan.sim.run import simulate

@@ -11,7 +11,7 @@ import pytest
 
 from cmcan import config as cfgmod
 from cmcan.daemon import Daemon, DaemonOptions, bus_kwargs
-from cmcan.setup import prepare
+from cmcan.preflight import prepare
 
 pytestmark = pytest.mark.slow
 

@@ -15,8 +15,15 @@ from cmcan.sim.physics import DriveParams
 from tests.conftest import run_cli
 
 P = DriveParams()
-NAMES = ["laminar_leakage", "pressure_leakage", "turbulent_leakage", "compressibility", "motor_speed_lag",
-         "disp_sensor_offset", "motor_disp_offset"]
+NAMES = [
+    "laminar_leakage",
+    "pressure_leakage",
+    "turbulent_leakage",
+    "compressibility",
+    "motor_speed_lag",
+    "disp_sensor_offset",
+    "motor_disp_offset",
+]
 
 
 def data_with(effects, seed=3, size_pct=1.5, constant_temp=None, minutes=20.0):
@@ -34,8 +41,9 @@ def data_with(effects, seed=3, size_pct=1.5, constant_temp=None, minutes=20.0):
 
 
 def run(cols):
-    d = from_series({k: (cols["time_s"], v) for k, v in cols.items() if k != "time_s"}, "motor_speed_rpm",
-                    GateLimits(), "test")
+    d = from_series(
+        {k: (cols["time_s"], v) for k, v in cols.items() if k != "time_s"}, "motor_speed_rpm", GateLimits(), "test"
+    )
     return diagnose(d, P)[0]
 
 
@@ -127,8 +135,16 @@ def test_cli_names_missing_columns(tmp_path):
 
 
 def test_diagnose_a_candump_log_through_the_dbc(tmp_path):
-    res = run_cli("simulate", "single_set_leakage", "--duration-h", "0.1", "--out", str(tmp_path / "r.csv"),
-                  "--candump", str(tmp_path / "r.log"))
+    res = run_cli(
+        "simulate",
+        "single_set_leakage",
+        "--duration-h",
+        "0.1",
+        "--out",
+        str(tmp_path / "r.csv"),
+        "--candump",
+        str(tmp_path / "r.log"),
+    )
     assert res.returncode == 0, res.stderr
     res = run_cli("gap", "diagnose", str(tmp_path / "r.log"), "--out", str(tmp_path / "o"), "--no-plots", "--json")
     assert res.returncode == 0, res.stderr

@@ -7,7 +7,7 @@ import json
 import sys
 
 from cmcan.cli.errors import CliError
-from cmcan.setup import check_channel, load_config, prepare
+from cmcan.preflight import check_channel, load_config, prepare
 
 
 def add_subparser(sub: argparse._SubParsersAction) -> None:

@@ -12,7 +12,7 @@ from cmcan.schema import SchemaError
 
 def load_config(path: str | None, check_dbc: bool = True) -> cfgmod.Config:
     """The configuration (sysexits on any problem), with its DBC loaded and the mapping checked."""
-    from cmcan.setup import load_config as load
+    from cmcan.preflight import load_config as load
 
     cfg = load(path)
     if check_dbc:

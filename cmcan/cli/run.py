@@ -11,8 +11,8 @@ from types import FrameType
 import can
 
 from cmcan.daemon import Daemon, DaemonOptions, bus_kwargs, tune_socketcan
+from cmcan.preflight import check_channel, load_config, prepare
 from cmcan.sdnotify import Notifier
-from cmcan.setup import check_channel, load_config, prepare
 
 log = logging.getLogger("cmcan")
 
