@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +28,6 @@ class Prepared:
     model: GrayBoxModel
     monitor: Monitor
     store: StateStore | None
-    notes: list[str] = field(default_factory=list)
 
 
 def apply_overrides(raw: dict[str, Any], interface: str | None, channel: str | None, state_dir: str | None) -> None:
@@ -97,7 +96,6 @@ def prepare(cfg: cfgmod.Config, need_state: bool = True, keep_timeline: bool = F
     except ModelError as exc:
         raise CliError(f"{exc} (model: in {cfg.source})", EX_CONFIG) from None
     store = None
-    notes = []
     if need_state:
         store = StateStore(cfg.raw["state"]["directory"])
         problem = store.check_writable()
@@ -108,4 +106,4 @@ def prepare(cfg: cfgmod.Config, need_state: bool = True, keep_timeline: bool = F
         monitor = build_monitor(cfg, db, model, model.envelope, totals=totals, keep_timeline=keep_timeline)
     except SchemaError as exc:
         raise CliError(str(exc), EX_CONFIG) from None
-    return Prepared(cfg, model, monitor, store, notes)
+    return Prepared(cfg, model, monitor, store)
