@@ -32,7 +32,7 @@ def test_train_from_a_candump_log_then_evaluate_with_plot(data):
     res = run_cli("train", str(data / "training_healthy.log"), "--t-trn-h", "0.35", "--out", str(model), "--json")
     assert res.returncode == 0, res.stderr
     summary = json.loads(res.stdout)
-    assert summary["residual_stats"]["set"] == "D_tst" and summary["residual_stats"]["rmse_rpm"] < 5
+    assert summary["residual_stats"]["set"] == "D_tst" and summary["residual_stats"]["rmse"] < 5
     res = run_cli(
         "evaluate",
         str(data / "training_healthy.csv"),

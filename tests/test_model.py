@@ -27,20 +27,26 @@ def trained(tmp_path_factory):
     return path, model, stats, op
 
 
-def envelope_samples(model, n=4000, seed=1):
+def envelope_samples(model, n=4000, seed=1, widen=0.0):
     rng = np.random.default_rng(seed)
     lo = np.array([model.envelope[k][0] for k in MODEL_INPUTS])
     hi = np.array([model.envelope[k][1] for k in MODEL_INPUTS])
+    lo, hi = lo - widen * (hi - lo), hi + widen * (hi - lo)
+    lo[3] = max(lo[3], -30.0)  # the viscosity law holds above the pour point
     return lo + rng.random((n, len(MODEL_INPUTS))) * (hi - lo)
 
 
-def test_onnx_equals_python_reference_within_1e5_over_the_envelope(trained):
+def test_onnx_equals_python_reference_over_the_envelope_and_beyond(trained):
     path, model, _, _ = trained
     x = envelope_samples(model)
-    pred, wb = load_model(path).predict(x)
-    ref = model.predict(x)
-    assert np.max(np.abs(pred - ref) / np.abs(ref)) < 1e-5
-    np.testing.assert_allclose(wb, model.whitebox(x), rtol=1e-6)
+    wide = envelope_samples(model, n=2000, seed=2, widen=0.5)  # half a span beyond on every side
+    m = load_model(path)
+    for xs in (x, wide):
+        parts = m.predict_parts(xs)
+        # float64 graph against the float64 reference: rounding only
+        np.testing.assert_allclose(parts["predicted"], model.predict(xs), rtol=1e-11)
+        np.testing.assert_allclose(parts["physics"], model.physics(xs), rtol=1e-11)
+        np.testing.assert_allclose(parts["whitebox"], model.whitebox(xs), rtol=1e-12)
 
 
 def test_single_sample_and_batch_agree(trained):
@@ -49,15 +55,37 @@ def test_single_sample_and_batch_agree(trained):
     pred, wb = m.predict(x)
     for i in range(len(x)):
         p1, w1 = m.predict_one(*x[i])
-        assert p1 == pytest.approx(pred[i], rel=1e-7) and w1 == pytest.approx(wb[i], rel=1e-7)
+        assert p1 == pytest.approx(pred[i], rel=1e-13) and w1 == pytest.approx(wb[i], rel=1e-13)
 
 
-def test_one_graph_holds_scaling_whitebox_and_network(trained):
+def test_one_graph_holds_physics_correction_and_whitebox(trained):
     g = onnx.load(str(trained[0])).graph
     ops = {n.op_type for n in g.node}
-    assert {"Scaler", "MatMul", "Tanh", "Abs", "Mul", "Add"} <= ops or {"Sub", "Div", "MatMul", "Tanh"} <= ops
-    assert [o.name for o in g.output] == ["motor_speed_pred_rpm", "motor_speed_whitebox_rpm"]
+    assert {"Log", "Exp", "Sqrt", "Gemm", "MatMul", "Clip", "ReduceSumSquare"} <= ops
+    assert [o.name for o in g.output] == ["predicted", "physics", "whitebox"]
     assert [i.name for i in g.input] == ["x"]
+    assert g.input[0].type.tensor_type.elem_type == onnx.TensorProto.DOUBLE
+    assert len(g.node) <= 32  # about 0.35 us per node on a single-sample call
+
+
+def test_physics_coefficients_are_non_negative_and_carry_the_model(trained):
+    model = trained[1]
+    assert np.all(model.coef >= 0) and model.coef[0] > 0.9  # ideal flow nearly all delivered
+    x = envelope_samples(model)
+    # the learned correction is a small share of the prediction and never beyond its bound
+    corr = model.predict(x) - model.physics(x)
+    assert np.max(np.abs(corr)) <= model.correction.bound_lpm / model.quantity.lpm_per_unit * (1 + 1e-12)
+    assert np.max(np.abs(corr) / model.predict(x)) < 0.01
+
+
+def test_correction_fades_outside_the_envelope(trained):
+    model = trained[1]
+    x = envelope_samples(model, n=200)
+    far = x.copy()
+    far[:, 2] = model.envelope["dp_bar"][1] + 2.0 * np.ptp(model.envelope["dp_bar"])  # far above the pressures seen
+    np.testing.assert_allclose(model.predict(far), model.physics(far), rtol=1e-12)
+    m = load_model(trained[0])
+    np.testing.assert_allclose(m.predict_parts(far)["predicted"], m.predict_parts(far)["physics"], rtol=1e-12)
 
 
 def test_metadata_names_inputs_units_envelope_and_training(trained):
@@ -73,7 +101,10 @@ def test_metadata_names_inputs_units_envelope_and_training(trained):
     env = props["cmcan.envelope"]
     trn = op.steady & (op.hours < 0.4)
     assert env["dp_bar"] == [pytest.approx(op.x[trn, 2].min()), pytest.approx(op.x[trn, 2].max())]
-    assert props["cmcan.residual_stats"]["set"] == "D_tst" and props["cmcan.residual_stats"]["rmse_rpm"] > 0
+    assert props["cmcan.residual_stats"]["set"] == "D_tst" and props["cmcan.residual_stats"]["rmse"] > 0
+    assert props["cmcan.quantity"] == {"role": "motor_speed_rpm", "unit": "rpm"}
+    assert props["cmcan.oil"] == {"nu40_cst": 46.0, "nu100_cst": 6.8}
+    assert set(props["cmcan.physics"]["coefficients"]) == {"ideal_flow", "laminar", "turbulent", "compressibility"}
     assert len(props["cmcan.training"]["fingerprint"]) == 64
     assert props["cmcan.model_version"].endswith(props["cmcan.training"]["fingerprint"][:12])
 
@@ -100,6 +131,33 @@ def test_refuses_inputs_in_other_units(trained):
 def test_refuses_other_inputs(trained):
     with pytest.raises(ModelError, match="model inputs are"):
         load_model(trained[0], expected_inputs={"pump_speed_rpm": "rpm", "dp_bar": "bar"})
+
+
+def _with_meta(src, dst, **changes):
+    m = onnx.load(str(src))
+    for p in m.metadata_props:
+        key = p.key.removeprefix("cmcan.")
+        if key in changes:
+            p.value = changes[key]
+    onnx.save(m, str(dst))
+    return dst
+
+
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        ({"format": json.dumps("cmcan-graybox/1")}, "model format 'cmcan-graybox/1', this cmcan reads"),
+        ({"inputs": json.dumps([{"name": "pump_speed_rpm", "index": 0}])}, r"cmcan.inputs\[0\]"),
+        ({"inputs": "[1, 2"}, "cmcan.inputs is not valid JSON"),
+        ({"envelope": json.dumps({"dp_bar": [300, 20]})}, "cmcan.envelope.dp_bar: expected"),
+        ({"motor_disp_cc": "null"}, "cmcan.motor_disp_cc: expected a positive number"),
+        ({"quantity": json.dumps({"role": "torque_nm", "unit": "Nm"})}, "cmcan.quantity: expected"),
+    ],
+)
+def test_refuses_wrong_metadata_naming_the_field(trained, tmp_path, changes, message):
+    bad = _with_meta(trained[0], tmp_path / "bad.onnx", **changes)
+    with pytest.raises(ModelError, match=message):
+        load_model(bad)
 
 
 def test_refuses_a_foreign_onnx_file(tmp_path):

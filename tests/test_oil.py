@@ -3,7 +3,7 @@ import math
 import numpy as np
 import pytest
 
-from cmcan.sim.oil import VG46, Oil
+from cmcan.oil import VG46, Oil
 
 
 def astm_d341(temp_c: float, a: float, b: float) -> float:

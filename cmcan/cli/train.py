@@ -24,7 +24,6 @@ def add_subparser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", help="configuration (default: the shipped config/cmcan.yaml)")
     p.add_argument("--t-trn-h", type=float, required=True, help="end of the training span (hours from start)")
     p.add_argument("--t-start-h", type=float, default=0.0, help="start of the training span (default 0)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the network's initial weights")
     p.add_argument("--force", action="store_true", help="overwrite an existing model file")
     p.add_argument("--json", action="store_true", help="print the figures as JSON")
     p.set_defaults(func=run)
@@ -34,13 +33,14 @@ def run(args: argparse.Namespace) -> int:
     out = ensure_writable(args.out, args.force)
     cfg = load_config(args.config)
     try:
+        from cmcan.model.physics import TERMS
         from cmcan.model.train import train_on_points
     except ImportError as exc:
         raise CliError(str(exc), EX_UNAVAILABLE) from None
     op = load_points(args.data, cfg)
     try:
         blob, model, stats = train_on_points(
-            op, args.t_trn_h, cfg.motor_disp_cc, source=str(args.data), seed=args.seed, t_start_h=args.t_start_h
+            op, args.t_trn_h, cfg.motor_disp_cc, source=str(args.data), t_start_h=args.t_start_h
         )
     except ImportError as exc:
         raise CliError(str(exc), EX_UNAVAILABLE) from None
@@ -49,13 +49,19 @@ def run(args: argparse.Namespace) -> int:
     tmp = out.with_name(out.name + ".tmp")
     tmp.write_bytes(blob)
     tmp.replace(out)
-    summary = {"model": str(out), "eta_vol": model.eta_vol, "envelope": model.envelope, "residual_stats": stats}
+    summary = {
+        "model": str(out),
+        "physics": dict(zip(TERMS, model.coef.tolist(), strict=True)),
+        "eta_vol": model.eta_vol,
+        "envelope": model.envelope,
+        "residual_stats": stats,
+    }
     if args.json:
         json.dump(summary, sys.stdout, indent=2)
         sys.stdout.write("\n")
     else:
         print(
-            f"wrote {out}: eta_vol {model.eta_vol:.4f}, {stats['set']} RMSE {stats['rmse_rpm']:.2f} rpm over "
+            f"wrote {out}: {stats['set']} RMSE {stats['rmse']:.2f} {stats['unit']} over "
             f"{stats['points']} steady points, "
             f"ratio p1..p99 {stats['ratio_p1_pct']:.2f}..{stats['ratio_p99_pct']:.2f} %"
         )

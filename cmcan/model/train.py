@@ -1,9 +1,9 @@
 """Training the gray-box model and exporting it as one ONNX graph (needs ``cmcan[train]``).
 
-The network learns the residual between measured motor speed and the fitted white-box law, on steady
-healthy points only; scikit-learn fits it, skl2onnx converts scaler and network, and the white-box
-nodes and the output scaling are added around them, so one graph maps the four inputs to the predicted
-motor speed and to the white-box speed alone.
+Two fits, both convex with one solution, so the same data give the same model on any machine:
+the physics law by non-negative least squares (:mod:`cmcan.model.physics`), then the correction of
+its residual by ridge regression (:mod:`cmcan.model.correction`), on steady healthy points only.
+:class:`TrainedModel` is the float64 Python reference of what the exported graph computes.
 """
 
 from __future__ import annotations
@@ -16,38 +16,46 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cmcan import __version__
-from cmcan.model.metadata import FORMAT, INPUT_NAME, OUTPUT_PRED, OUTPUT_WHITEBOX, ModelMeta
-from cmcan.model.whitebox import fit_eta_vol, ideal_motor_speed_rpm, whitebox_rpm
+from cmcan.model import correction, physics
+from cmcan.model.metadata import FORMAT, OUTPUT_PHYSICS, OUTPUT_PRED, OUTPUT_WHITEBOX, QUANTITY_UNITS, ModelMeta
+from cmcan.model.physics import Quantity
+from cmcan.oil import VG46, Oil
 from cmcan.signals import MODEL_INPUTS, MODEL_UNITS
 
-HIDDEN = (24, 24)
+MIN_POINTS = 50
 
 
 def _require_train_extra() -> None:
     try:
         import onnx  # noqa: F401
-        import skl2onnx  # noqa: F401
-        import sklearn  # noqa: F401
+        import scipy  # noqa: F401
     except ImportError as exc:
         raise ImportError(
             f"training needs the 'train' extra (pip install 'cmcan[train]'): {exc.name} is missing"
         ) from None
 
 
-@dataclass
+@dataclass(frozen=True)
 class TrainedModel:
-    pipeline: Any  # sklearn Pipeline(StandardScaler, MLPRegressor) predicting residual / residual_scale
-    eta_vol: float
-    motor_disp_cc: float
-    residual_scale: float
+    quantity: Quantity
+    oil: Oil
+    coef: NDArray[np.float64]  # physics coefficients, in the order of physics.TERMS, all >= 0
+    correction: correction.Correction
+    eta_vol: float  # the plain white-box law's efficiency, for comparison
     envelope: dict[str, list[float]]
+    width: float = correction.WIDTH
+    fade_span: float = correction.FADE_SPAN
+
+    def physics(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
+        return physics.flow_lpm(x, self.coef, self.oil) / self.quantity.lpm_per_unit
 
     def whitebox(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
-        return whitebox_rpm(x, self.motor_disp_cc, self.eta_vol)
+        return self.eta_vol * physics.ideal_flow_lpm(x) / self.quantity.lpm_per_unit
 
     def predict(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
         """Python (float64) reference of what the ONNX graph computes."""
-        return self.whitebox(x) + self.pipeline.predict(x) * self.residual_scale
+        flow = physics.flow_lpm(x, self.coef, self.oil) + self.correction(x)
+        return flow / self.quantity.lpm_per_unit
 
 
 def fingerprint(x: NDArray[np.float64], y: NDArray[np.float64]) -> str:
@@ -59,145 +67,117 @@ def fingerprint(x: NDArray[np.float64], y: NDArray[np.float64]) -> str:
 
 def fit(
     x: NDArray[np.float64],
-    y_rpm: NDArray[np.float64],
-    motor_disp_cc: float,
-    seed: int = 0,
-    hidden: tuple[int, ...] = HIDDEN,
+    y: NDArray[np.float64],
+    motor_disp_cc: float | None,
+    quantity: str = "motor_speed_rpm",
+    oil: Oil = VG46,
 ) -> TrainedModel:
-    """Fit the white-box efficiency, then the network on the residual. ``x``: steady healthy points."""
+    """Fit physics and correction on steady healthy points ``x`` (n, 4) with the measured quantity ``y``."""
     _require_train_extra()
-    from sklearn.neural_network import MLPRegressor
-    from sklearn.pipeline import make_pipeline
-    from sklearn.preprocessing import StandardScaler
-
-    if len(x) < 50:
-        raise ValueError(f"only {len(x)} steady operating points to train on; need at least 50")
-    eta = fit_eta_vol(ideal_motor_speed_rpm(x[:, 0], x[:, 1], motor_disp_cc), y_rpm)
-    residual = y_rpm - whitebox_rpm(x, motor_disp_cc, eta)
-    scale = float(np.std(residual)) or 1.0
-    net = MLPRegressor(
-        hidden_layer_sizes=hidden,
-        activation="tanh",
-        solver="lbfgs",
-        max_iter=3000,
-        tol=1e-9,
-        alpha=1e-5,
-        random_state=seed,
-    )
-    pipe = make_pipeline(StandardScaler(), net)
-    pipe.fit(x, residual / scale)
+    if quantity not in QUANTITY_UNITS:
+        raise ValueError(f"output quantity {quantity!r} is not one of {', '.join(QUANTITY_UNITS)}")
+    if len(x) < MIN_POINTS:
+        raise ValueError(f"only {len(x)} steady operating points to train on; need at least {MIN_POINTS}")
+    x = np.ascontiguousarray(x, dtype=np.float64)
+    q = Quantity(quantity, motor_disp_cc if quantity == "motor_speed_rpm" else None)
+    flow = np.asarray(y, dtype=np.float64) * q.lpm_per_unit
+    _, _, active = correction.envelope_box(x)
+    if not active.any():
+        raise ValueError("the training points do not vary in any input: record a run over the machine's duty")
+    try:
+        coef = physics.fit_coefficients(x, flow, oil)
+    except RuntimeError as exc:  # scipy's NNLS gives up only on degenerate data
+        raise ValueError(f"the physics fit did not converge: {exc}") from None
+    corr = correction.fit(x, flow - physics.flow_lpm(x, coef, oil))
     envelope = {name: [float(x[:, i].min()), float(x[:, i].max())] for i, name in enumerate(MODEL_INPUTS)}
-    return TrainedModel(pipe, eta, motor_disp_cc, scale, envelope)
+    return TrainedModel(q, oil, coef, corr, physics.fit_eta_vol(x, flow), envelope)
 
 
-def to_onnx(model: TrainedModel, residual_stats: dict[str, float], training: dict[str, Any]) -> bytes:
-    """One ONNX graph: scaling + network (skl2onnx) with the white-box law and output scaling around it."""
+def to_onnx(model: TrainedModel, residual_stats: dict[str, Any], training: dict[str, Any]) -> bytes:
+    """One ONNX graph for the model, its metadata attached and the graph checked."""
     _require_train_extra()
     import onnx
-    from onnx import TensorProto, helper, numpy_helper
-    from skl2onnx import convert_sklearn
-    from skl2onnx.common.data_types import FloatTensorType
 
-    n_in = len(MODEL_INPUTS)
-    onx = convert_sklearn(
-        model.pipeline,
-        initial_types=[(INPUT_NAME, FloatTensorType([None, n_in]))],
-        target_opset={"": 17, "ai.onnx.ml": 3},
-    )
-    g = onx.graph
-    nn_out = g.output[0].name
+    from cmcan.model import graph
 
-    def const(name: str, value: Any, dtype: Any = np.float32) -> None:
-        g.initializer.append(numpy_helper.from_array(np.asarray(value, dtype=dtype), name))
-
-    const("wb_gain", [model.eta_vol / model.motor_disp_cc])
-    const("res_scale", [model.residual_scale])
-    for name, val in (("s0", [0]), ("e1", [1]), ("s1", [1]), ("e2", [2]), ("ax1", [1])):
-        const(name, val, np.int64)
-    g.node.extend(
-        [
-            helper.make_node("Slice", [INPUT_NAME, "s0", "e1", "ax1"], ["n_pump"], name="pump_speed"),
-            helper.make_node("Slice", [INPUT_NAME, "s1", "e2", "ax1"], ["v_pump_signed"], name="pump_disp"),
-            helper.make_node("Abs", ["n_pump"], ["n_pump_abs"], name="abs_speed"),
-            helper.make_node("Abs", ["v_pump_signed"], ["v_pump"], name="abs_disp"),
-            helper.make_node("Mul", ["n_pump_abs", "v_pump"], ["ideal_flow"], name="pump_flow"),
-            helper.make_node("Mul", ["ideal_flow", "wb_gain"], [OUTPUT_WHITEBOX], name="whitebox"),
-            helper.make_node("Reshape", [nn_out, "nn_shape"], ["nn_col"], name="nn_column"),
-            helper.make_node("Mul", ["nn_col", "res_scale"], ["correction"], name="correction_rpm"),
-            helper.make_node("Add", [OUTPUT_WHITEBOX, "correction"], [OUTPUT_PRED], name="graybox"),
-        ]
-    )
-    const("nn_shape", [-1, 1], np.int64)
-    del g.output[:]
-    g.output.extend(
-        [
-            helper.make_tensor_value_info(OUTPUT_PRED, TensorProto.FLOAT, [None, 1]),
-            helper.make_tensor_value_info(OUTPUT_WHITEBOX, TensorProto.FLOAT, [None, 1]),
-        ]
-    )
-    g.name = "cmcan_graybox"
+    onx = graph.build(model)
+    q = model.quantity
     meta = ModelMeta(
         format=FORMAT,
         model_version=f"{__version__}+{training['fingerprint'][:12]}",
         inputs=[{"name": n, "unit": MODEL_UNITS[n], "index": i} for i, n in enumerate(MODEL_INPUTS)],
-        outputs=[{"name": OUTPUT_PRED, "unit": "rpm"}, {"name": OUTPUT_WHITEBOX, "unit": "rpm"}],
-        motor_disp_cc=model.motor_disp_cc,
-        eta_vol=model.eta_vol,
+        quantity={"role": q.role, "unit": q.unit},
+        outputs=[{"name": n, "unit": q.unit} for n in (OUTPUT_PRED, OUTPUT_PHYSICS, OUTPUT_WHITEBOX)],
+        motor_disp_cc=q.motor_disp_cc,
+        oil={"nu40_cst": model.oil.nu40_cst, "nu100_cst": model.oil.nu100_cst},
+        physics={
+            "coefficients": {t: float(c) for t, c in zip(physics.TERMS, model.coef, strict=True)},
+            "eta_vol": model.eta_vol,
+        },
+        correction={
+            "basis": f"{len(model.correction.centers)} Gaussian RBFs on a {len(correction.LEVELS)}-level grid",
+            "ridge": correction.RIDGE,
+            "bound_lpm": model.correction.bound_lpm,
+            "fade_span": model.fade_span,
+        },
         envelope=model.envelope,
         residual_stats=residual_stats,
         training=training,
     )
-    del onx.metadata_props[:]
     for k, v in meta.to_props().items():
         onx.metadata_props.append(onnx.StringStringEntryProto(key=k, value=v))
     onx.producer_name = "cmcan"
     onx.producer_version = __version__
-    onnx.checker.check_model(onx)
+    onnx.checker.check_model(onx, full_check=True)
     return onx.SerializeToString()
+
+
+def residual_figures(model: TrainedModel, x: NDArray[np.float64], y: NDArray[np.float64], name: str) -> dict[str, Any]:
+    pred = model.predict(x)
+    ratio = y / pred * 100.0
+    unit = model.quantity.unit
+    return {
+        "set": name,
+        "points": len(y),
+        "unit": unit,
+        "rmse": float(np.sqrt(np.mean((pred - y) ** 2))),
+        "mean": float(np.mean(y - pred)),
+        "ratio_p1_pct": float(np.percentile(ratio, 1)),
+        "ratio_p99_pct": float(np.percentile(ratio, 99)),
+    }
 
 
 def train_on_points(
     op: Any,
     t_trn_h: float,
-    motor_disp_cc: float,
+    motor_disp_cc: float | None,
     source: str,
-    seed: int = 0,
     t_start_h: float = 0.0,
     extra_training_info: dict[str, Any] | None = None,
+    quantity: str = "motor_speed_rpm",
+    oil: Oil = VG46,
 ) -> tuple[bytes, TrainedModel, dict[str, Any]]:
     """The protocol's training step on operating points: fit on D_trn = steady points in
     [t_start_h, t_trn_h), residual statistics on D_tst = steady points after t_trn_h."""
     hours = op.hours
     trn = op.steady & (hours >= t_start_h) & (hours < t_trn_h)
     tst = op.steady & (hours >= t_trn_h)
-    if trn.sum() < 50:
+    if trn.sum() < MIN_POINTS:
         raise ValueError(
             f"{source}: only {int(trn.sum())} steady points before t_trn = {t_trn_h} h; "
             "train on a longer stretch of healthy data"
         )
-    model = fit(op.x[trn], op.motor_speed_rpm[trn], motor_disp_cc, seed=seed)
+    y = op.motor_speed_rpm
+    model = fit(op.x[trn], y[trn], motor_disp_cc, quantity, oil)
     check = tst if tst.sum() >= 10 else trn
-    y = op.motor_speed_rpm[check]
-    pred = model.predict(op.x[check])
-    ratio = y / pred * 100.0
-    stats = {
-        "set": "D_tst" if check is tst else "D_trn",
-        "points": int(check.sum()),
-        "rmse_rpm": float(np.sqrt(np.mean((pred - y) ** 2))),
-        "mean_rpm": float(np.mean(y - pred)),
-        "ratio_p1_pct": float(np.percentile(ratio, 1)),
-        "ratio_p99_pct": float(np.percentile(ratio, 99)),
-    }
+    stats = residual_figures(model, op.x[check], y[check], "D_tst" if check is tst else "D_trn")
     training = {
-        "fingerprint": fingerprint(op.x[trn], op.motor_speed_rpm[trn]),
+        "fingerprint": fingerprint(op.x[trn], y[trn]),
         "source": source,
         "t_start_h": t_start_h,
         "t_trn_h": t_trn_h,
         "points_trn": int(trn.sum()),
         "points_tst": int(tst.sum()),
-        "eta_vol": model.eta_vol,
-        "hidden": list(HIDDEN),
-        "seed": seed,
         **(extra_training_info or {}),
     }
     return to_onnx(model, stats, training), model, stats

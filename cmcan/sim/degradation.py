@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from cmcan.sim.oil import Oil
+from cmcan.oil import Oil
 from cmcan.sim.physics import BAR, LPM
 
 # After loss of function the unit leaks this many times its wear leakage at failure.

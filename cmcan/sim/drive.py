@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from cmcan.sim.oil import KELVIN
+from cmcan.oil import KELVIN
 from cmcan.sim.physics import BAR, CC, LPM, TWO_PI, DriveParams
 
 _MIN_DP_FOR_SQRT = 1.0 * BAR  # the sqrt law's slope is unbounded at zero; clamp for the Jacobian

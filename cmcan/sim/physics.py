@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from cmcan.sim.oil import Oil
+from cmcan.oil import Oil
 
 BAR = 1e5
 LPM = 1e-3 / 60.0  # m3/s per l/min

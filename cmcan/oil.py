@@ -1,7 +1,8 @@
 """Hydraulic oil properties: ASTM D341 (Walther) viscosity and a linear density law.
 
-Defaults are ISO VG 46 (HLP 46): 46 cSt at 40 C and 6.8 cSt at 100 C. The Walther constants are
-derived from the two reference points so that the law passes through them exactly.
+Shared by the simulator and the model's leakage law. Defaults are ISO VG 46 (HLP 46): 46 cSt at 40 C
+and 6.8 cSt at 100 C. The Walther constants are derived from the two reference points so that the
+law passes through them exactly. A grade name stands for a mineral HLP oil of viscosity index ~100.
 """
 
 from __future__ import annotations
@@ -53,3 +54,22 @@ def dynamic_viscosity_scalar(temp_c: float, a: float, b: float, rho15: float, dr
 
 
 VG46 = Oil()
+
+# ISO 3448 grades as mineral HLP oils (viscosity index about 100): kinematic viscosity at 40 C and 100 C.
+GRADES: dict[str, tuple[float, float]] = {
+    "VG15": (15.0, 3.4),
+    "VG22": (22.0, 4.3),
+    "VG32": (32.0, 5.4),
+    "VG46": (46.0, 6.8),
+    "VG68": (68.0, 8.7),
+    "VG100": (100.0, 11.2),
+}
+
+
+def oil_from_grade(grade: str) -> Oil:
+    """An oil by its ISO grade name (``VG46``, ``ISO VG 46``, ``HLP46`` and ``46`` all name VG 46)."""
+    key = "VG" + "".join(ch for ch in grade.upper() if ch.isdigit())
+    if key not in GRADES:
+        raise ValueError(f"unknown oil grade {grade!r}; known: {', '.join(GRADES)} (or give nu40_cst and nu100_cst)")
+    nu40, nu100 = GRADES[key]
+    return Oil(nu40_cst=nu40, nu100_cst=nu100)

@@ -1,0 +1,85 @@
+"""The gray box's theoretical part ("light gray"): the ideal flow law plus leakage terms of physical form.
+
+Delivered flow (l/min) at the motor, or at the flow meter of an open circuit:
+
+    Q = c_geo * Q_geo - c_lam * dp / nu(T) - c_turb * sqrt(dp) - c_comp * Q_geo * dp / 1000
+
+with Q_geo = |n_P| |V_P| / 1000 the ideal pump flow, nu(T) the oil's kinematic viscosity (ASTM D341,
+cSt) for laminar gap leakage, sqrt(dp) for turbulent (orifice) leakage, and Q_geo dp for the oil
+compressed in pump and motor. Each coefficient is non-negative (a leak never adds flow), fitted by
+non-negative least squares: a convex problem with one solution, so training is reproducible, and a
+law that extrapolates in pressure and temperature where data-driven fits do not. A closed circuit's
+motor speed is the same flow over V_M.
+
+The plain white-box law n_M = n_P V_P / V_M * eta_vol (one efficiency fitted through the origin) is
+kept beside it as the baseline the gray box is judged against.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cmcan.oil import Oil
+
+TERMS: tuple[str, ...] = ("ideal_flow", "laminar", "turbulent", "compressibility")
+
+
+@dataclass(frozen=True)
+class Quantity:
+    """What the model predicts: a closed circuit's motor speed or an open circuit's delivered flow."""
+
+    role: str  # "motor_speed_rpm" or "flow_lpm"
+    motor_disp_cc: float | None  # V_M for motor speed; None for flow
+
+    @property
+    def unit(self) -> str:
+        return "rpm" if self.role == "motor_speed_rpm" else "l/min"
+
+    @property
+    def lpm_per_unit(self) -> float:
+        """Flow in l/min per unit of the quantity: V_M / 1000 for motor speed, 1 for flow."""
+        if self.role == "motor_speed_rpm":
+            assert self.motor_disp_cc is not None
+            return self.motor_disp_cc / 1000.0
+        return 1.0
+
+
+def ideal_flow_lpm(x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """|n_P| |V_P| / 1000 for model inputs ``x`` (n, 4): pump speed, pump displacement, dp, temperature."""
+    return np.abs(x[:, 0]) * np.abs(x[:, 1]) / 1000.0
+
+
+def features(x: NDArray[np.float64], oil: Oil) -> NDArray[np.float64]:
+    """The columns whose non-negative combination is the delivered flow, in the order of ``TERMS``."""
+    qg = ideal_flow_lpm(x)
+    dp = x[:, 2]
+    nu = oil.kinematic_viscosity_cst(x[:, 3])
+    return np.column_stack([qg, -dp / nu, -np.sign(dp) * np.sqrt(np.abs(dp)), -qg * dp / 1000.0])
+
+
+def fit_coefficients(x: NDArray[np.float64], flow_lpm: NDArray[np.float64], oil: Oil) -> NDArray[np.float64]:
+    """Non-negative least squares of the delivered flow on :func:`features` (needs scipy)."""
+    from scipy.optimize import nnls
+
+    a = features(x, oil)
+    # Columns scaled to unit RMS: the same solution, better conditioned, so another BLAS agrees.
+    scale = np.sqrt(np.mean(a * a, axis=0))
+    scale[scale == 0.0] = 1.0
+    coef, _ = nnls(a / scale, flow_lpm, maxiter=50 * a.shape[1])
+    return coef / scale
+
+
+def flow_lpm(x: NDArray[np.float64], coef: NDArray[np.float64], oil: Oil) -> NDArray[np.float64]:
+    return features(x, oil) @ coef
+
+
+def fit_eta_vol(x: NDArray[np.float64], flow_lpm: NDArray[np.float64]) -> float:
+    """The white-box law's one efficiency: argmin || Q - eta * Q_geo || (through the origin)."""
+    qg = ideal_flow_lpm(x)
+    denom = float(np.dot(qg, qg))
+    if denom <= 0:
+        raise ValueError("no flow in the training data: cannot fit volumetric efficiency")
+    return float(np.dot(qg, flow_lpm) / denom)
