@@ -1,0 +1,74 @@
+"""Golden replay outputs of the shipped scenarios: what ``cmcan replay`` emits, fixed in digests.
+
+A refactoring must not change a single output byte; an intended change of behaviour rewrites the
+digests on purpose, with the reason in its commit:
+
+    python -m tests.replay_golden --write
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import sys
+from pathlib import Path
+
+from tests.conftest import ROOT, run_cli
+
+GOLDEN = ROOT / "tests" / "data" / "replay_golden.json"
+# (scenario, duration override in hours or None for the whole run): every shipped scenario, the
+# run to failure whole, the continuous ones shortened to keep the slow tier's time in bounds.
+CASES = {
+    "run_to_failure": None,
+    "healthy_mixed_100h": 20.0,
+    "training_healthy": 0.5,
+    "single_set_healthy": 0.5,
+    "single_set_leakage": 2.0,
+    "two_set_train": 0.5,
+    "two_set_validation": 1.2,
+}
+
+
+def digest(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def replay_digests(name: str, hours: float | None, work: Path) -> dict[str, object]:
+    """Simulate the scenario to a candump log, replay it, and digest what came out."""
+    log, emit, timeline = work / f"{name}.log", work / f"{name}.emit.log", work / f"{name}.csv"
+    args = ["simulate", name, "--out", str(work / f"{name}.run.csv"), "--candump", str(log), "--force"]
+    if hours is not None:
+        args += ["--duration-h", str(hours)]
+    r = run_cli(*args)
+    assert r.returncode == 0, r.stderr
+    r = run_cli("replay", str(log), "--emit", str(emit), "--out", str(timeline), "--json", "--force")
+    assert r.returncode == 0, r.stderr
+    summary = json.loads(r.stdout)
+    return {
+        "emitted_sha256": digest(emit),
+        "timeline_sha256": digest(timeline),
+        "warnings": [[round(w["operating_h"], 6), w["from"], w["to"], w["reason"]] for w in summary["warnings"]],
+    }
+
+
+def main(argv: list[str]) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--write", action="store_true", help="rewrite the golden digests")
+    ap.add_argument("--work", default="/tmp/cmcan-golden", help="folder for the logs")
+    args = ap.parse_args(argv)
+    work = Path(args.work)
+    work.mkdir(parents=True, exist_ok=True)
+    got = {name: replay_digests(name, hours, work) for name, hours in CASES.items()}
+    if args.write:
+        GOLDEN.write_text(json.dumps(got, indent=1) + "\n")
+        print(f"wrote {GOLDEN}")
+        return 0
+    want = json.loads(GOLDEN.read_text())
+    bad = [n for n in CASES if got[n] != want.get(n)]
+    print("differ: " + ", ".join(bad) if bad else "all equal")
+    return 1 if bad else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
