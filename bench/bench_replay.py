@@ -21,10 +21,9 @@ from pathlib import Path
 import can
 
 from cmcan import config as cfgmod
+from cmcan.assemble import build_monitor, dbc_for, load_model_for
 from cmcan.daemon import Daemon, DaemonOptions
 from cmcan.io.candump import iter_frames, write_candump
-from cmcan.model import load_model
-from cmcan.monitor.build import build_monitor
 from cmcan.replay import replay
 from cmcan.sim import scenario as scn
 from cmcan.sim.frames import frames_from_run
@@ -63,8 +62,8 @@ def main() -> None:
     ap.add_argument("--log", type=Path, help="use this log instead of simulating one")
     args = ap.parse_args()
     cfg = cfgmod.load()
-    db = cfg.dbc()
-    model = load_model(cfg.model_path, motor_disp_cc=cfg.motor_disp_cc)
+    db = dbc_for(cfg)
+    model = load_model_for(cfg)
     with tempfile.TemporaryDirectory() as d:
         log = args.log or Path(d) / "bench.log"
         if args.log is None:
@@ -77,7 +76,7 @@ def main() -> None:
             n_base += 1
         t_base = time.perf_counter() - t0
 
-        mon = build_monitor(cfg, db, model, model.envelope)
+        mon = build_monitor(cfg, db, model)
         t0 = time.perf_counter()
         res = replay(mon, iter_frames(log), emit=True)
         t_replay = time.perf_counter() - t0
@@ -97,7 +96,7 @@ def main() -> None:
     while bare.recv(0) is not None:
         pass
     c_bare = time.process_time() - c0
-    mon = build_monitor(cfg, db, model, model.envelope)
+    mon = build_monitor(cfg, db, model)
     bus = MemoryBus(msgs)
     daemon = Daemon(cfg, mon, None, lambda: bus, options=DaemonOptions(idle_after_s=3600))
     th = threading.Thread(target=daemon.run)

@@ -1,36 +1,163 @@
-"""Vectorized encoding and decoding of many frames of one DBC message at once.
+"""Signal layouts of DBC messages and the one bit extractor, per frame and over arrays of frames.
 
-The simulator writes millions of frames and training reads them back; cantools encodes one frame at
-a time (about 10 us each). For little-endian (Intel) signals the bit layout is a shift and a mask of
-one 64-bit word, done here over whole arrays from cantools' own signal definitions. Big-endian or
-multiplexed messages go through cantools frame by frame. Tests check both paths agree with cantools.
+cantools decodes and encodes one frame at a time (about 10 us each): too slow for a simulator that
+writes millions of frames, for training that reads them back, and for the monitor's per-frame path.
+Here a signal's place in a frame is a :class:`Layout` read from cantools' own definition: a shift
+and a mask of one integer holding the frame, little-endian (Intel) or big-endian (Motorola).
+:func:`extract` and :func:`insert` work on a Python ``int`` (one frame) and on ``numpy`` arrays of
+``uint64`` (many frames) alike, so the monitor, the simulator and training share one bit extractor;
+tests check it against cantools. Integer signals only: a multiplexed message or a float signal
+cannot be a cmcan input or output (``check_codable`` says so).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from cantools.database.can import Message
 from numpy.typing import NDArray
 
 
-def _vectorizable(msg: Message) -> bool:
-    return (
-        not msg.is_multiplexed()
-        and msg.length <= 8
-        and all(s.byte_order == "little_endian" and not s.is_float for s in msg.signals)
+@dataclass(frozen=True)
+class Layout:
+    """Where a signal sits: bits ``shift .. shift+length-1`` of the frame as one integer (read
+    little-endian for Intel signals, big-endian for Motorola ones), and its physical conversion."""
+
+    name: str
+    shift: int
+    length: int
+    signed: bool
+    big_endian: bool
+    scale: float
+    offset: float
+    minimum: float
+    maximum: float
+
+    @property
+    def mask(self) -> int:
+        return (1 << self.length) - 1
+
+
+def check_codable(msg: Message, names: Sequence[str] | None = None) -> str | None:
+    """None when the message's signals (``names``, or all) can be coded here, else why not."""
+    if msg.is_multiplexed():
+        return f"message {msg.name} is multiplexed"
+    for s in msg.signals:
+        if (names is None or s.name in names) and s.is_float:
+            return f"signal {msg.name}.{s.name} is a floating-point signal"
+    return None
+
+
+def layout(msg: Message, name: str) -> Layout:
+    s = msg.get_signal_by_name(name)
+    nbits = 8 * frame_bytes(msg)
+    if s.byte_order == "big_endian":
+        # cantools gives a Motorola signal's most significant bit in DBC (sawtooth) numbering.
+        msb_from_top = 8 * (s.start // 8) + (7 - s.start % 8)
+        shift = nbits - msb_from_top - s.length
+    else:
+        shift = s.start
+    return Layout(
+        s.name,
+        shift,
+        s.length,
+        bool(s.is_signed),
+        s.byte_order == "big_endian",
+        float(s.scale),
+        float(s.offset),
+        float(s.minimum) if s.minimum is not None else -math.inf,
+        float(s.maximum) if s.maximum is not None else math.inf,
     )
+
+
+def frame_bytes(msg: Message) -> int:
+    """Bytes of the integer a frame is read as: 8 for classic CAN, the message length beyond."""
+    return max(8, msg.length)
+
+
+# -- the bit extractor --------------------------------------------------------------------------------
+
+
+def extract(word: Any, lay: Layout) -> Any:
+    """The raw (integer) value of a signal from the frame word(s): ``int`` or ``uint64`` arrays."""
+    if isinstance(word, np.ndarray):
+        raw = ((word >> np.uint64(lay.shift)) & np.uint64(lay.mask)).astype(np.int64)
+        if lay.signed:
+            raw = np.where(raw >= (1 << (lay.length - 1)), raw - (1 << lay.length), raw)
+        return raw
+    raw = (word >> lay.shift) & lay.mask
+    if lay.signed and raw >> (lay.length - 1):
+        raw -= 1 << lay.length
+    return raw
+
+
+def insert(word: Any, raw: Any, lay: Layout) -> Any:
+    """``word`` with the signal's bits set to ``raw`` (two's complement for negative values)."""
+    if isinstance(word, np.ndarray):
+        bits = np.asarray(raw, dtype=np.int64).astype(np.uint64) & np.uint64(lay.mask)
+        return word | (bits << np.uint64(lay.shift))
+    return word | ((int(raw) & lay.mask) << lay.shift)
+
+
+def to_raw(lay: Layout, value: Any) -> Any:
+    """Physical value -> raw, saturated to the signal's range and rounded to its resolution (half to
+    even, like cantools). NaN becomes the range minimum (or 0): encoding never fails."""
+    if isinstance(value, np.ndarray):
+        v = np.clip(np.nan_to_num(value, nan=lay.minimum if lay.minimum > -math.inf else 0.0), lay.minimum, lay.maximum)
+        return np.round((v - lay.offset) / lay.scale).astype(np.int64)
+    v = float(value)
+    if v != v:
+        v = lay.minimum if lay.minimum > -math.inf else 0.0
+    v = lay.minimum if v < lay.minimum else lay.maximum if v > lay.maximum else v
+    return round((v - lay.offset) / lay.scale)
 
 
 def quantize(msg: Message, name: str, phys: NDArray[np.float64]) -> NDArray[np.float64]:
     """Physical values as the signal carries them: clipped to its range, rounded to its resolution."""
-    sig = msg.get_signal_by_name(name)
-    lo = sig.minimum if sig.minimum is not None else -np.inf
-    hi = sig.maximum if sig.maximum is not None else np.inf
-    raw = np.round((np.clip(phys, lo, hi) - sig.offset) / sig.scale)
-    return raw * sig.scale + sig.offset
+    lay = layout(msg, name)
+    return to_raw(lay, np.asarray(phys, dtype=float)) * lay.scale + lay.offset
+
+
+# -- many frames (numpy) ------------------------------------------------------------------------------
+
+
+def _words(msg: Message, data: NDArray[np.uint8], big_endian: bool) -> NDArray[np.uint64]:
+    n = data.shape[0]
+    padded = np.zeros((n, 8), dtype=np.uint8)
+    width = min(data.shape[1], 8)
+    padded[:, :width] = data[:, :width]
+    return padded.view(">u8" if big_endian else "<u8").reshape(n).astype(np.uint64)
+
+
+def decode_raw(msg: Message, data: NDArray[np.uint8], names: Sequence[str]) -> dict[str, NDArray[np.int64]]:
+    """Raw values of the signals ``names`` from frames (n, >= msg.length), classic CAN (<= 8 bytes)."""
+    if frame_bytes(msg) > 8:
+        rows = [bytes(r) for r in data]
+        out = {k: np.empty(len(rows), dtype=np.int64) for k in names}
+        dec = compile_raw_decoder(msg, list(names))
+        for i, r in enumerate(rows):
+            for k, v in zip(names, dec(r), strict=True):
+                out[k][i] = v
+        return out
+    lays = [layout(msg, k) for k in names]
+    le = _words(msg, data, False) if any(not x.big_endian for x in lays) else None
+    be = _words(msg, data, True) if any(x.big_endian for x in lays) else None
+    return {x.name: extract(be if x.big_endian else le, x) for x in lays}
+
+
+def decode(msg: Message, data: NDArray[np.uint8], names: Sequence[str] | None = None) -> dict[str, NDArray[np.float64]]:
+    """Physical values of the signals ``names`` (all by default) from frames (n, >= msg.length)."""
+    names = [s.name for s in msg.signals] if names is None else list(names)
+    raws = decode_raw(msg, data, names)
+    out = {}
+    for k in names:
+        lay = layout(msg, k)
+        out[k] = raws[k] * lay.scale + lay.offset
+    return out
 
 
 def encode(msg: Message, values: Mapping[str, NDArray[np.float64]]) -> NDArray[np.uint8]:
@@ -39,171 +166,87 @@ def encode(msg: Message, values: Mapping[str, NDArray[np.float64]]) -> NDArray[n
     Values are clipped to the signal's range first (a saturated sensor), so encoding never fails.
     """
     n = len(next(iter(values.values()))) if values else 0
-    if not _vectorizable(msg):
-        return _encode_cantools(msg, values, n)
-    word = np.zeros(n, dtype=np.uint64)
-    for sig in msg.signals:
-        if sig.name not in values:
+    if frame_bytes(msg) > 8:
+        enc = compile_encoder(msg)
+        rows = [enc({k: float(v[i]) for k, v in values.items()}) for i in range(n)]
+        return np.frombuffer(b"".join(rows), dtype=np.uint8).reshape(n, msg.length).copy()
+    le = np.zeros(n, dtype=np.uint64)
+    be = np.zeros(n, dtype=np.uint64)
+    for s in msg.signals:
+        if s.name not in values:
             continue
-        q = quantize(msg, sig.name, np.asarray(values[sig.name], dtype=float))
-        raw = np.round((q - sig.offset) / sig.scale).astype(np.int64)
-        mask = (1 << sig.length) - 1
-        word |= (raw.astype(np.uint64) & np.uint64(mask)) << np.uint64(sig.start)
-    return word.astype("<u8").view(np.uint8).reshape(n, 8)[:, : msg.length].copy()
+        lay = layout(msg, s.name)
+        raw = to_raw(lay, np.asarray(values[s.name], dtype=float))
+        if lay.big_endian:
+            be = insert(be, raw, lay)
+        else:
+            le = insert(le, raw, lay)
+    out = le.astype("<u8").view(np.uint8).reshape(n, 8) | be.astype(">u8").view(np.uint8).reshape(n, 8)
+    return out[:, : msg.length].copy()
 
 
-def decode(msg: Message, data: NDArray[np.uint8], names: list[str] | None = None) -> dict[str, NDArray[np.float64]]:
-    """Physical values of the signals ``names`` (all by default) from frames (n, >= msg.length)."""
-    sigs = [s for s in msg.signals if names is None or s.name in names]
-    if not _vectorizable(msg):
-        return _decode_cantools(msg, data, [s.name for s in sigs])
-    n = data.shape[0]
-    padded = np.zeros((n, 8), dtype=np.uint8)
-    width = min(data.shape[1], 8)
-    padded[:, :width] = data[:, :width]
-    word = padded.view("<u8").reshape(n)
-    out = {}
-    for sig in sigs:
-        raw = ((word >> np.uint64(sig.start)) & np.uint64((1 << sig.length) - 1)).astype(np.int64)
-        if sig.is_signed:
-            raw = np.where(raw >= (1 << (sig.length - 1)), raw - (1 << sig.length), raw)
-        out[sig.name] = raw * sig.scale + sig.offset
-    return out
+# -- one frame (the monitor's per-frame path) ---------------------------------------------------------
 
 
-def _encode_cantools(msg: Message, values: Mapping[str, NDArray[np.float64]], n: int) -> NDArray[np.uint8]:
-    names = [s.name for s in msg.signals]
-    cols = {k: quantize(msg, k, np.asarray(v, dtype=float)) for k, v in values.items()}
-    out = np.zeros((n, msg.length), dtype=np.uint8)
-    for i in range(n):
-        frame = {k: (float(cols[k][i]) if k in cols else 0) for k in names}
-        out[i] = np.frombuffer(msg.encode(frame, scaling=True, strict=False), dtype=np.uint8)
-    return out
+def compile_raw_decoder(msg: Message, names: list[str]) -> Callable[[bytes], tuple[int, ...]]:
+    """Raw values of the signals ``names`` of one frame, in that order."""
+    size = frame_bytes(msg)
+    lays = [layout(msg, n) for n in names]
+    need_be = any(x.big_endian for x in lays)
+
+    def decode(data: bytes) -> tuple[int, ...]:
+        d = bytes(data[:size]).ljust(size, b"\0")
+        le = int.from_bytes(d, "little")
+        be = int.from_bytes(d, "big") if need_be else 0
+        return tuple(extract(be if x.big_endian else le, x) for x in lays)
+
+    return decode
 
 
-def _decode_cantools(msg: Message, data: NDArray[np.uint8], names: list[str]) -> dict[str, NDArray[np.float64]]:
-    out = {k: np.empty(data.shape[0]) for k in names}
-    for i in range(data.shape[0]):
-        d = msg.decode(bytes(data[i, : msg.length]), decode_choices=False, scaling=True)
-        for k in names:
-            out[k][i] = float(d[k])
-    return out
-
-
-def compile_decoder(msg: Message, names: list[str]) -> Callable[[bytes], tuple[float, ...]]:
-    """A fast decoder of the signals ``names`` of one frame (the monitor's per-frame path).
-
-    Little-endian integer signals become shifts and masks of one integer; anything else goes through
-    cantools. Returns physical values in the order of ``names``.
-    """
-    sigs = [msg.get_signal_by_name(n) for n in names]
-    if not _vectorizable(msg):
-
-        def slow(data: bytes) -> tuple[float, ...]:
-            d = msg.decode(bytes(data[: msg.length]).ljust(msg.length, b"\0"), decode_choices=False)
-            return tuple(float(d[n]) for n in names)
-
-        return slow
-    specs = [
-        (s.start, (1 << s.length) - 1, (1 << (s.length - 1)) if s.is_signed else 0, 1 << s.length, s.scale, s.offset)
-        for s in sigs
-    ]
+def compile_checked_decoder(msg: Message, names: list[str]) -> Callable[[bytes], tuple[int, ...] | None]:
+    """Like :func:`compile_raw_decoder`, or None when a value's physical value (raw * scale +
+    offset) is outside its DBC range: an implausible frame."""
+    size = frame_bytes(msg)
+    lays = [layout(msg, n) for n in names]
+    specs = [(x, x.scale, x.offset, x.minimum, x.maximum, x.big_endian) for x in lays]
+    need_be = any(x.big_endian for x in lays)
     from_bytes = int.from_bytes
 
-    def fast(data: bytes) -> tuple[float, ...]:
-        word = from_bytes(data, "little")
+    def decode(data: bytes) -> tuple[int, ...] | None:
+        if len(data) != size:
+            data = bytes(data[:size]).ljust(size, b"\0")
+        le = from_bytes(data, "little")
+        be = from_bytes(data, "big") if need_be else 0
         out = []
-        for start, mask, sign, span, scale, offset in specs:
-            raw = (word >> start) & mask
-            if sign and raw & sign:
-                raw -= span
-            out.append(raw * scale + offset)
+        for lay, scale, offset, lo, hi, big in specs:
+            raw = extract(be if big else le, lay)
+            if not (lo <= raw * scale + offset <= hi):
+                return None
+            out.append(raw)
         return tuple(out)
 
-    return fast
+    return decode
 
 
 def compile_encoder(msg: Message) -> Callable[[Mapping[str, float]], bytes]:
-    """A fast encoder of one frame from physical values (missing signals 0, values saturated to the
-    signal's range): the monitor's output frames."""
-    if not _vectorizable(msg):
-
-        def slow(values: Mapping[str, float]) -> bytes:
-            row = {}
-            for s in msg.signals:
-                v = float(values.get(s.name, 0.0))
-                lo = s.minimum if s.minimum is not None else v
-                hi = s.maximum if s.maximum is not None else v
-                row[s.name] = min(max(v, lo), hi)
-            return bytes(msg.encode(row, scaling=True, strict=False))
-
-        return slow
-    specs = [
-        (
-            s.name,
-            s.start,
-            (1 << s.length) - 1,
-            s.scale,
-            s.offset,
-            s.minimum if s.minimum is not None else -math.inf,
-            s.maximum if s.maximum is not None else math.inf,
-        )
-        for s in msg.signals
-    ]
+    """One frame from physical values (missing signals 0, values saturated to the signal's range):
+    the monitor's output frames."""
+    size = frame_bytes(msg)
+    lays = [layout(msg, s.name) for s in msg.signals]
     length = msg.length
 
-    def fast(values: Mapping[str, float]) -> bytes:
-        word = 0
-        for name, start, mask, scale, offset, lo, hi in specs:
-            v = values.get(name)
+    def encode(values: Mapping[str, float]) -> bytes:
+        le = be = 0
+        for lay in lays:
+            v = values.get(lay.name)
             if v is None:
                 continue
-            v = lo if v < lo else hi if v > hi else v
-            if v != v:  # NaN: encode as the range minimum rather than fail
-                v = lo if lo > -math.inf else 0.0
-            raw = round((v - offset) / scale)
-            word |= (raw & mask) << start
-        return word.to_bytes(8, "little")[:length]
+            raw = to_raw(lay, v)
+            if lay.big_endian:
+                be = insert(be, raw, lay)
+            else:
+                le = insert(le, raw, lay)
+        both = int.from_bytes(le.to_bytes(size, "little"), "big") | be
+        return both.to_bytes(size, "big")[:length]
 
-    return fast
-
-
-def compile_checked_decoder(
-    msg: Message, names: list[str], conv: list[tuple[float, float]]
-) -> Callable[[bytes], tuple[float, ...] | None]:
-    """Like :func:`compile_decoder`, with each value checked against its DBC range (None when one
-    is outside: an implausible frame) and converted by ``value * scale + offset`` to its role's unit.
-
-    For little-endian signals the decoder is generated as straight-line code, as ``namedtuple``
-    generates its classes: the monitor runs it for every received frame.
-    """
-    sigs = [msg.get_signal_by_name(n) for n in names]
-    ranges = [
-        (s.minimum if s.minimum is not None else -math.inf, s.maximum if s.maximum is not None else math.inf)
-        for s in sigs
-    ]
-    if not _vectorizable(msg):
-        plain = compile_decoder(msg, names)
-
-        def slow(data: bytes) -> tuple[float, ...] | None:
-            vals = plain(data)
-            for v, (lo, hi) in zip(vals, ranges, strict=True):
-                if not (lo <= v <= hi):
-                    return None
-            return tuple(v * sc + off for v, (sc, off) in zip(vals, conv, strict=True))
-
-        return slow
-    ns: dict[str, object] = {"from_bytes": int.from_bytes}
-    body = ["def decode(data):", "    w = from_bytes(data, 'little')"]
-    outs = []
-    for i, (s, (lo, hi), (sc, off)) in enumerate(zip(sigs, ranges, conv, strict=True)):
-        ns.update({f"sc{i}": s.scale, f"of{i}": s.offset, f"lo{i}": lo, f"hi{i}": hi, f"rs{i}": sc, f"ro{i}": off})
-        body.append(f"    r{i} = (w >> {s.start}) & {(1 << s.length) - 1}")
-        if s.is_signed:
-            body.append(f"    if r{i} & {1 << (s.length - 1)}: r{i} -= {1 << s.length}")
-        body.append(f"    v{i} = r{i} * sc{i} + of{i}")
-        body.append(f"    if not (lo{i} <= v{i} <= hi{i}): return None")
-        outs.append(f"v{i} * rs{i} + ro{i}")
-    body.append(f"    return ({', '.join(outs)},)")
-    exec("\n".join(body), ns)
-    return ns["decode"]  # type: ignore[return-value]
+    return encode

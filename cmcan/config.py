@@ -1,29 +1,21 @@
-"""The daemon's configuration: YAML validated field by field, paths resolved, DBC names checked."""
+"""The configuration: YAML validated once, field by field, into typed sections; paths resolved.
+
+Each section is a frozen dataclass; nothing else in cmcan reads the YAML. An override is
+``dataclasses.replace`` of a section (``with_overrides`` for the command line's). The core's own
+parameter types (gate limits, thresholds) are used as they are; checks that need the DBC or the
+model live in :mod:`cmcan.assemble`.
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from cantools.database.can import Database
-
-from cmcan.dbc import DbcError, load_dbc
 from cmcan.monitor.gating import GateLimits
+from cmcan.monitor.warnings import Thresholds
+from cmcan.roles import GATED, MAPPABLE, SignalRef
 from cmcan.schema import Num, Obj, SchemaError, Str, load_yaml
-from cmcan.signals import SignalRef
-
-ROLES = (
-    "pump_speed_rpm",
-    "pump_disp_cc",
-    "high_pressure_bar",
-    "low_pressure_bar",
-    "dp_bar",
-    "temp_c",
-    "motor_speed_rpm",
-    "motor_direction",
-)
-_STD_ROLES = ("pump_speed_rpm", "pump_disp_cc", "dp_bar", "temp_c", "motor_speed_rpm")
 
 _SIGNAL = Obj(
     {"message": Str(), "signal": Str(), "scale": Num(-1e6, 1e6, default=1.0), "offset": Num(-1e9, 1e9, default=0.0)},
@@ -73,9 +65,12 @@ _CONFIG = Obj(
         "dbc": Str(),
         "model": Str(default="default"),
         "drive": Obj({"motor_disp_cc": Num(1, 2000, "cm3/rev")}),
-        "signals": Obj({r: _SIGNAL for r in ROLES}, rule=_signals_rule),
+        "signals": Obj({r: _SIGNAL for r in MAPPABLE}, rule=_signals_rule),
         "evaluation": Obj({"rate_hz": Num(0.5, 100, "Hz", default=10.0)}, default={}),
-        "max_signal_age_s": Obj({"default": Num(0.01, 60, "s", default=0.5)}, default={}, extra=Num(0.01, 60, "s")),
+        "max_signal_age_s": Obj(
+            {"default": Num(0.01, 60, "s", default=0.5), **{r: Num(0.01, 60, "s", default=None) for r in GATED}},
+            default={},
+        ),
         "gating": Obj(
             {
                 "window_s": Num(0.1, 60, "s", default=1.0),
@@ -83,7 +78,7 @@ _CONFIG = Obj(
                 "min_pump_speed_rpm": Num(0, 10000, "rpm", default=700.0),
                 "min_pump_disp_cc": Num(0, 2000, "cm3/rev", default=20.0),
                 "min_motor_speed_rpm": Num(0, 20000, "rpm", default=300.0),
-                "max_std": Obj({r: Num(0, 1e4, default=None) for r in _STD_ROLES}, default={}),
+                "max_std": Obj({r: Num(0, 1e4, default=None) for r in GATED}, default={}),
                 "envelope_margin_pct": Num(-50, 100, "%", default=0.0),
             },
             default={},
@@ -127,41 +122,98 @@ _CONFIG = Obj(
 
 
 @dataclass(frozen=True)
+class BusConfig:
+    interface: str  # a python-can interface: socketcan, virtual, pcan, ...
+    channel: str
+    bitrate: int
+    receive_buffer_bytes: int
+
+
+@dataclass(frozen=True)
+class DriveConfig:
+    motor_disp_cc: float  # V_M at the motor's fixed displacement setting
+
+
+@dataclass(frozen=True)
+class EvaluationConfig:
+    rate_hz: float
+
+
+@dataclass(frozen=True)
+class SignalAges:
+    """Largest age of a role's newest sample before it counts as stale."""
+
+    default_s: float
+    per_role_s: dict[str, float] = field(default_factory=dict)
+
+    def of(self, role: str) -> float:
+        return self.per_role_s.get(role, self.default_s)
+
+
+@dataclass(frozen=True)
+class GatingConfig:
+    limits: GateLimits
+    envelope_margin_pct: float  # widen (+) or narrow (-) the model's training envelope by this share of its span
+
+
+@dataclass(frozen=True)
+class FilterConfig:
+    samples: int
+    min_samples: int
+
+
+@dataclass(frozen=True)
+class OutputMessageConfig:
+    message: str
+    period_ms: int
+
+
+@dataclass(frozen=True)
+class OutputsConfig:
+    cm_ratio: OutputMessageConfig
+    cm_speed: OutputMessageConfig
+    warning: OutputMessageConfig
+
+    def items(self) -> list[tuple[str, OutputMessageConfig]]:
+        return [("cm_ratio", self.cm_ratio), ("cm_speed", self.cm_speed), ("warning", self.warning)]
+
+
+@dataclass(frozen=True)
+class StateConfig:
+    directory: Path
+    save_every_s: float
+
+
+@dataclass(frozen=True)
 class Config:
-    source: str
-    raw: dict[str, Any]
+    source: str  # the file it came from, for messages
+    bus: BusConfig
     dbc_path: Path
-    model_path: Path
-    signals: dict[str, SignalRef]
+    model_path: Path | None  # None: the model shipped with cmcan
+    drive: DriveConfig
+    signals: dict[str, SignalRef]  # role -> where it is on the bus
+    evaluation: EvaluationConfig
+    max_signal_age: SignalAges
+    gating: GatingConfig
+    filter: FilterConfig
+    thresholds: Thresholds
+    outputs: OutputsConfig
+    state: StateConfig
 
     @property
     def motor_disp_cc(self) -> float:
-        return float(self.raw["drive"]["motor_disp_cc"])
+        return self.drive.motor_disp_cc
 
     @property
     def gate_limits(self) -> GateLimits:
-        g = self.raw["gating"]
-        base = GateLimits()
-        max_std = {**base.max_std, **{k: v for k, v in g["max_std"].items() if v is not None}}
-        return GateLimits(
-            window_s=g["window_s"],
-            min_samples=g["min_samples"],
-            min_pump_speed_rpm=g["min_pump_speed_rpm"],
-            min_pump_disp_cc=g["min_pump_disp_cc"],
-            min_motor_speed_rpm=g["min_motor_speed_rpm"],
-            max_std=max_std,
-        )
-
-    def max_age_s(self, role: str) -> float:
-        ages = self.raw["max_signal_age_s"]
-        return float(ages.get(role, ages["default"]))
+        return self.gating.limits
 
     @property
-    def mapping(self) -> dict[str, tuple[str, str]]:
-        return {r: (s.message, s.signal) for r, s in self.signals.items()}
+    def rate_hz(self) -> float:
+        return self.evaluation.rate_hz
 
-    def dbc(self) -> Database:
-        return load_dbc(self.dbc_path)
+    def max_age_s(self, role: str) -> float:
+        return self.max_signal_age.of(role)
 
 
 def default_config_path() -> Path:
@@ -172,48 +224,58 @@ def default_config_path() -> Path:
     raise FileNotFoundError("the shipped config/cmcan.yaml was not found next to the cmcan package")
 
 
-def from_dict(data: Any, source: str, base_dir: Path) -> Config:
-    raw = _CONFIG.check(data, source, "")
-    dbc_path = (base_dir / raw["dbc"]).resolve() if not Path(raw["dbc"]).is_absolute() else Path(raw["dbc"])
-    if raw["model"] == "default":
-        from cmcan.model.runtime import default_model_path
+def _path(base_dir: Path, p: str) -> Path:
+    return Path(p) if Path(p).is_absolute() else (base_dir / p).resolve()
 
-        model_path = default_model_path()
-    else:
-        model_path = Path(raw["model"]) if Path(raw["model"]).is_absolute() else (base_dir / raw["model"]).resolve()
-    signals = {r: SignalRef(**v) for r, v in raw["signals"].items() if v is not None}
-    return Config(source, raw, dbc_path, model_path, signals)
+
+def from_dict(data: Any, source: str, base_dir: Path) -> Config:
+    """Validate a parsed YAML document and build the typed configuration (SchemaError names the field)."""
+    raw = _CONFIG.check(data, source, "")
+    g = raw["gating"]
+    base = GateLimits()
+    limits = GateLimits(
+        window_s=g["window_s"],
+        min_samples=g["min_samples"],
+        min_pump_speed_rpm=g["min_pump_speed_rpm"],
+        min_pump_disp_cc=g["min_pump_disp_cc"],
+        min_motor_speed_rpm=g["min_motor_speed_rpm"],
+        max_std={**base.max_std, **{k: v for k, v in g["max_std"].items() if v is not None}},
+    )
+    ages = raw["max_signal_age_s"]
+    th = raw["thresholds"]
+    out = raw["outputs"]
+    return Config(
+        source=source,
+        bus=BusConfig(**raw["bus"]),
+        dbc_path=_path(base_dir, raw["dbc"]),
+        model_path=None if raw["model"] == "default" else _path(base_dir, raw["model"]),
+        drive=DriveConfig(motor_disp_cc=float(raw["drive"]["motor_disp_cc"])),
+        signals={r: SignalRef(**v) for r, v in raw["signals"].items() if v is not None},
+        evaluation=EvaluationConfig(rate_hz=float(raw["evaluation"]["rate_hz"])),
+        max_signal_age=SignalAges(ages["default"], {r: v for r, v in ages.items() if r != "default" and v is not None}),
+        gating=GatingConfig(limits, g["envelope_margin_pct"]),
+        filter=FilterConfig(**raw["filter"]),
+        thresholds=Thresholds(
+            th["low_pct"], th["high_pct"], th["hysteresis_pct"], th["debounce_s"], th["fault_after_s"]
+        ),
+        outputs=OutputsConfig(**{k: OutputMessageConfig(**v) for k, v in out.items()}),
+        state=StateConfig(Path(raw["state"]["directory"]), float(raw["state"]["save_every_s"])),
+    )
 
 
 def load(path: str | Path | None = None) -> Config:
+    """The configuration at ``path`` (the shipped one by default); SchemaError names file and field."""
     p = Path(path) if path is not None else default_config_path()
     return from_dict(load_yaml(p), str(p), p.resolve().parent)
 
 
-def check_against_dbc(cfg: Config, db: Database) -> None:
-    """Every mapped message and signal exists in the DBC; outputs are there and are not inputs."""
-    names = {m.name: m for m in db.messages}
-    for role, ref in cfg.signals.items():
-        msg = names.get(ref.message)
-        if msg is None:
-            raise SchemaError(
-                cfg.source,
-                f"signals.{role}.message",
-                f"no message {ref.message!r} in {cfg.dbc_path}; it has {', '.join(sorted(names))}",
-            )
-        if ref.signal not in {s.name for s in msg.signals}:
-            raise SchemaError(
-                cfg.source,
-                f"signals.{role}.signal",
-                f"message {ref.message} in {cfg.dbc_path} has no signal {ref.signal!r}; "
-                f"it has {', '.join(s.name for s in msg.signals)}",
-            )
-    inputs = {ref.message for ref in cfg.signals.values()}
-    for key, out in cfg.raw["outputs"].items():
-        if out["message"] not in names:
-            raise SchemaError(cfg.source, f"outputs.{key}.message", f"no message {out['message']!r} in {cfg.dbc_path}")
-        if out["message"] in inputs:
-            raise SchemaError(cfg.source, f"outputs.{key}.message", f"{out['message']} is also an input message")
+def with_overrides(
+    cfg: Config, interface: str | None = None, channel: str | None = None, state_dir: str | None = None
+) -> Config:
+    """The command line's overrides of bus and state directory."""
+    bus = replace(cfg.bus, **{k: v for k, v in (("interface", interface), ("channel", channel)) if v})
+    state = replace(cfg.state, directory=Path(state_dir)) if state_dir else cfg.state
+    return replace(cfg, bus=bus, state=state)
 
 
-__all__ = ["Config", "DbcError", "SignalRef", "check_against_dbc", "default_config_path", "load"]
+__all__ = ["Config", "SchemaError", "SignalRef", "default_config_path", "from_dict", "load", "with_overrides"]

@@ -22,8 +22,9 @@ from typing import Any
 
 import can
 
-from cmcan.config import Config
-from cmcan.monitor.core import Monitor, OutputFrame
+from cmcan.config import BusConfig, Config
+from cmcan.frame import Frame, from_message, to_message_kwargs
+from cmcan.monitor.core import Monitor
 from cmcan.sdnotify import Notifier
 from cmcan.statefile import StateStore
 
@@ -65,12 +66,11 @@ class RateLimitedLog:
         log.log(level, msg + (f" (and {n} more since the last report)" if n else ""), *args, exc_info=exc_info)
 
 
-def bus_kwargs(cfg: Config, input_ids: list[int]) -> dict[str, Any]:
-    b = cfg.raw["bus"]
+def bus_kwargs(b: BusConfig, input_ids: list[int]) -> dict[str, Any]:
     kw: dict[str, Any] = {
-        "interface": b["interface"],
-        "channel": b["channel"],
-        "bitrate": b["bitrate"],
+        "interface": b.interface,
+        "channel": b.channel,
+        "bitrate": b.bitrate,
         "can_filters": [{"can_id": i, "can_mask": 0x7FF, "extended": False} for i in sorted(input_ids)],
         "receive_own_messages": False,
     }
@@ -118,7 +118,7 @@ class Daemon:
         self.bus: can.BusABC | None = None
         self.stats = {"bus_opens": 0, "bus_errors": 0, "tx_frames": 0, "tx_dropped": 0, "internal_errors": 0}
         self.ratelog = RateLimitedLog(clock=clock)
-        self.save_every_s = float(cfg.raw["state"]["save_every_s"])
+        self.save_every_s = cfg.state.save_every_s
 
     # -- the loop --------------------------------------------------------------------------------------
 
@@ -131,7 +131,7 @@ class Daemon:
         last_save = self.clock()
         saved_ticks = -1
         self.notifier.ready(self._status_text())
-        log.info("cmcan running on %s %s", self.cfg.raw["bus"]["interface"], self.cfg.raw["bus"]["channel"])
+        log.info("cmcan running on %s %s", self.cfg.bus.interface, self.cfg.bus.channel)
         while not self.stop_event.is_set():
             now = self.clock()
             if self.notifier.watchdog_interval_s is not None and now >= next_wd:
@@ -174,14 +174,7 @@ class Daemon:
                             msg.arbitration_id,
                             bytes(msg.data).hex(),
                         )
-                    out = self.monitor.feed(
-                        msg.timestamp,
-                        msg.arbitration_id,
-                        bytes(msg.data),
-                        msg.is_extended_id,
-                        msg.is_remote_frame,
-                        msg.is_error_frame,
-                    )
+                    out = self.monitor.feed(from_message(msg))
                     last_rx_wall = now
                     last_frame_t = msg.timestamp
                 elif last_rx_wall is not None and now - last_rx_wall >= opt.idle_after_s:
@@ -231,12 +224,12 @@ class Daemon:
         self.notifier.status(f"bus {what} failed: {exc}")
         self._close()
 
-    def _send(self, frames: list[OutputFrame]) -> None:
+    def _send(self, frames: list[Frame]) -> None:
         for f in frames:
             if self.bus is None:
                 self.stats["tx_dropped"] += 1
                 continue
-            msg = can.Message(timestamp=f.timestamp_s, arbitration_id=f.frame_id, data=f.data, is_extended_id=False)
+            msg = can.Message(**to_message_kwargs(f))
             try:
                 self.bus.send(msg, timeout=self.opt.send_timeout_s)
                 self.stats["tx_frames"] += 1
@@ -246,7 +239,7 @@ class Daemon:
                 if code in (errno.ENETDOWN, errno.ENODEV, errno.EBADF):
                     self._bus_failed("send", exc)
                 else:  # ENOBUFS, a full queue, bus-off while restarting: drop this frame, keep going
-                    self.ratelog(logging.WARNING, "tx", "cannot send 0x%X: %s; frame dropped", f.frame_id, exc)
+                    self.ratelog(logging.WARNING, "tx", "cannot send 0x%X: %s; frame dropped", f.arbitration_id, exc)
 
     # -- state and status ------------------------------------------------------------------------------
 

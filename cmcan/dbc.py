@@ -8,9 +8,13 @@ from pathlib import Path
 import cantools
 from cantools.database.can import Database
 
+from cmcan.errors import CmcanError, Kind
 
-class DbcError(ValueError):
+
+class DbcError(CmcanError, ValueError):
     """A DBC file is missing or does not load; ``str()`` names the file and the cause."""
+
+    kind = Kind.CONFIG
 
 
 def default_dbc_path() -> Path:

@@ -15,15 +15,16 @@ import logging
 import os
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import can
-import numpy as np
 
 from cmcan import config as cfgmod
+from cmcan.assemble import dbc_for
 from cmcan.daemon import Daemon, DaemonOptions, bus_kwargs
+from cmcan.frame import Frame, from_message, to_message_kwargs
 from cmcan.preflight import prepare
 from cmcan.sim import scenario as scn
 from cmcan.sim.frames import Frames, frames_from_run
@@ -68,7 +69,7 @@ class DemoResult:
         }
 
 
-def scale_windows(cfg: cfgmod.Config, burst_s: float, every_min: float) -> dict[str, float]:
+def scale_windows(cfg: cfgmod.Config, burst_s: float, every_min: float) -> cfgmod.Config:
     """Shorten the filter and the debounce for a sparser time-lapse than the shipped scenario's.
 
     Both count evaluated samples. The shipped run_to_failure samples 10 s every 10 min, so the
@@ -78,11 +79,18 @@ def scale_windows(cfg: cfgmod.Config, burst_s: float, every_min: float) -> dict[
     """
     ref = scn.load(scn.shipped("run_to_failure")).raw["sampling"]
     scale = min(1.0, (burst_s / every_min) / (ref["burst_s"] / ref["every_min"]))
-    flt, th = cfg.raw["filter"], cfg.raw["thresholds"]
-    flt["samples"] = max(30, round(flt["samples"] * scale))
-    flt["min_samples"] = min(flt["samples"], max(10, round(flt["min_samples"] * scale)))
-    th["debounce_s"] = max(10.0, th["debounce_s"] * scale)
-    return {"filter_samples": flt["samples"], "filter_min_samples": flt["min_samples"], "debounce_s": th["debounce_s"]}
+    samples = max(30, round(cfg.filter.samples * scale))
+    flt = replace(cfg.filter, samples=samples, min_samples=min(samples, max(10, round(cfg.filter.min_samples * scale))))
+    th = replace(cfg.thresholds, debounce_s=max(10.0, cfg.thresholds.debounce_s * scale))
+    return replace(cfg, filter=flt, thresholds=th)
+
+
+def windows_of(cfg: cfgmod.Config) -> dict[str, float]:
+    return {
+        "filter_samples": cfg.filter.samples,
+        "filter_min_samples": cfg.filter.min_samples,
+        "debounce_s": cfg.thresholds.debounce_s,
+    }
 
 
 def demo_scenario(burst_s: float, every_min: float) -> scn.Scenario:
@@ -90,19 +98,19 @@ def demo_scenario(burst_s: float, every_min: float) -> scn.Scenario:
     return s.with_overrides(sampling={"mode": "bursts", "burst_s": burst_s, "every_min": every_min})
 
 
-def stream(frames: Frames, cfg: cfgmod.Config, state_dir: Path, channel: str) -> tuple[list[can.Message], int, int]:
+def stream(frames: Frames, cfg: cfgmod.Config, state_dir: Path, channel: str) -> tuple[list[Frame], int, int]:
     """Play ``frames`` into the daemon over a virtual bus; return the daemon's frames as received."""
-    cfg.raw["bus"].update(interface="virtual", channel=channel)
-    cfg.raw["state"]["directory"] = str(state_dir)
+    cfg = cfgmod.with_overrides(cfg, interface="virtual", channel=channel, state_dir=str(state_dir))
     prep = prepare(cfg)
-    ids = list(prep.monitor.inputs)
-    kwargs = bus_kwargs(cfg, ids)
+    monitor = prep.parts.monitor
+    ids = list(monitor.inputs)
+    kwargs = bus_kwargs(cfg.bus, ids)
     kwargs["rx_queue_size"] = 20000  # the player waits when the daemon lags: nothing is dropped
     kwargs["preserve_timestamps"] = True  # the daemon stamps its frames with frame time: keep it
 
-    daemon = Daemon(cfg, prep.monitor, prep.store, lambda: can.Bus(**kwargs), options=DaemonOptions())
+    daemon = Daemon(cfg, monitor, prep.store, lambda: can.Bus(**kwargs), options=DaemonOptions())
     player = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
-    received: list[can.Message] = []
+    received: list[Frame] = []
     try:
         thread = threading.Thread(target=daemon.run, name="cmcan-daemon", daemon=True)
         thread.start()
@@ -112,13 +120,12 @@ def stream(frames: Frames, cfg: cfgmod.Config, state_dir: Path, channel: str) ->
         fid = frames.arbitration_id.tolist()
         data = [bytes(r) for r in frames.data]
         for i in range(len(ts)):
-            player.send(
-                can.Message(timestamp=ts[i], arbitration_id=fid[i], data=data[i], is_extended_id=False), timeout=30.0
-            )
+            f = Frame(ts[i], "", fid[i], fid[i] > 0x7FF, False, False, False, data[i])
+            player.send(can.Message(**to_message_kwargs(f)), timeout=30.0)
             if i % 4096 == 0:
                 _drain(player, received)
         deadline = time.monotonic() + 60.0
-        while prep.monitor.counters["frames_total"] < len(ts) and time.monotonic() < deadline:
+        while monitor.counters["frames_total"] < len(ts) and time.monotonic() < deadline:
             _drain(player, received)
             time.sleep(0.01)
         # Let the daemon's idle timer evaluate the last ticks, then stop it.
@@ -128,31 +135,31 @@ def stream(frames: Frames, cfg: cfgmod.Config, state_dir: Path, channel: str) ->
         _drain(player, received)
     finally:
         player.shutdown()
-    return received, len(frames), prep.monitor.counters["frames_total"]
+    return received, len(frames), monitor.counters["frames_total"]
 
 
-def _drain(bus: can.BusABC, into: list[can.Message]) -> None:
+def _drain(bus: can.BusABC, into: list[Frame]) -> None:
     while (m := bus.recv(timeout=0)) is not None:
-        into.append(m)
+        into.append(from_message(m))
 
 
 def analyse(
-    received: list[can.Message], db: Any, cfg: cfgmod.Config, start_epoch_s: float, failures: list[dict[str, Any]]
+    received: list[Frame], db: Any, cfg: cfgmod.Config, start_epoch_s: float, failures: list[dict[str, Any]]
 ) -> tuple[list[dict[str, Any]], list[dict[str, Any]], dict[str, bool], list[float], list[float]]:
     """Warnings as the bus shows them, the lead time before each scheduled failure, and the checks."""
-    warn_msg = db.get_message_by_name(cfg.raw["outputs"]["warning"]["message"])
-    ratio_msg = db.get_message_by_name(cfg.raw["outputs"]["cm_ratio"]["message"])
+    warn_msg = db.get_message_by_name(cfg.outputs.warning.message)
+    ratio_msg = db.get_message_by_name(cfg.outputs.cm_ratio.message)
     transitions = []
     last_level = "ok"
     ratio_h, ratio_pct = [], []
-    for m in sorted(received, key=lambda x: x.timestamp):
+    for m in sorted(received, key=lambda x: x.timestamp_s):
         if m.arbitration_id == warn_msg.frame_id:
-            d = warn_msg.decode(bytes(m.data))
+            d = warn_msg.decode(m.data)
             level, reason = str(d["warning_level"]), str(d["warning_reason"])
             if level != last_level:
                 transitions.append(
                     {
-                        "operating_h": (m.timestamp - start_epoch_s) / 3600.0,
+                        "operating_h": (m.timestamp_s - start_epoch_s) / 3600.0,
                         "from": last_level,
                         "to": level,
                         "reason": reason,
@@ -161,9 +168,9 @@ def analyse(
                 )
                 last_level = level
         elif m.arbitration_id == ratio_msg.frame_id:
-            d = ratio_msg.decode(bytes(m.data), decode_choices=False)
+            d = ratio_msg.decode(m.data, decode_choices=False)
             if d["cm_filt_valid"]:
-                ratio_h.append((m.timestamp - start_epoch_s) / 3600.0)
+                ratio_h.append((m.timestamp_s - start_epoch_s) / 3600.0)
                 ratio_pct.append(float(d["cm_ratio_filt_pct"]))
     report = []
     previous = 0.0
@@ -200,9 +207,8 @@ def run_demo(
 ) -> DemoResult:
     t0 = time.monotonic()
     s = demo_scenario(burst_s, every_min)
-    cfg = cfgmod.load(config_path)
-    windows = scale_windows(cfg, burst_s, every_min)
-    db = cfg.dbc()
+    cfg = scale_windows(cfgmod.load(config_path), burst_s, every_min)
+    db = dbc_for(cfg)
     log.info("simulating %s (%g h, %g s bursts every %g min)", s.name, s.duration_h, burst_s, every_min)
     run = simulate(s, db)
     frames = frames_from_run(run, db)
@@ -226,46 +232,11 @@ def run_demo(
         rh,
         rp,
         checks,
-        windows,
+        windows_of(cfg),
     )
     res.checks["every frame sent was processed"] = processed == sent
     if plot:
-        plot_demo(res, cfg, out_dir / "demo.png")
+        from cmcan.plots import plot_demo
+
+        plot_demo(res, cfg.thresholds, out_dir / "demo.png")
     return res
-
-
-def plot_demo(res: DemoResult, cfg: cfgmod.Config, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    th = cfg.raw["thresholds"]
-    fig, ax = plt.subplots(figsize=(11, 4.5))
-    ax.plot(res.ratio_h, res.ratio_pct, ".", ms=1.5, color="tab:blue", label="filtered CM ratio (from CM_RATIO)")
-    ax.axhline(th["low_pct"], color="tab:orange", ls="--", lw=1, label=f"low threshold {th['low_pct']:g} %")
-    ax.axhline(th["high_pct"], color="tab:purple", ls="--", lw=1, label=f"high threshold {th['high_pct']:g} %")
-    for f in res.failures:
-        ax.axvline(f["fail_h"], color="tab:red", lw=1.2)
-        ax.annotate(
-            f"{f['component']} {f['kind']}",
-            (f["fail_h"], 1.0),
-            xycoords=("data", "axes fraction"),
-            color="tab:red",
-            fontsize=8,
-            rotation=90,
-            va="top",
-            ha="right",
-        )
-        if f["first_warning_h"] is not None:
-            ax.axvline(f["first_warning_h"], color="tab:orange" if f["level"] == "low" else "tab:purple", lw=1, ls=":")
-            ax.annotate(f"lead {f['lead_h']:.0f} h", (f["first_warning_h"], th["low_pct"] - 4), fontsize=8)
-    y = np.asarray(res.ratio_pct) if res.ratio_pct else np.array([100.0])
-    ax.set_ylim(max(80.0, float(y.min()) - 1), min(115.0, float(y.max()) + 1))
-    ax.set_xlabel("operating hours (h)")
-    ax.set_ylabel("CM ratio (%)")
-    ax.set_title("cmcan demo: run to failure on the test rig at 480 bar (paper Figure 9)")
-    ax.legend(loc="lower left", fontsize=8)
-    fig.subplots_adjust(left=0.07, right=0.98, top=0.92, bottom=0.11)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)

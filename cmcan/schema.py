@@ -16,16 +16,21 @@ from typing import Any
 
 import yaml
 
+from cmcan.errors import CmcanError, Kind
 
-class SchemaError(ValueError):
-    """A document does not match its spec; ``str()`` is the message for the user."""
 
-    def __init__(self, source: str, path: str, message: str) -> None:
+class SchemaError(CmcanError, ValueError):
+    """A document does not match its spec; ``str()`` is the message for the user. A configuration
+    error by default; a loader of other documents (scenarios, drive files) sets its own kind."""
+
+    kind = Kind.CONFIG
+
+    def __init__(self, source: str, path: str, message: str, kind: Kind | None = None) -> None:
         self.source = source
         self.path = path
         self.detail = message
         where = f"{source}: {path}: " if path else f"{source}: "
-        super().__init__(where + message)
+        super().__init__(where + message, kind)
 
 
 _REQUIRED = object()
@@ -202,22 +207,26 @@ def _fmt(x: float) -> str:
     return str(int(x)) if float(x).is_integer() else f"{x:g}"
 
 
-def load_yaml(path: str | Path) -> Any:
+def load_yaml(path: str | Path, kind: Kind = Kind.CONFIG) -> Any:
     """Read a YAML file; a missing file or a syntax error names the file (and line)."""
     p = Path(path)
     try:
         text = p.read_text(encoding="utf-8")
     except FileNotFoundError:
-        raise SchemaError(str(p), "", "file not found") from None
+        raise SchemaError(str(p), "", "file not found", Kind.NO_INPUT) from None
+    except IsADirectoryError:
+        raise SchemaError(str(p), "", "is a folder, expected a YAML file", Kind.NO_INPUT) from None
+    except UnicodeDecodeError as exc:
+        raise SchemaError(str(p), "", f"not UTF-8 text (byte {exc.start}): expected a YAML file", kind) from None
     except OSError as exc:
-        raise SchemaError(str(p), "", f"cannot read: {exc.strerror}") from None
+        raise SchemaError(str(p), "", f"cannot read: {exc.strerror}", Kind.NO_INPUT) from None
     try:
         return yaml.safe_load(text)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
         problem = getattr(exc, "problem", None) or str(exc)
-        raise SchemaError(str(p), "", f"invalid YAML: {where}{problem}") from None
+        raise SchemaError(str(p), "", f"invalid YAML: {where}{problem}", kind) from None
 
 
 __all__ = ["Any_", "Bool", "Num", "Obj", "OneOf", "SchemaError", "Seq", "Str", "load_yaml"]

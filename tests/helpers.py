@@ -8,26 +8,28 @@ import can
 import numpy as np
 
 from cmcan import config as cfgmod
+from cmcan.assemble import assemble, dbc_for
+from cmcan.frame import Frame
 from cmcan.io.candump import write_candump
-from cmcan.model import load_model
-from cmcan.monitor.build import build_monitor
 from cmcan.sim import scenario as scn
 from cmcan.sim.frames import Frames, frames_from_run
 from cmcan.sim.run import Run, simulate
 
 
 def monitor(keep_timeline: bool = True, cfg: cfgmod.Config | None = None, totals=None):
-    cfg = cfg or cfgmod.load()
-    model = load_model(cfg.model_path, motor_disp_cc=cfg.motor_disp_cc)
-    return build_monitor(cfg, cfg.dbc(), model, model.envelope, totals=totals, keep_timeline=keep_timeline)
+    return assemble(cfg or cfgmod.load(), totals=totals, keep_timeline=keep_timeline).monitor
+
+
+def frame(t: float, can_id: int, data: bytes, extended=False, remote=False, error=False, channel="can0") -> Frame:
+    return Frame(float(t), channel, int(can_id), extended, remote, error, False, bytes(data))
 
 
 def sim_frames(name: str = "two_set_validation", **over) -> tuple[Run, Frames]:
     s = scn.load(scn.shipped(name))
     s = s.with_overrides(**over) if over else s
-    cfg = cfgmod.load()
-    run = simulate(s, cfg.dbc())
-    return run, frames_from_run(run, cfg.dbc())
+    db = dbc_for(cfgmod.load())
+    run = simulate(s, db)
+    return run, frames_from_run(run, db)
 
 
 def write_log(path: Path, frames: Frames) -> Path:
@@ -42,12 +44,19 @@ def messages(frames: Frames) -> list[can.Message]:
     ]
 
 
+def as_frames(frames: Frames, channel: str = "can0") -> list[Frame]:
+    return [
+        frame(t, i, d, channel=channel)
+        for t, i, d in zip(frames.timestamp_s.tolist(), frames.arbitration_id.tolist(), frames.data, strict=True)
+    ]
+
+
 def feed_all(mon, frames: Frames) -> list:
     out = []
     ts = frames.timestamp_s.tolist()
     ids = frames.arbitration_id.tolist()
     for t, i, d in zip(ts, ids, frames.data, strict=True):
-        out += mon.feed(t, i, bytes(d))
+        out += mon.feed(frame(t, i, d))
     out += mon.flush()
     return out
 

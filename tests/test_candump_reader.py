@@ -4,6 +4,7 @@ import can
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from cmcan.frame import from_message
 from cmcan.io.candump import iter_candump, iter_frames
 
 std_id = st.integers(0, 0x7FF).map(lambda i: f"{i:03X}")
@@ -30,14 +31,10 @@ def test_same_frames_as_python_can(tmp_path_factory, lines):
     ref = list(can.io.CanutilsLogReader(str(p)))
     assert len(ours) == len(ref)
     for o, m in zip(ours, ref, strict=True):
-        assert o == (
-            m.timestamp,
-            m.arbitration_id,
-            bytes(m.data or b""),
-            m.is_extended_id,
-            m.is_remote_frame,
-            m.is_error_frame,
-        )
+        want = from_message(m)
+        if m.is_error_frame:  # python-can drops an error frame's channel; cmcan keeps the bus it was on
+            want = want._replace(channel=o.channel)
+        assert o == want
 
 
 def test_gzipped_logs_and_other_formats(tmp_path):
@@ -53,7 +50,8 @@ def test_gzipped_logs_and_other_formats(tmp_path):
         for m in can.LogReader(str(tmp_path / "a.log")):
             w.on_message_received(m)
     b = list(iter_frames(tmp_path / "a.asc"))
-    assert [x[1:] for x in b] == [x[1:] for x in a]
+    # ASC stores times relative to its start and numbers channels from 1: compare the rest
+    assert [x._replace(timestamp_s=0, channel="") for x in b] == [x._replace(timestamp_s=0, channel="") for x in a]
 
 
 def test_a_broken_line_names_file_and_line(tmp_path):

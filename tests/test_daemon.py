@@ -20,7 +20,7 @@ from cmcan.demo import stream
 from cmcan.monitor.totals import Totals
 from cmcan.replay import replay
 from cmcan.statefile import StateStore
-from tests.helpers import messages, monitor, sim_frames
+from tests.helpers import as_frames, messages, monitor, sim_frames
 
 
 @pytest.fixture(scope="module")
@@ -29,14 +29,14 @@ def frames():
 
 
 def test_daemon_on_a_virtual_bus_emits_exactly_what_replay_emits(frames, tmp_path):
-    expected = [(f.frame_id, f.data) for f in replay(monitor(), messages(frames)).frames_out]
+    expected = [(f.arbitration_id, f.data) for f in replay(monitor(), as_frames(frames)).frames_out]
     received, sent, processed = stream(frames, cfgmod.load(), tmp_path, f"eq-{os.getpid()}")
-    got = [(m.arbitration_id, bytes(m.data)) for m in received]
+    got = [(m.arbitration_id, m.data) for m in received]
     assert processed == sent == len(frames)
     assert len(expected) > 10_000
     # After the log ends the daemon goes on broadcasting on its idle timer: those frames come after.
     assert got[: len(expected)] == expected
-    assert all(m.timestamp >= received[len(expected) - 1].timestamp for m in received[len(expected) :])
+    assert all(m.timestamp_s >= received[len(expected) - 1].timestamp_s for m in received[len(expected) :])
 
 
 class ScriptedBus(can.BusABC):

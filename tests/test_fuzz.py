@@ -44,19 +44,18 @@ def fuzz_frames(n, seed=7):
 
 
 def test_a_million_fuzzed_frames(tmp_path):
-    cfg = cfgmod.load()
     channel = f"fuzz-{os.getpid()}"
-    cfg.raw["bus"].update(interface="virtual", channel=channel)
-    cfg.raw["state"]["directory"] = str(tmp_path)
+    cfg = cfgmod.with_overrides(cfgmod.load(), interface="virtual", channel=channel, state_dir=str(tmp_path))
     prep = prepare(cfg)
+    mon = prep.parts.monitor
     # No kernel filter on a virtual bus: every fuzzed frame reaches the core and must be counted.
     kw = {
-        **bus_kwargs(cfg, list(prep.monitor.inputs)),
+        **bus_kwargs(cfg.bus, list(mon.inputs)),
         "rx_queue_size": 20000,
         "preserve_timestamps": True,
         "can_filters": None,
     }
-    daemon = Daemon(cfg, prep.monitor, prep.store, lambda: can.Bus(**kw), options=DaemonOptions())
+    daemon = Daemon(cfg, mon, prep.store, lambda: can.Bus(**kw), options=DaemonOptions())
     th = threading.Thread(target=daemon.run, daemon=True)
     th.start()
     player = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
@@ -72,7 +71,7 @@ def test_a_million_fuzzed_frames(tmp_path):
                     if m.arbitration_id == warn_id:
                         levels.add(m.data[0])
         deadline = time.monotonic() + 120
-        while prep.monitor.counters["frames_total"] < N and time.monotonic() < deadline:
+        while mon.counters["frames_total"] < N and time.monotonic() < deadline:
             time.sleep(0.05)
         while (m := player.recv(0.2)) is not None:
             if m.arbitration_id == warn_id:
@@ -82,12 +81,12 @@ def test_a_million_fuzzed_frames(tmp_path):
         th.join(10)
         player.shutdown()
     assert not th.is_alive()
-    c = prep.monitor.counters
+    c = mon.counters
     print(c, daemon.stats)
     assert c["frames_total"] == N
     parts = ("accepted", "unknown_id", "bad_length", "out_of_range", "error_frame", "remote_frame", "late")
     assert sum(c[k] for k in parts) == N
     assert c["unknown_id"] > 0 and c["bad_length"] > 0 and c["out_of_range"] > 0 and c["accepted"] > 0
-    assert prep.monitor.totals.warning_count == 0
+    assert mon.totals.warning_count == 0
     assert levels <= {0, 3}  # ok, or fault for garbage inputs: never a low or high wear warning
     assert daemon.stats["internal_errors"] == 0

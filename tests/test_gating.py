@@ -5,7 +5,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cmcan.monitor.gating import TIME_EPS_S, Gate, GateLimits, eval_times, gate, window_stats
+from cmcan.monitor.gating import Gate, GateLimits, eval_times, gate, window_stats
+from cmcan.monitor.windows import TIME_EPS_S
 
 
 @settings(max_examples=80, deadline=None)

@@ -10,7 +10,7 @@ from cmcan import config as cfgmod
 from cmcan.model import ModelError, load_model
 from cmcan.model.features import operating_points, series_from_columns
 from cmcan.model.train import train_on_points
-from cmcan.signals import MODEL_INPUTS
+from cmcan.roles import MODEL_INPUTS
 from cmcan.sim import scenario as scn
 from cmcan.sim.run import simulate
 

@@ -12,9 +12,9 @@ from cmcan import config as cfgmod
 from cmcan.model import load_model
 from cmcan.model.evaluate import protocol
 from cmcan.model.features import operating_points, series_from_columns
-from cmcan.model.rebuild_default import build
 from cmcan.model.runtime import default_model_path
-from cmcan.signals import MODEL_INPUTS
+from cmcan.rebuild_default import build
+from cmcan.roles import MODEL_INPUTS
 from cmcan.sim import scenario as scn
 from cmcan.sim.run import simulate
 
@@ -112,7 +112,7 @@ OTHER_MACHINES = {
 _BUILD = """
 import warnings
 from pathlib import Path
-from cmcan.model.rebuild_default import build
+from cmcan.rebuild_default import build
 with warnings.catch_warnings():
     warnings.simplefilter("error")
     build(Path({out!r}))

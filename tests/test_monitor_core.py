@@ -8,11 +8,12 @@ import numpy as np
 import pytest
 
 from cmcan import config as cfgmod
+from cmcan.assemble import dbc_for
 from cmcan.model.features import operating_points, series_from_log
 from cmcan.monitor.gating import Gate
 from cmcan.monitor.totals import Totals
 from cmcan.monitor.warnings import Level
-from tests.helpers import feed_all, monitor, sim_frames, write_log
+from tests.helpers import feed_all, frame, monitor, sim_frames, write_log
 
 PUMP, PRESS, MOTOR, OIL = 0x100, 0x101, 0x102, 0x103
 
@@ -29,7 +30,7 @@ def test_ticks_at_the_evaluation_rate_and_frames_at_their_periods(short):
     n_ticks = mon.counters["ticks"]
     span = frames.timestamp_s[-1] - frames.timestamp_s[0]
     assert abs(n_ticks - span * 10) <= 2
-    ids = [f.frame_id for f in out]
+    ids = [f.arbitration_id for f in out]
     assert ids.count(0x3A0) == n_ticks and ids.count(0x3A1) == n_ticks
     assert n_ticks / 10 - 2 <= ids.count(0x3A2) <= n_ticks / 10 + 20  # 1 s period plus changes
     stamps = [f.timestamp_s for f in out]
@@ -50,7 +51,7 @@ def test_core_gates_equal_the_training_features(short, tmp_path):
     feed_all(mon, frames)
     log = write_log(tmp_path / "r.log", frames)
     mdl = mon.model
-    op = operating_points(series_from_log(log, cfg.dbc(), cfg.signals), cfg.gate_limits, 10.0)
+    op = operating_points(series_from_log(log, dbc_for(cfg), cfg.signals), cfg.gate_limits, 10.0)
     from cmcan.monitor.gating import gate
 
     codes = gate(op.stats, cfg.gate_limits, envelope=mon.params.envelope)
@@ -74,15 +75,15 @@ def test_bad_frames_are_counted_and_ignored(short):
     mon = monitor()
     t0 = float(frames.timestamp_s[0])
     good = bytes(frames.data[0])
-    mon.feed(t0, PUMP, good)
-    mon.feed(t0 + 0.001, 0x555, good)  # unknown identifier
-    mon.feed(t0 + 0.002, PUMP, good[:3])  # too short
-    mon.feed(t0 + 0.003, PUMP, good, is_extended=True)  # extended id with the same number
-    mon.feed(t0 + 0.004, PUMP, good, is_remote=True)
-    mon.feed(t0 + 0.005, 0x20000080, b"", is_error=True)
-    mon.feed(t0 + 0.006, PUMP, b"\xff\xff" + good[2:])  # 16383.75 rpm: beyond the DBC's 8000 rpm
-    mon.feed(t0 + 0.5, PUMP, good)
-    mon.feed(t0 + 0.2, PUMP, good)  # older than a tick already evaluated
+    mon.feed(frame(t0, PUMP, good))
+    mon.feed(frame(t0 + 0.001, 0x555, good))  # unknown identifier
+    mon.feed(frame(t0 + 0.002, PUMP, good[:3]))  # too short
+    mon.feed(frame(t0 + 0.003, PUMP, good, extended=True))  # extended id with the same number
+    mon.feed(frame(t0 + 0.004, PUMP, good, remote=True))
+    mon.feed(frame(t0 + 0.005, 0x20000080, b"", error=True))
+    mon.feed(frame(t0 + 0.006, PUMP, b"\xff\xff" + good[2:]))  # 16383.75 rpm: beyond the DBC's 8000 rpm
+    mon.feed(frame(t0 + 0.5, PUMP, good))
+    mon.feed(frame(t0 + 0.2, PUMP, good))  # older than a tick already evaluated
     c = mon.counters
     assert c == {
         **c,
@@ -110,10 +111,10 @@ def test_a_gap_skips_ticks_and_keeps_the_time_base(short):
     n = len(frames) // 2
     t, ids, data = frames.timestamp_s, frames.arbitration_id, frames.data
     for k in range(n):
-        mon.feed(float(t[k]), int(ids[k]), bytes(data[k]))
+        mon.feed(frame(float(t[k]), int(ids[k]), bytes(data[k])))
     ticks_before = mon.counters["ticks"]
     for k in range(n, len(frames)):  # the rest one hour later: the machine was off in between
-        mon.feed(float(t[k]) + 3600.0, int(ids[k]), bytes(data[k]))
+        mon.feed(frame(float(t[k]) + 3600.0, int(ids[k]), bytes(data[k])))
     mon.flush()
     assert mon.counters["ticks"] - ticks_before < (t[-1] - t[n]) * 10 + 15
     assert mon.counters["time_resets"] == 0
@@ -126,12 +127,12 @@ def test_stale_input_raises_a_fault_and_idle_does_not(short):
     t, ids, data = frames.timestamp_s, frames.arbitration_id, frames.data
     for k in range(len(frames)):
         if ids[k] != OIL:  # the oil temperature sensor is silent
-            mon.feed(float(t[k]), int(ids[k]), bytes(data[k]))
+            mon.feed(frame(float(t[k]), int(ids[k]), bytes(data[k])))
     assert mon.machine.level == Level.FAULT
     assert mon.totals.fault_count == 1 and mon.totals.warning_count == 0
     idle = monitor(cfg=cfg)
     for k in range(2000):
-        idle.feed(float(t[k]), int(ids[k]), bytes(data[k]))
+        idle.feed(frame(t[k], ids[k], data[k]))
     idle.advance(float(t[2000]) + 600.0)  # bus silent for ten minutes
     assert idle.machine.level == Level.OK and idle.last_tick.gate == Gate.NO_INPUT
 
@@ -141,7 +142,7 @@ def test_totals_round_trip_and_restore_the_condition():
     back = Totals.from_dict(t.to_dict())
     assert back == t
     mon = monitor(totals=back)
-    assert mon.machine.level == Level.LOW and len(mon.ring_ratio) == 60
+    assert mon.machine.level == Level.LOW and len(mon.filter) == 60
 
 
 def test_the_core_never_reads_the_clock():

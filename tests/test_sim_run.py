@@ -9,7 +9,7 @@ import pytest
 from cmcan import codec
 from cmcan.io.candump import write_candump
 from cmcan.io.runcsv import read_run_csv, write_run_csv
-from cmcan.signals import DEFAULT_INPUTS
+from cmcan.roles import DEFAULT_INPUTS
 from cmcan.sim import scenario as scn
 from cmcan.sim.frames import frames_from_run
 from cmcan.sim.run import COLUMNS, simulate

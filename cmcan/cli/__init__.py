@@ -9,7 +9,8 @@ import sys
 from collections.abc import Sequence
 
 from cmcan import __version__
-from cmcan.cli.errors import EX_SOFTWARE, CliError
+from cmcan.cli.errors import EX_SOFTWARE, exit_code
+from cmcan.errors import CmcanError
 
 SUBCOMMANDS = ("simulate", "train", "evaluate", "replay", "run", "check", "demo", "gap")
 
@@ -34,9 +35,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
     try:
         return int(args.func(args) or 0)
-    except CliError as exc:
+    except CmcanError as exc:
         print(f"cmcan {args.command}: {exc}", file=sys.stderr)
-        return exc.code
+        return exit_code(exc)
     except KeyboardInterrupt:
         return 130
     except BrokenPipeError:

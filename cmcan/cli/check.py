@@ -6,7 +6,8 @@ import argparse
 import json
 import sys
 
-from cmcan.cli.errors import CliError
+from cmcan.cli.errors import exit_code
+from cmcan.errors import CmcanError
 from cmcan.preflight import check_channel, load_config, prepare
 
 
@@ -31,23 +32,23 @@ def run(args: argparse.Namespace) -> int:
         prep = prepare(cfg, need_state=args.state)
         if args.channel_check:
             check_channel(cfg)
-    except CliError as exc:
+    except CmcanError as exc:
         if args.json:
-            json.dump({"ok": False, "error": str(exc), "exit_code": exc.code}, sys.stdout, indent=2)
+            json.dump({"ok": False, "error": str(exc), "exit_code": exit_code(exc)}, sys.stdout, indent=2)
             sys.stdout.write("\n")
-            return exc.code
+            return exit_code(exc)
         raise
-    m = prep.model.meta
+    m = prep.parts.model.meta
     result = {
         "ok": True,
         "config": cfg.source,
         "dbc": str(cfg.dbc_path),
-        "model": str(cfg.model_path),
+        "model": str(prep.parts.model.path),
         "model_version": m.model_version,
         "inputs": {r: f"{s.message}.{s.signal}" for r, s in cfg.signals.items()},
         "envelope": m.envelope,
         "motor_disp_cc": m.motor_disp_cc,
-        "bus": f"{cfg.raw['bus']['interface']}:{cfg.raw['bus']['channel']}",
+        "bus": f"{cfg.bus.interface}:{cfg.bus.channel}",
     }
     if args.json:
         json.dump(result, sys.stdout, indent=2)

@@ -1,45 +1,27 @@
-"""Loading what several subcommands share (configuration, DBC, model, data), with CLI error codes."""
+"""Loading what several subcommands share: configuration (checked against its DBC), model, data."""
 
 from __future__ import annotations
 
 from typing import Any
 
 from cmcan import config as cfgmod
-from cmcan.cli.errors import EX_CONFIG, EX_DATAERR, EX_NOINPUT, CliError
-from cmcan.dbc import DbcError
-from cmcan.schema import SchemaError
+from cmcan.assemble import check_against_dbc, dbc_for, load_model_for
+from cmcan.preflight import load_config as _load_config
 
 
 def load_config(path: str | None, check_dbc: bool = True) -> cfgmod.Config:
-    """The configuration (sysexits on any problem), with its DBC loaded and the mapping checked."""
-    from cmcan.preflight import load_config as load
-
-    cfg = load(path)
+    """The configuration, with its DBC loaded and the mapping checked (errors carry their kind)."""
+    cfg = _load_config(path)
     if check_dbc:
-        try:
-            cfgmod.check_against_dbc(cfg, cfg.dbc())
-        except SchemaError as exc:
-            raise CliError(str(exc), EX_CONFIG) from None
-        except DbcError as exc:
-            raise CliError(f"{exc} (dbc: in {cfg.source})", EX_CONFIG) from None
+        check_against_dbc(cfg, dbc_for(cfg))
     return cfg
 
 
 def load_points(path: str, cfg: cfgmod.Config) -> Any:
-    from cmcan.model.features import DataError, load_operating_points
+    from cmcan.model.features import load_operating_points
 
-    try:
-        return load_operating_points(path, cfg.gate_limits, cfg.dbc(), cfg.signals, cfg.raw["evaluation"]["rate_hz"])
-    except DataError as exc:
-        code = EX_NOINPUT if "file not found" in str(exc) else EX_DATAERR
-        raise CliError(str(exc), code) from None
+    return load_operating_points(path, cfg.gate_limits, dbc_for(cfg), cfg.signals, cfg.rate_hz)
 
 
-def load_model_for(cfg: cfgmod.Config, path: str | None = None) -> Any:
-    from cmcan.model import ModelError, load_model
-
-    try:
-        return load_model(path or cfg.model_path, motor_disp_cc=cfg.motor_disp_cc)
-    except ModelError as exc:
-        code = EX_NOINPUT if "not found" in str(exc) else EX_CONFIG
-        raise CliError(str(exc), code) from None
+def load_model(cfg: cfgmod.Config, path: str | None = None) -> Any:
+    return load_model_for(cfg, path)

@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from cmcan.cli.errors import EX_CANTCREAT, CliError
+from cmcan.errors import CmcanError, Kind
 
 
 def add_subparser(sub: argparse._SubParsersAction) -> None:
@@ -36,7 +36,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise CliError(f"{out}: cannot create the demo folder: {exc.strerror}", EX_CANTCREAT) from None
+        raise CmcanError(f"{out}: cannot create the demo folder: {exc.strerror}", Kind.CANT_CREATE) from None
     if not args.json:
         print(
             f"cmcan demo: simulating run_to_failure and streaming it through the daemon "

@@ -6,9 +6,10 @@ import argparse
 import json
 import sys
 
-from cmcan.cli.common import load_config, load_model_for, load_points
-from cmcan.cli.errors import EX_UNAVAILABLE, CliError, ensure_writable
-from cmcan.model.evaluate import format_report, plot, protocol
+from cmcan.cli.common import load_config, load_model, load_points
+from cmcan.cli.errors import ensure_writable, require_extra
+from cmcan.errors import CmcanError, Kind
+from cmcan.model.evaluate import format_report, protocol
 
 
 def add_subparser(sub: argparse._SubParsersAction) -> None:
@@ -34,20 +35,21 @@ def add_subparser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     if args.val and args.t_dam_h is None:
-        raise CliError("--val needs --t-dam-h (the damage onset)", 64)
+        raise CmcanError("--val needs --t-dam-h (the damage onset)", Kind.USAGE)
     plot_path = ensure_writable(args.plot, args.force) if args.plot else None
+    if plot_path is not None:
+        require_extra("plot", "matplotlib")
     cfg = load_config(args.config)
-    model = load_model_for(cfg, args.model)
+    model = load_model(cfg, args.model)
     train_op = load_points(args.train, cfg)
     val_op = load_points(args.val, cfg) if args.val else None
     healthy = {h: load_points(h, cfg) for h in args.healthy}
     report, sets = protocol(model, train_op, args.t_trn_h, val_op, args.t_dam_h, healthy)
-    report["model"] = str(args.model or cfg.model_path)
+    report["model"] = str(model.path)
     if plot_path is not None:
-        try:
-            plot(sets, report, str(plot_path))
-        except ImportError:
-            raise CliError("--plot needs matplotlib (pip install 'cmcan[plot]')", EX_UNAVAILABLE) from None
+        from cmcan.plots import plot_residuals
+
+        plot_residuals(sets, report, plot_path)
         report["plot"] = str(plot_path)
     if args.json:
         json.dump(report, sys.stdout, indent=2)

@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from cmcan.cli.errors import EX_CANTCREAT, EX_DATAERR, EX_NOINPUT, EX_UNAVAILABLE, EX_USAGE, CliError
+from cmcan.errors import CmcanError, Kind
 
 
 def add_subparser(sub: argparse._SubParsersAction) -> None:
@@ -62,7 +62,7 @@ def _need_scipy() -> None:
     try:
         import scipy.optimize  # noqa: F401
     except ImportError:
-        raise CliError("the gap diagnosis needs scipy (pip install 'cmcan[gap]')", EX_UNAVAILABLE) from None
+        raise CmcanError("the gap diagnosis needs scipy (pip install 'cmcan[gap]')", Kind.UNAVAILABLE) from None
 
 
 def load_drive(path: str | None):
@@ -90,11 +90,12 @@ def load_drive(path: str | None):
         }
         return scn.from_dict(doc, source=path).params
     except SchemaError as exc:
-        raise CliError(str(exc), 78) from None
+        raise CmcanError(str(exc), Kind.CONFIG) from None
 
 
 def run_diagnose(args: argparse.Namespace) -> int:
     _need_scipy()
+    from cmcan.assemble import dbc_for
     from cmcan.cli.common import load_config
     from cmcan.gap import data as gapdata
     from cmcan.gap import report as rep
@@ -103,19 +104,19 @@ def run_diagnose(args: argparse.Namespace) -> int:
 
     out = Path(args.out)
     if out.exists() and any(out.iterdir()) and not args.force:
-        raise CliError(f"{out}: folder exists and is not empty; pass --force to write into it", EX_CANTCREAT)
+        raise CmcanError(f"{out}: folder exists and is not empty; pass --force to write into it", Kind.CANT_CREATE)
     if not Path(args.real).exists():
-        raise CliError(f"{args.real}: file not found", EX_NOINPUT)
+        raise CmcanError(f"{args.real}: file not found", Kind.NO_INPUT)
     p = load_drive(args.drive)
     cfg = load_config(args.config)
     try:
-        d = gapdata.load(args.real, args.quantity, cfg.gate_limits, cfg.dbc(), cfg.signals)
+        d = gapdata.load(args.real, args.quantity, cfg.gate_limits, dbc_for(cfg), cfg.signals)
     except DataError as exc:
-        raise CliError(str(exc), EX_DATAERR) from None
+        raise CmcanError(str(exc), Kind.DATA) from None
     try:
         report, arrays = diagnose(d, p, args.holdout)
     except ValueError as exc:
-        raise CliError(str(exc), EX_USAGE) from None
+        raise CmcanError(str(exc), Kind.USAGE) from None
     files = rep.write(out, report, d, arrays, plots=not args.no_plots)
     if args.json:
         json.dump(report, sys.stdout, indent=2)
@@ -139,7 +140,7 @@ def run_bench(args: argparse.Namespace) -> int:
     from cmcan.gap.bench import run_trial, summarize
 
     if args.trials < 1:
-        raise CliError("--trials must be at least 1", EX_USAGE)
+        raise CmcanError("--trials must be at least 1", Kind.USAGE)
     trials = [run_trial(args.seed * 100_003 + i, minutes=args.minutes) for i in range(args.trials)]
     s = summarize(trials)
     if args.json:

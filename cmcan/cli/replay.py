@@ -7,12 +7,12 @@ import json
 import sys
 from pathlib import Path
 
-from cmcan.cli.common import load_config, load_model_for
-from cmcan.cli.errors import EX_DATAERR, EX_NOINPUT, EX_UNAVAILABLE, CliError, ensure_writable
+from cmcan.assemble import assemble
+from cmcan.cli.common import load_config
+from cmcan.cli.errors import ensure_writable, require_extra
+from cmcan.errors import CmcanError, Kind
 from cmcan.io.candump import iter_frames
-from cmcan.monitor.build import build_monitor
-from cmcan.replay import plot_ratio, replay, warnings_summary, write_emitted, write_timeline
-from cmcan.schema import SchemaError
+from cmcan.replay import replay, warnings_summary, write_emitted, write_timeline
 
 
 def add_subparser(sub: argparse._SubParsersAction) -> None:
@@ -35,31 +35,28 @@ def add_subparser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     outs = {k: ensure_writable(getattr(args, k), args.force) for k in ("out", "emit", "plot") if getattr(args, k)}
+    if "plot" in outs:
+        require_extra("plot", "matplotlib")
     if not Path(args.log).exists():
-        raise CliError(f"{args.log}: log file not found", EX_NOINPUT)
-    cfg = load_config(args.config)
-    model = load_model_for(cfg, args.model)
-    try:
-        mon = build_monitor(cfg, cfg.dbc(), model, model.envelope, keep_timeline=bool(args.out or args.plot))
-    except SchemaError as exc:
-        raise CliError(str(exc), 78) from None
+        raise CmcanError(f"{args.log}: log file not found", Kind.NO_INPUT)
+    cfg = load_config(args.config, check_dbc=False)
+    mon = assemble(cfg, args.model, keep_timeline=bool(args.out or args.plot)).monitor
     try:
         res = replay(mon, iter_frames(args.log), emit=bool(args.emit))
     except (ValueError, OSError) as exc:
-        raise CliError(f"{args.log}: cannot read as a CAN log: {exc}", EX_DATAERR) from None
+        raise CmcanError(f"{args.log}: cannot read as a CAN log: {exc}", Kind.DATA) from None
     if res.first_t is None:
-        raise CliError(f"{args.log}: no frames in the log", EX_DATAERR)
+        raise CmcanError(f"{args.log}: no frames in the log", Kind.DATA)
     t0 = res.first_t
     if "out" in outs:
         write_timeline(outs["out"], mon.timeline, t0)
     if "emit" in outs:
         write_emitted(outs["emit"], res.frames_out)
     if "plot" in outs:
-        th = cfg.raw["thresholds"]
-        try:
-            plot_ratio(mon.timeline, t0, th["low_pct"], th["high_pct"], outs["plot"], title=f"CM ratio: {args.log}")
-        except ImportError:
-            raise CliError("--plot needs matplotlib (pip install 'cmcan[plot]')", EX_UNAVAILABLE) from None
+        from cmcan.plots import plot_ratio
+
+        th = cfg.thresholds
+        plot_ratio(mon.timeline, t0, th.low_pct, th.high_pct, outs["plot"], title=f"CM ratio: {args.log}")
     summary = {
         "log": str(args.log),
         "first_timestamp_s": t0,

@@ -37,16 +37,15 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config, args.interface, args.channel, args.state_dir)
     prep = prepare(cfg)  # files first (config, DBC, model, state), then the machine's channel
     check_channel(cfg)
-    ids = list(prep.monitor.inputs)
-    rcvbuf = int(cfg.raw["bus"]["receive_buffer_bytes"])
+    ids = list(prep.parts.monitor.inputs)
 
     def open_bus() -> can.BusABC:
-        bus = can.Bus(**bus_kwargs(cfg, ids))
-        if cfg.raw["bus"]["interface"] == "socketcan":
-            tune_socketcan(bus, rcvbuf)
+        bus = can.Bus(**bus_kwargs(cfg.bus, ids))
+        if cfg.bus.interface == "socketcan":
+            tune_socketcan(bus, cfg.bus.receive_buffer_bytes)
         return bus
 
-    daemon = Daemon(cfg, prep.monitor, prep.store, open_bus, Notifier(), DaemonOptions())
+    daemon = Daemon(cfg, prep.parts.monitor, prep.store, open_bus, Notifier(), DaemonOptions())
 
     def on_signal(signum: int, _frame: FrameType | None) -> None:
         log.info("received %s, stopping", signal.Signals(signum).name)

@@ -6,8 +6,9 @@ import argparse
 import json
 import sys
 
-from cmcan.cli.errors import EX_CONFIG, EX_DATAERR, EX_NOINPUT, CliError, ensure_writable
-from cmcan.dbc import DbcError, load_dbc
+from cmcan.cli.errors import ensure_writable
+from cmcan.dbc import load_dbc
+from cmcan.errors import CmcanError, Kind
 from cmcan.io.candump import write_candump
 from cmcan.io.runcsv import write_run_csv
 from cmcan.schema import SchemaError
@@ -41,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
     log = ensure_writable(args.candump, args.force) if args.candump else None
     path = scn.resolve(args.scenario)
     if not path.exists():
-        raise CliError(f"{args.scenario}: no such scenario file or shipped scenario", EX_NOINPUT)
+        raise CmcanError(f"{args.scenario}: no such scenario file or shipped scenario", Kind.NO_INPUT)
     try:
         s = scn.load(path)
         top = {}
@@ -52,11 +53,9 @@ def run(args: argparse.Namespace) -> int:
         if top:
             s = s.with_overrides(**top)
     except SchemaError as exc:
-        raise CliError(str(exc), EX_DATAERR) from None
-    try:
-        db = load_dbc(args.dbc)
-    except DbcError as exc:
-        raise CliError(str(exc), EX_CONFIG) from None
+        exc.kind = Kind.DATA if exc.kind == Kind.CONFIG else exc.kind  # a scenario is data, not configuration
+        raise
+    db = load_dbc(args.dbc)
     r = simulate(s, db)
     write_run_csv(out, r.columns)
     n_frames = 0

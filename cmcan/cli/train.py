@@ -7,7 +7,8 @@ import json
 import sys
 
 from cmcan.cli.common import load_config, load_points
-from cmcan.cli.errors import EX_DATAERR, EX_UNAVAILABLE, CliError, ensure_writable
+from cmcan.cli.errors import ensure_writable, require_extra
+from cmcan.errors import CmcanError, Kind
 
 
 def add_subparser(sub: argparse._SubParsersAction) -> None:
@@ -31,21 +32,19 @@ def add_subparser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     out = ensure_writable(args.out, args.force)
+    require_extra("train", "scipy")
+    require_extra("train", "onnx")
     cfg = load_config(args.config)
-    try:
-        from cmcan.model.physics import TERMS
-        from cmcan.model.train import train_on_points
-    except ImportError as exc:
-        raise CliError(str(exc), EX_UNAVAILABLE) from None
+    from cmcan.model.physics import TERMS
+    from cmcan.model.train import train_on_points
+
     op = load_points(args.data, cfg)
     try:
         blob, model, stats = train_on_points(
             op, args.t_trn_h, cfg.motor_disp_cc, source=str(args.data), t_start_h=args.t_start_h
         )
-    except ImportError as exc:
-        raise CliError(str(exc), EX_UNAVAILABLE) from None
     except ValueError as exc:
-        raise CliError(str(exc), EX_DATAERR) from None
+        raise CmcanError(str(exc), Kind.DATA) from None
     tmp = out.with_name(out.name + ".tmp")
     tmp.write_bytes(blob)
     tmp.replace(out)

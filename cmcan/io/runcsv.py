@@ -9,13 +9,17 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from cmcan.errors import CmcanError, Kind
+
 # Decimals written per column: finer than any sensor resolution, coarse enough to keep files small.
 _DECIMALS = {"time_s": 4, "operating_h": 7, "true_failed": 0, "true_misposition_pct": 4}
 _DEFAULT_DECIMALS = 4
 
 
-class RunCsvError(ValueError):
+class RunCsvError(CmcanError, ValueError):
     """A run CSV cannot be read; ``str()`` names the file and what is wrong."""
+
+    kind = Kind.DATA
 
 
 def write_run_csv(path: str | Path, columns: dict[str, NDArray[np.float64]]) -> None:
@@ -36,9 +40,14 @@ def write_run_csv(path: str | Path, columns: dict[str, NDArray[np.float64]]) -> 
 def read_run_csv(path: str | Path, required: Iterable[str] = ()) -> dict[str, NDArray[np.float64]]:
     p = Path(path)
     if not p.exists():
-        raise RunCsvError(f"{p}: file not found")
-    with open(p, encoding="utf-8") as f:
-        header = f.readline().strip()
+        raise RunCsvError(f"{p}: file not found", Kind.NO_INPUT)
+    try:
+        with open(p, encoding="utf-8") as f:
+            header = f.readline().strip()
+    except UnicodeDecodeError:
+        raise RunCsvError(f"{p}: not a text CSV file (not UTF-8)") from None
+    except IsADirectoryError:
+        raise RunCsvError(f"{p}: is a folder, expected a CSV file", Kind.NO_INPUT) from None
     if not header:
         raise RunCsvError(f"{p}: empty file, expected a header line with column names")
     names = [h.strip() for h in header.split(",")]
@@ -47,7 +56,7 @@ def read_run_csv(path: str | Path, required: Iterable[str] = ()) -> dict[str, ND
         raise RunCsvError(f"{p}: missing column(s) {', '.join(missing)}; the file has {', '.join(names)}")
     try:
         data = np.loadtxt(p, delimiter=",", skiprows=1, ndmin=2)
-    except ValueError as exc:
+    except (ValueError, UnicodeDecodeError) as exc:
         raise RunCsvError(f"{p}: not numeric CSV below the header: {exc}") from None
     if data.size == 0:
         return {k: np.empty(0) for k in names}

@@ -17,18 +17,22 @@ from cantools.database.can import Database
 from numpy.typing import NDArray
 
 from cmcan import codec
+from cmcan.errors import CmcanError, Kind
 from cmcan.io.candump import iter_frames
 from cmcan.io.runcsv import read_run_csv
 from cmcan.monitor.gating import Gate, GateLimits, WindowStats, eval_times, gate, window_stats
-from cmcan.signals import DEFAULT_INPUTS, MODEL_INPUTS, SignalRef
+from cmcan.monitor.windows import dp_affine, dp_raw, role_affine
+from cmcan.roles import DEFAULT_INPUTS, DP, GATED, HIGH_PRESSURE, LOW_PRESSURE, MODEL_INPUTS, MOTOR_SPEED, SignalRef
 
 Series = dict[str, tuple[NDArray[np.float64], NDArray[np.float64]]]
-CSV_REQUIRED = ("time_s", "pump_speed_rpm", "pump_disp_cc", "dp_bar", "temp_c", "motor_speed_rpm")
+CSV_REQUIRED = ("time_s", *GATED)
 LOG_SUFFIXES = (".log", ".asc", ".blf", ".trc", ".mf4", ".db", ".gz")
 
 
-class DataError(ValueError):
+class DataError(CmcanError, ValueError):
     """Measured data cannot be used; ``str()`` names the file and what is missing or wrong."""
+
+    kind = Kind.DATA
 
 
 @dataclass(frozen=True)
@@ -71,7 +75,7 @@ def series_from_csv(path: str | Path) -> tuple[Series, dict[str, tuple[NDArray[n
     try:
         cols = read_run_csv(path, required=CSV_REQUIRED)
     except ValueError as exc:
-        raise DataError(str(exc)) from None
+        raise DataError(str(exc), getattr(exc, "kind", Kind.DATA)) from None
     return series_from_columns(cols, str(path))
 
 
@@ -86,7 +90,7 @@ def series_from_columns(
     if np.any(np.diff(t) <= 0):
         k = int(np.flatnonzero(np.diff(t) <= 0)[0]) + 2
         raise DataError(f"{path}: time_s must increase from row to row (row {k + 1} does not)")
-    series = {r: (t, cols[r]) for r in ("pump_speed_rpm", "pump_disp_cc", "dp_bar", "temp_c", "motor_speed_rpm")}
+    series = {r: (t, cols[r]) for r in GATED}
     truth = {k: (t, v) for k, v in cols.items() if k.startswith("true_") or k == "operating_h"}
     return series, truth
 
@@ -97,19 +101,28 @@ def as_refs(mapping: Mapping[str, Any] | None) -> dict[str, SignalRef]:
     return {r: v if isinstance(v, SignalRef) else SignalRef(*v) for r, v in mapping.items()}
 
 
+def _affine(db: Database, ref: SignalRef) -> Any:
+    return role_affine(db.get_message_by_name(ref.message), ref.signal, ref.scale, ref.offset)
+
+
 def series_from_log(path: str | Path, db: Database, mapping: Mapping[str, Any] | None = None) -> Series:
-    """Decode a CAN log into per-role series (vectorized per message), in each role's unit."""
+    """Decode a CAN log into per-role series (vectorized per message), in each role's unit; dp from
+    high and low pressure is formed as the monitor forms it."""
     refs = as_refs(mapping)
     wanted = {db.get_message_by_name(r.message).frame_id: db.get_message_by_name(r.message) for r in refs.values()}
     stamps: dict[int, list[float]] = {i: [] for i in wanted}
     payloads: dict[int, list[bytes]] = {i: [] for i in wanted}
     try:
-        for t, fid, data, ext, remote, err in iter_frames(path):
-            if fid in wanted and not (ext or remote or err) and len(data) >= wanted[fid].length:
-                stamps[fid].append(t)
-                payloads[fid].append(data[:8].ljust(8, b"\0"))
-    except (FileNotFoundError, ValueError, OSError) as exc:
+        for f in iter_frames(path):
+            fid = f.arbitration_id
+            if fid in wanted and not (f.extended or f.remote or f.error) and len(f.data) >= wanted[fid].length:
+                stamps[fid].append(f.timestamp_s)
+                payloads[fid].append(f.data[:8].ljust(8, b"\0"))
+    except FileNotFoundError as exc:
+        raise DataError(str(exc), Kind.NO_INPUT) from None
+    except (ValueError, OSError) as exc:
         raise DataError(f"{path}: cannot read CAN log: {exc}") from None
+    raws: dict[str, tuple[NDArray[np.float64], NDArray[np.int64]]] = {}
     series: Series = {}
     for role, ref in refs.items():
         m = db.get_message_by_name(ref.message)
@@ -118,14 +131,18 @@ def series_from_log(path: str | Path, db: Database, mapping: Mapping[str, Any] |
             continue
         data = np.frombuffer(b"".join(payloads[m.frame_id]), dtype=np.uint8).reshape(-1, 8)
         order = np.argsort(ts, kind="stable")
-        values = codec.decode(m, data[order], [ref.signal])[ref.signal] * ref.scale + ref.offset
-        series[role] = (ts[order], values)
-    if "dp_bar" not in series and "high_pressure_bar" in series and "low_pressure_bar" in series:
-        th, hp = series["high_pressure_bar"]
-        tl, lp = series["low_pressure_bar"]
-        idx = np.clip(np.searchsorted(tl, th, side="right") - 1, 0, len(tl) - 1)  # latest low-side value
-        series["dp_bar"] = (th, hp - lp[idx])
-    missing = [r for r in ("pump_speed_rpm", "pump_disp_cc", "dp_bar", "temp_c", "motor_speed_rpm") if r not in series]
+        raw = codec.decode_raw(m, data[order], [ref.signal])[ref.signal]
+        raws[role] = (ts[order], raw)
+        f = _affine(db, ref)
+        series[role] = (ts[order], raw * f.a + f.b)
+    if DP not in series and HIGH_PRESSURE in raws and LOW_PRESSURE in raws:
+        hl = dp_affine(_affine(db, refs[HIGH_PRESSURE]), _affine(db, refs[LOW_PRESSURE]))
+        if hl is None:
+            raise DataError(f"{path}: high and low pressure resolutions are not commensurate; map dp_bar", Kind.CONFIG)
+        f, p, q = hl
+        t, r = dp_raw(*raws[HIGH_PRESSURE], *raws[LOW_PRESSURE], p, q)
+        series[DP] = (t, r * f.a + f.b)
+    missing = [r for r in GATED if r not in series]
     if missing:
         expected = sorted({refs[r].message for r in missing if r in refs})
         raise DataError(f"{path}: no frames for {', '.join(missing)} (expected messages {', '.join(expected)})")
@@ -147,7 +164,7 @@ def operating_points(
     envelope: dict[str, tuple[float, float]] | None = None,
     truth: dict[str, tuple[NDArray[np.float64], NDArray[np.float64]]] | None = None,
 ) -> OperatingPoints:
-    t_motor = series["motor_speed_rpm"][0]
+    t_motor = series[MOTOR_SPEED][0]
     spans = contiguous_spans(t_motor, max_gap_s=max(limits.window_s, 1.0))
     t_eval = np.concatenate([eval_times(a, b, rate_hz) for a, b in spans]) if spans else np.empty(0)
     stats = window_stats(series, t_eval, limits.window_s)
@@ -157,7 +174,7 @@ def operating_points(
     for k, (tt, vv) in (truth or {}).items():
         idx = np.clip(np.searchsorted(tt, t_eval, side="right") - 1, 0, len(tt) - 1)
         tr[k] = vv[idx]
-    return OperatingPoints(t_eval, x, stats.mean["motor_speed_rpm"], codes, stats, tr, float(t_motor[0]))
+    return OperatingPoints(t_eval, x, stats.mean[MOTOR_SPEED], codes, stats, tr, float(t_motor[0]))
 
 
 def load_operating_points(
@@ -170,7 +187,7 @@ def load_operating_points(
     """Operating points of a run CSV or a CAN log (chosen by the file's extension)."""
     p = Path(path)
     if not p.exists():
-        raise DataError(f"{p}: file not found")
+        raise DataError(f"{p}: file not found", Kind.NO_INPUT)
     if is_log(p):
         if db is None:
             from cmcan.dbc import load_dbc

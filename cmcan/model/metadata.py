@@ -7,6 +7,8 @@ import math
 from dataclasses import asdict, dataclass
 from typing import Any
 
+from cmcan.errors import CmcanError, Kind
+
 FORMAT = "cmcan-graybox/2"
 INPUT_NAME = "x"
 OUTPUT_PRED = "predicted"
@@ -15,8 +17,10 @@ OUTPUT_WHITEBOX = "whitebox"
 QUANTITY_UNITS = {"motor_speed_rpm": "rpm", "flow_lpm": "l/min"}
 
 
-class ModelError(ValueError):
+class ModelError(CmcanError, ValueError):
     """A model file cannot be used; ``str()`` names the file and what does not match."""
+
+    kind = Kind.CONFIG
 
 
 @dataclass(frozen=True)

@@ -7,8 +7,9 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from cmcan.errors import Kind
 from cmcan.model.metadata import INPUT_NAME, OUTPUT_PHYSICS, OUTPUT_PRED, OUTPUT_WHITEBOX, ModelError, ModelMeta
-from cmcan.signals import MODEL_INPUTS, MODEL_UNITS
+from cmcan.roles import MODEL_INPUTS, MODEL_UNITS
 
 
 class GrayBoxModel:
@@ -21,7 +22,7 @@ class GrayBoxModel:
 
         self.path = Path(path)
         if not self.path.exists():
-            raise ModelError(f"{self.path}: model file not found")
+            raise ModelError(f"{self.path}: model file not found", Kind.NO_INPUT)
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = 1
         opts.inter_op_num_threads = 1

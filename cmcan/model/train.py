@@ -20,7 +20,7 @@ from cmcan.model import correction, physics
 from cmcan.model.metadata import FORMAT, OUTPUT_PHYSICS, OUTPUT_PRED, OUTPUT_WHITEBOX, QUANTITY_UNITS, ModelMeta
 from cmcan.model.physics import Quantity
 from cmcan.oil import VG46, Oil
-from cmcan.signals import MODEL_INPUTS, MODEL_UNITS
+from cmcan.roles import MODEL_INPUTS, MODEL_UNITS
 
 MIN_POINTS = 50
 

@@ -16,13 +16,8 @@ from enum import IntEnum
 import numpy as np
 from numpy.typing import NDArray
 
-# Timestamps come from logs with microsecond resolution and from floats near 1.7e9 s (one ulp is
-# 0.24 us): a sample within half a microsecond of a tick or a window edge counts as on it, so the
-# same log gives the same windows whatever its format's time base.
-TIME_EPS_S = 5e-7
-
-# Roles the gate looks at (in this order), with the model's inputs among them.
-GATED_ROLES: tuple[str, ...] = ("pump_speed_rpm", "pump_disp_cc", "dp_bar", "temp_c", "motor_speed_rpm")
+from cmcan.monitor.windows import Affine, mean_std, window_sums
+from cmcan.roles import GATED as GATED_ROLES
 
 
 class Gate(IntEnum):
@@ -87,24 +82,17 @@ def window_stats(
     """Trailing-window statistics at each evaluation time, for irregularly sampled series.
 
     ``series[role] = (timestamps, values)``, timestamps ascending. The window at time t holds the
-    samples with t - window_s < timestamp <= t. Cumulative sums make it O(n) for any number of windows.
+    samples with t - window_s < timestamp <= t (the monitor's window, :mod:`cmcan.monitor.windows`).
+    Float values are centred on their median before the cumulative sums (less cancellation); integer
+    raw values would be exact.
     """
     mean, std, count, age = {}, {}, {}, {}
     for role, (ts, vs) in series.items():
-        hi = np.searchsorted(ts, eval_t + TIME_EPS_S, side="right")
-        lo = np.searchsorted(ts, eval_t - window_s + TIME_EPS_S, side="right")
-        n = hi - lo
-        ref = float(np.median(vs)) if len(vs) else 0.0  # centre the sums: less cancellation
-        c1 = np.concatenate([[0.0], np.cumsum(vs - ref)])
-        c2 = np.concatenate([[0.0], np.cumsum((vs - ref) ** 2)])
-        with np.errstate(invalid="ignore", divide="ignore"):
-            m = (c1[hi] - c1[lo]) / n
-            var = (c2[hi] - c2[lo]) / n - m**2
-        mean[role] = m + ref
-        std[role] = np.sqrt(np.maximum(var, 0.0))
+        ref = float(np.median(vs)) if len(vs) else 0.0
+        s1, s2, n, newest = window_sums(ts, np.asarray(vs, dtype=np.float64) - ref, eval_t, window_s)
+        mean[role], std[role] = mean_std(s1, s2, n, Affine(1.0, ref))
         count[role] = n
-        last = np.where(hi > 0, ts[np.maximum(hi - 1, 0)] if len(ts) else 0.0, -np.inf)
-        age[role] = eval_t - last
+        age[role] = eval_t - newest
     return WindowStats(mean, std, count, age)
 
 

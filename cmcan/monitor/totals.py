@@ -5,12 +5,16 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
+from cmcan.errors import CmcanError, Kind
+
 HISTORY_MAX = 1000
 FORMAT = "cmcan-state/1"
 
 
-class StateError(ValueError):
+class StateError(CmcanError, ValueError):
     """A state document cannot be read back; ``str()`` says which field is wrong."""
+
+    kind = Kind.DATA
 
 
 @dataclass

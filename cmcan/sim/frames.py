@@ -10,7 +10,7 @@ from cantools.database.can import Database
 from numpy.typing import NDArray
 
 from cmcan import codec
-from cmcan.signals import DEFAULT_INPUTS
+from cmcan.roles import DEFAULT_INPUTS
 from cmcan.sim.run import Run, motor_direction, send_every, send_mask
 
 # Messages of one controller cycle leave 0.2 ms apart, in identifier order, as a real CAN controller

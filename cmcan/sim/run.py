@@ -11,7 +11,7 @@ from numpy.typing import NDArray
 
 from cmcan.codec import quantize
 from cmcan.dbc import load_dbc
-from cmcan.signals import DEFAULT_INPUTS, MOTOR_FORWARD, MOTOR_STOPPED
+from cmcan.roles import DEFAULT_INPUTS, MOTOR_FORWARD, MOTOR_STOPPED
 from cmcan.sim import degradation, duty
 from cmcan.sim.drive import DriveInputs, integrate, load_torque_for_dp, steady_state
 from cmcan.sim.physics import DriveParams

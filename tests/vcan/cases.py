@@ -22,9 +22,8 @@ import pytest
 import yaml
 
 from cmcan import config as cfgmod
+from cmcan.assemble import assemble, dbc_for
 from cmcan.io.candump import iter_frames, write_candump
-from cmcan.model import load_model
-from cmcan.monitor.build import build_monitor
 from cmcan.replay import replay
 from cmcan.sim import scenario as scn
 from cmcan.sim.frames import frames_from_run
@@ -52,7 +51,7 @@ def make_log(path: Path, seconds: float, leak_lpm: float) -> Path:
             "events": events,
         }
     )
-    db = cfgmod.load().dbc()
+    db = dbc_for(cfgmod.load())
     f = frames_from_run(simulate(s, db), db)
     write_candump(path, f.timestamp_s, f.arbitration_id, f.dlc, f.data, channel="can0")
     return path
@@ -232,11 +231,9 @@ def test_canplayer_log_gives_the_frames_replay_computes(daemon, work):
     time.sleep(1.5)
     stop(rec)
     live = recorded(tmp / "out.log")
-    cfg = cfgmod.load(work["cfg"])
-    db = cfg.dbc()
-    model = load_model(cfg.model_path, motor_disp_cc=cfg.motor_disp_cc)
-    mon = build_monitor(cfg, db, model, model.envelope)
-    offline = [(f.timestamp_s, f.frame_id, f.data) for f in replay(mon, iter_frames(work["leak_log"])).frames_out]
+    parts = assemble(cfgmod.load(work["cfg"]))
+    db, mon = parts.db, parts.monitor
+    offline = [(f.timestamp_s, f.arbitration_id, f.data) for f in replay(mon, iter_frames(work["leak_log"])).frames_out]
     # every live frame decodes with the DBC
     for _, i, d in live:
         db.decode_message(i, d)

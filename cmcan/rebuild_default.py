@@ -1,4 +1,4 @@
-"""Rebuild the default model shipped with cmcan: ``python -m cmcan.model.rebuild_default``.
+"""Rebuild the default model shipped with cmcan: ``python -m cmcan.rebuild_default``.
 
 It simulates the healthy training scenario (``training_healthy``), gates it with the shipped
 configuration's rules and trains on its first hour (D_trn), testing on the second (D_tst).
@@ -10,6 +10,7 @@ import argparse
 from pathlib import Path
 
 from cmcan import config as cfgmod
+from cmcan.assemble import dbc_for
 from cmcan.model.features import operating_points, series_from_columns
 from cmcan.model.runtime import default_model_path
 from cmcan.model.train import train_on_points
@@ -23,9 +24,9 @@ T_TRN_H = 1.0
 def build(out: Path) -> dict:
     cfg = cfgmod.load()
     s = scn.load(scn.shipped(SCENARIO))
-    run = simulate(s, cfg.dbc())
+    run = simulate(s, dbc_for(cfg))
     series, truth = series_from_columns(run.columns, SCENARIO)
-    op = operating_points(series, cfg.gate_limits, cfg.raw["evaluation"]["rate_hz"], truth=truth)
+    op = operating_points(series, cfg.gate_limits, cfg.rate_hz, truth=truth)
     blob, _model, stats = train_on_points(
         op, T_TRN_H, cfg.motor_disp_cc, f"scenario:{SCENARIO}", extra_training_info={"scenario_seed": s.seed}
     )

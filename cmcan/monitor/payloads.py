@@ -1,0 +1,103 @@
+"""The CM output frames of an evaluated tick: which messages are due, their signal values, encoding.
+
+Kept apart from the evaluation so that what the ratio *is* and how the bus *carries* it change
+independently (another DBC, other periods, another channel).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+
+from cmcan.frame import Frame
+from cmcan.monitor.gating import Gate
+from cmcan.monitor.tick import Tick
+
+ALIVE_MODULO = 16
+
+
+@dataclass(frozen=True)
+class OutputMessage:
+    """One output message: its identifier, how to encode physical values, and its period in ticks."""
+
+    frame_id: int
+    extended: bool
+    encode: Callable[[Mapping[str, float]], bytes]
+    every_ticks: int
+
+
+@dataclass(frozen=True)
+class Outputs:
+    ratio: OutputMessage
+    speed: OutputMessage
+    warning: OutputMessage
+    channel: str = ""
+
+
+class Payloads:
+    """Builds the frames of each tick; keeps the alive counter and the last warning state sent."""
+
+    __slots__ = ("alive", "last_warning", "outputs")
+
+    def __init__(self, outputs: Outputs) -> None:
+        self.outputs = outputs
+        self.alive = 0
+        self.last_warning: tuple[int, int] | None = None
+
+    def _frame(self, t: float, msg: OutputMessage, values: Mapping[str, float]) -> Frame:
+        return Frame(t, self.outputs.channel, msg.frame_id, msg.extended, False, False, False, msg.encode(values))
+
+    def frames(self, k: int, tick: Tick, warning_count: int) -> list[Frame]:
+        o = self.outputs
+        out = []
+        evaluated = tick.gate == Gate.EVALUATING
+        if k % o.ratio.every_ticks == 0:
+            out.append(
+                self._frame(
+                    tick.t_s,
+                    o.ratio,
+                    {
+                        "cm_ratio_raw_pct": tick.ratio_raw_pct,
+                        "cm_ratio_filt_pct": tick.ratio_filt_pct if tick.filt_valid else 0.0,
+                        "extra_leakage_lpm": tick.extra_leak_lpm if tick.filt_valid else 0.0,
+                        "cm_raw_valid": float(evaluated),
+                        "cm_filt_valid": float(tick.filt_valid),
+                        "cm_gate": float(int(tick.gate)),
+                        "cm_alive_counter": float(self.alive),
+                    },
+                )
+            )
+        if k % o.speed.every_ticks == 0:
+            meas = tick.motor_speed_meas_rpm
+            out.append(
+                self._frame(
+                    tick.t_s,
+                    o.speed,
+                    {
+                        "motor_speed_meas_rpm": meas if math.isfinite(meas) else 0.0,
+                        "motor_speed_pred_rpm": tick.motor_speed_pred_rpm,
+                        "motor_speed_whitebox_rpm": tick.motor_speed_whitebox_rpm,
+                        "cm_speed_valid": float(evaluated),
+                        "cm_alive_counter": float(self.alive),
+                    },
+                )
+            )
+        if k % o.ratio.every_ticks == 0:
+            self.alive = (self.alive + 1) % ALIVE_MODULO
+        state = (int(tick.level), int(tick.reason))
+        if state != self.last_warning or k % o.warning.every_ticks == 0:
+            self.last_warning = state
+            out.append(
+                self._frame(
+                    tick.t_s,
+                    o.warning,
+                    {
+                        "warning_level": float(int(tick.level)),
+                        "warning_reason": float(int(tick.reason)),
+                        "time_below_threshold_s": float(int(tick.time_below_s)),
+                        "warning_count": float(warning_count % 65536),
+                    },
+                )
+            )
+        return out

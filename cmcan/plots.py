@@ -1,0 +1,151 @@
+"""Every plot cmcan draws (matplotlib, the ``plot`` extra), in one place and one style."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cmcan.monitor.tick import LEVEL_NAMES, Tick
+from cmcan.monitor.warnings import Thresholds
+
+
+def _pyplot() -> Any:
+    """matplotlib without a display (raises ImportError when the extra is missing)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_ratio(
+    ticks: list[Tick],
+    t0: float,
+    low_pct: float,
+    high_pct: float,
+    path: str | Path,
+    failures_h: list[float] | None = None,
+    title: str = "CM ratio",
+) -> None:
+    """CM ratio over operating hours with the thresholds (the paper's Figure 9)."""
+    plt = _pyplot()
+    ev = [k for k in ticks if k.ratio_raw_pct > 0]
+    fv = [k for k in ticks if k.filt_valid]
+    fig, ax = plt.subplots(figsize=(11, 4.2))
+    if ev:
+        ax.plot(
+            (np.array([k.t_s for k in ev]) - t0) / 3600,
+            [k.ratio_raw_pct for k in ev],
+            ".",
+            ms=1,
+            alpha=0.3,
+            color="tab:gray",
+            label="raw",
+        )
+    if fv:
+        h = (np.array([k.t_s for k in fv]) - t0) / 3600
+        ax.plot(h, [k.ratio_filt_pct for k in fv], "-", lw=1.2, color="tab:blue", label="filtered")
+        for level, color in (("low", "tab:orange"), ("high", "tab:purple"), ("fault", "tab:red")):
+            mask = np.array([LEVEL_NAMES[k.level] == level for k in fv])
+            if mask.any():
+                ax.plot(
+                    h[mask],
+                    np.array([k.ratio_filt_pct for k in fv])[mask],
+                    "o",
+                    ms=2,
+                    color=color,
+                    label=f"warning {level}",
+                )
+    ax.axhline(low_pct, color="tab:orange", ls="--", lw=1, label=f"low {low_pct:g} %")
+    ax.axhline(high_pct, color="tab:purple", ls="--", lw=1, label=f"high {high_pct:g} %")
+    for f in failures_h or []:
+        ax.axvline(f, color="tab:red", lw=1, alpha=0.6)
+    ax.set_xlabel("operating hours (h)")
+    ax.set_ylabel("CM ratio (%)")
+    lo = min([low_pct - 3] + [k.ratio_filt_pct for k in fv]) if fv else low_pct - 3
+    hi = max([high_pct + 3] + [k.ratio_filt_pct for k in fv]) if fv else high_pct + 3
+    ax.set_ylim(max(lo, 50), min(hi, 150))
+    ax.set_title(title)
+    ax.legend(loc="lower left", fontsize=7, ncol=3, markerscale=3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_demo(res: Any, thresholds: Thresholds, path: str | Path) -> None:
+    """The demo's CM ratio as the bus carried it, thresholds, failures and lead times (paper Figure 9)."""
+    plt = _pyplot()
+
+    fig, ax = plt.subplots(figsize=(11, 4.5))
+    ax.plot(res.ratio_h, res.ratio_pct, ".", ms=1.5, color="tab:blue", label="filtered CM ratio (from CM_RATIO)")
+    ax.axhline(thresholds.low_pct, color="tab:orange", ls="--", lw=1, label=f"low threshold {thresholds.low_pct:g} %")
+    ax.axhline(
+        thresholds.high_pct, color="tab:purple", ls="--", lw=1, label=f"high threshold {thresholds.high_pct:g} %"
+    )
+    for f in res.failures:
+        ax.axvline(f["fail_h"], color="tab:red", lw=1.2)
+        ax.annotate(
+            f"{f['component']} {f['kind']}",
+            (f["fail_h"], 1.0),
+            xycoords=("data", "axes fraction"),
+            color="tab:red",
+            fontsize=8,
+            rotation=90,
+            va="top",
+            ha="right",
+        )
+        if f["first_warning_h"] is not None:
+            ax.axvline(f["first_warning_h"], color="tab:orange" if f["level"] == "low" else "tab:purple", lw=1, ls=":")
+            ax.annotate(f"lead {f['lead_h']:.0f} h", (f["first_warning_h"], thresholds.low_pct - 4), fontsize=8)
+    y = np.asarray(res.ratio_pct) if res.ratio_pct else np.array([100.0])
+    ax.set_ylim(max(80.0, float(y.min()) - 1), min(115.0, float(y.max()) + 1))
+    ax.set_xlabel("operating hours (h)")
+    ax.set_ylabel("CM ratio (%)")
+    ax.set_title("cmcan demo: run to failure on the test rig at 480 bar (paper Figure 9)")
+    ax.legend(loc="lower left", fontsize=8)
+    fig.subplots_adjust(left=0.07, right=0.98, top=0.92, bottom=0.11)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_residuals(sets: list[Any], report: dict[str, Any], path: str | Path) -> None:
+    """Predicted minus actual motor speed over time, training end and damage onset marked (paper
+    Figures 6 and 7): one panel for the training run, one for the validation run."""
+    plt = _pyplot()
+
+    by = {s.name: s for s in sets}
+    panels = [("training run", ["D_trn", "D_tst"], report.get("t_trn_h"), "end of training")]
+    if "D_val_healthy" in by:
+        panels.append(("validation run", ["D_val_healthy", "D_val_damaged"], report.get("t_dam_h"), "damage onset"))
+    extra = [s.name for s in sets if s.name not in ("D_trn", "D_tst", "D_val_healthy", "D_val_damaged")]
+    for name in extra:
+        panels.append((name, [name], None, ""))
+    fig, axes = plt.subplots(len(panels), 1, figsize=(10, 3.2 * len(panels)), squeeze=False)
+    colors = {"D_trn": "tab:blue", "D_tst": "tab:green", "D_val_healthy": "tab:green", "D_val_damaged": "tab:red"}
+    for ax, (title, names, mark, label) in zip(axes[:, 0], panels, strict=True):
+        for n in names:
+            s = by[n]
+            ax.plot(s.hours, s.pred_rpm - s.measured_rpm, ".", ms=1.5, color=colors.get(n, "tab:gray"), label=n)
+            ax.plot(
+                s.hours,
+                s.whitebox_rpm - s.measured_rpm,
+                ".",
+                ms=0.8,
+                alpha=0.25,
+                color="tab:orange",
+                label=f"{n} white-box" if n == names[0] else None,
+            )
+        if mark is not None:
+            ax.axvline(mark, color="k", ls="--", lw=1)
+            ax.text(mark, ax.get_ylim()[1], f" {label}", va="top", fontsize=8)
+        ax.axhline(0, color="k", lw=0.5)
+        ax.set_title(title)
+        ax.set_xlabel("time (h)")
+        ax.set_ylabel("predicted - measured (rpm)")
+        ax.legend(loc="lower left", fontsize=7, markerscale=6)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -1,0 +1,84 @@
+"""The vocabulary of quantities cmcan exchanges: roles, their units, the model's inputs, the outputs.
+
+A role is what a value means (pump speed in rpm, delta pressure in bar, ...); a machine's
+configuration says where each role is on its bus. The names carry their unit and double as the
+simulator's CSV column names. Everything that lists roles imports them from here.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+PUMP_SPEED = "pump_speed_rpm"
+PUMP_DISP = "pump_disp_cc"
+HIGH_PRESSURE = "high_pressure_bar"
+LOW_PRESSURE = "low_pressure_bar"
+DP = "dp_bar"
+TEMP = "temp_c"
+MOTOR_SPEED = "motor_speed_rpm"
+MOTOR_DIRECTION = "motor_direction"
+
+UNITS: dict[str, str] = {
+    PUMP_SPEED: "rpm",
+    PUMP_DISP: "cm3/rev",
+    HIGH_PRESSURE: "bar",
+    LOW_PRESSURE: "bar",
+    DP: "bar",
+    TEMP: "degC",
+    MOTOR_SPEED: "rpm",
+    MOTOR_DIRECTION: "",
+}
+
+# Roles a configuration may map to DBC signals.
+MAPPABLE: tuple[str, ...] = (PUMP_SPEED, PUMP_DISP, HIGH_PRESSURE, LOW_PRESSURE, DP, TEMP, MOTOR_SPEED, MOTOR_DIRECTION)
+# Inputs of the model, in its input order.
+MODEL_INPUTS: tuple[str, ...] = (PUMP_SPEED, PUMP_DISP, DP, TEMP)
+MODEL_UNITS: dict[str, str] = {r: UNITS[r] for r in MODEL_INPUTS}
+# Roles the monitor keeps windows of and gates on, in this order: the model's inputs and the output.
+GATED: tuple[str, ...] = (*MODEL_INPUTS, MOTOR_SPEED)
+
+
+@dataclass(frozen=True)
+class SignalRef:
+    """Where a role is on the bus: value_in_role_unit = physical_value * scale + offset."""
+
+    message: str
+    signal: str
+    scale: float = 1.0
+    offset: float = 0.0
+
+
+# role -> (DBC message, DBC signal) in the shipped dbc/cmcan.dbc
+DEFAULT_INPUTS: dict[str, tuple[str, str]] = {
+    PUMP_SPEED: ("PUMP_STATUS", "pump_speed_rpm"),
+    PUMP_DISP: ("PUMP_STATUS", "pump_disp_cc"),
+    HIGH_PRESSURE: ("LOOP_PRESSURE", "high_pressure_bar"),
+    LOW_PRESSURE: ("LOOP_PRESSURE", "low_pressure_bar"),
+    TEMP: ("OIL_STATUS", "oil_temp_c"),
+    MOTOR_SPEED: ("MOTOR_STATUS", "motor_speed_rpm"),
+    MOTOR_DIRECTION: ("MOTOR_STATUS", "motor_direction"),
+}
+
+MOTOR_FORWARD = 1
+MOTOR_STOPPED = 0
+
+# The CM output messages (configuration key -> the DBC signals cmcan fills in).
+OUTPUT_SIGNALS: dict[str, tuple[str, ...]] = {
+    "cm_ratio": (
+        "cm_ratio_raw_pct",
+        "cm_ratio_filt_pct",
+        "extra_leakage_lpm",
+        "cm_raw_valid",
+        "cm_filt_valid",
+        "cm_gate",
+        "cm_alive_counter",
+    ),
+    "cm_speed": (
+        "motor_speed_meas_rpm",
+        "motor_speed_pred_rpm",
+        "motor_speed_whitebox_rpm",
+        "cm_speed_valid",
+        "cm_alive_counter",
+    ),
+    "warning": ("warning_level", "warning_reason", "time_below_threshold_s", "warning_count"),
+}
