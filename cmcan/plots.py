@@ -7,8 +7,8 @@ from typing import Any
 
 import numpy as np
 
-from cmcan.monitor.tick import LEVEL_NAMES, Tick
-from cmcan.monitor.warnings import Thresholds
+from cmcan.monitor.tick import LEVEL_NAMES
+from cmcan.monitor.warnings import Level, Thresholds
 
 
 def _pyplot() -> Any:
@@ -22,7 +22,7 @@ def _pyplot() -> Any:
 
 
 def plot_ratio(
-    ticks: list[Tick],
+    tl: Any,
     t0: float,
     low_pct: float,
     high_pct: float,
@@ -30,43 +30,31 @@ def plot_ratio(
     failures_h: list[float] | None = None,
     title: str = "CM ratio",
 ) -> None:
-    """CM ratio over operating hours with the thresholds (the paper's Figure 9)."""
+    """CM ratio over operating hours with the thresholds (the paper's Figure 9); ``tl`` is a
+    :class:`cmcan.replay.TickColumns`."""
     plt = _pyplot()
-    ev = [k for k in ticks if k.ratio_raw_pct > 0]
-    fv = [k for k in ticks if k.filt_valid]
+    h_all = (tl.t_s - t0) / 3600.0
+    ev = tl.ratio_raw_pct > 0
+    fv = tl.filt_valid
     fig, ax = plt.subplots(figsize=(11, 4.2))
-    if ev:
-        ax.plot(
-            (np.array([k.t_s for k in ev]) - t0) / 3600,
-            [k.ratio_raw_pct for k in ev],
-            ".",
-            ms=1,
-            alpha=0.3,
-            color="tab:gray",
-            label="raw",
-        )
-    if fv:
-        h = (np.array([k.t_s for k in fv]) - t0) / 3600
-        ax.plot(h, [k.ratio_filt_pct for k in fv], "-", lw=1.2, color="tab:blue", label="filtered")
-        for level, color in (("low", "tab:orange"), ("high", "tab:purple"), ("fault", "tab:red")):
-            mask = np.array([LEVEL_NAMES[k.level] == level for k in fv])
+    if ev.any():
+        ax.plot(h_all[ev], tl.ratio_raw_pct[ev], ".", ms=1, alpha=0.3, color="tab:gray", label="raw")
+    if fv.any():
+        h, filt = h_all[fv], tl.ratio_filt_pct[fv]
+        ax.plot(h, filt, "-", lw=1.2, color="tab:blue", label="filtered")
+        for level, color in ((Level.LOW, "tab:orange"), (Level.HIGH, "tab:purple"), (Level.FAULT, "tab:red")):
+            mask = tl.level[fv] == int(level)
             if mask.any():
-                ax.plot(
-                    h[mask],
-                    np.array([k.ratio_filt_pct for k in fv])[mask],
-                    "o",
-                    ms=2,
-                    color=color,
-                    label=f"warning {level}",
-                )
+                ax.plot(h[mask], filt[mask], "o", ms=2, color=color, label=f"warning {LEVEL_NAMES[level]}")
     ax.axhline(low_pct, color="tab:orange", ls="--", lw=1, label=f"low {low_pct:g} %")
     ax.axhline(high_pct, color="tab:purple", ls="--", lw=1, label=f"high {high_pct:g} %")
     for f in failures_h or []:
         ax.axvline(f, color="tab:red", lw=1, alpha=0.6)
     ax.set_xlabel("operating hours (h)")
     ax.set_ylabel("CM ratio (%)")
-    lo = min([low_pct - 3] + [k.ratio_filt_pct for k in fv]) if fv else low_pct - 3
-    hi = max([high_pct + 3] + [k.ratio_filt_pct for k in fv]) if fv else high_pct + 3
+    filt_all = tl.ratio_filt_pct[fv]
+    lo = min(low_pct - 3, float(filt_all.min())) if fv.any() else low_pct - 3
+    hi = max(high_pct + 3, float(filt_all.max())) if fv.any() else high_pct + 3
     ax.set_ylim(max(lo, 50), min(hi, 150))
     ax.set_title(title)
     ax.legend(loc="lower left", fontsize=7, ncol=3, markerscale=3)

@@ -1,16 +1,28 @@
-"""Replay: a CAN log through the monitor core, exactly as the daemon would have processed it."""
+"""Replay: a CAN log through the monitor core, exactly as the daemon would have processed it.
+
+The engine feeds the frames and hands what comes out to sinks in chunks: the evaluation ticks as
+columns (:class:`TickColumns`) and the output frames. Sinks write files as they go (a timeline CSV,
+a candump log of the emitted frames) or keep what they need (a plot's points, a fleet summary), so
+a replay's memory is bounded by the chunk, not by the log. A sink writes to a temporary file and
+renames it only when the replay completes: a failed replay leaves nothing behind.
+"""
 
 from __future__ import annotations
 
-import csv
-from collections.abc import Iterable
+import os
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
 
 from cmcan.frame import Frame
 from cmcan.monitor.core import Monitor
+from cmcan.monitor.gating import Gate
 from cmcan.monitor.tick import LEVEL_NAMES, Tick
+from cmcan.monitor.warnings import Level, Reason
 
 TIMELINE_COLUMNS = (
     "time_s",
@@ -27,85 +39,291 @@ TIMELINE_COLUMNS = (
     "warning_reason",
     "time_below_threshold_s",
 )
+CHUNK_TICKS = 8192
+
+
+@dataclass(frozen=True)
+class TickColumns:
+    """A chunk of evaluation ticks, one array per field of :class:`cmcan.monitor.tick.Tick`."""
+
+    t_s: NDArray[np.float64]
+    gate: NDArray[np.int8]
+    motor_speed_meas_rpm: NDArray[np.float64]
+    motor_speed_pred_rpm: NDArray[np.float64]
+    motor_speed_whitebox_rpm: NDArray[np.float64]
+    ratio_raw_pct: NDArray[np.float64]
+    ratio_filt_pct: NDArray[np.float64]
+    extra_leak_lpm: NDArray[np.float64]
+    filt_valid: NDArray[np.bool_]
+    level: NDArray[np.int8]
+    reason: NDArray[np.int8]
+    time_below_s: NDArray[np.float64]
+
+    def __len__(self) -> int:
+        return len(self.t_s)
+
+    @classmethod
+    def from_ticks(cls, ticks: Sequence[Tick]) -> TickColumns:
+        def col(name: str, dtype: Any) -> NDArray[Any]:
+            return np.fromiter((getattr(k, name) for k in ticks), dtype=dtype, count=len(ticks))
+
+        return cls(
+            t_s=col("t_s", np.float64),
+            gate=col("gate", np.int8),
+            motor_speed_meas_rpm=col("motor_speed_meas_rpm", np.float64),
+            motor_speed_pred_rpm=col("motor_speed_pred_rpm", np.float64),
+            motor_speed_whitebox_rpm=col("motor_speed_whitebox_rpm", np.float64),
+            ratio_raw_pct=col("ratio_raw_pct", np.float64),
+            ratio_filt_pct=col("ratio_filt_pct", np.float64),
+            extra_leak_lpm=col("extra_leak_lpm", np.float64),
+            filt_valid=col("filt_valid", np.bool_),
+            level=col("level", np.int8),
+            reason=col("reason", np.int8),
+            time_below_s=col("time_below_s", np.float64),
+        )
+
+    @classmethod
+    def concat(cls, chunks: Sequence[TickColumns]) -> TickColumns:
+        names = cls.__dataclass_fields__
+        if not chunks:
+            return cls.from_ticks([])
+        return cls(**{n: np.concatenate([getattr(c, n) for c in chunks]) for n in names})
+
+
+class Sink(Protocol):
+    wants_ticks: bool
+    wants_frames: bool
+
+    def start(self, t0: float) -> None: ...
+    def ticks(self, chunk: TickColumns) -> None: ...
+    def frames(self, frames: Sequence[Frame]) -> None: ...
+    def close(self) -> None: ...
+    def abort(self) -> None: ...
+
+
+class _FileSink:
+    """Writes to ``path.tmp`` and renames it over ``path`` on close; abort removes the temporary."""
+
+    wants_ticks = False
+    wants_frames = False
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.tmp = self.path.with_name(self.path.name + ".tmp")
+        self.f = open(self.tmp, "w", encoding="ascii", newline="\n")  # noqa: SIM115 - closed in close/abort
+        self.t0 = 0.0
+
+    def start(self, t0: float) -> None:
+        self.t0 = t0
+
+    def ticks(self, chunk: TickColumns) -> None:
+        pass
+
+    def frames(self, frames: Sequence[Frame]) -> None:
+        pass
+
+    def close(self) -> None:
+        self.f.close()
+        os.replace(self.tmp, self.path)
+
+    def abort(self) -> None:
+        self.f.close()
+        self.tmp.unlink(missing_ok=True)
+
+
+_GATE_NAMES = {int(g): g.name.lower() for g in Gate}
+_LEVEL_NAMES = {int(lv): LEVEL_NAMES[lv] for lv in Level}
+_REASON_NAMES = {int(r): r.name.lower() for r in Reason}
+
+
+class TimelineWriter(_FileSink):
+    """The timeline CSV (:data:`TIMELINE_COLUMNS`), one row per tick."""
+
+    wants_ticks = True
+
+    def __init__(self, path: str | Path) -> None:
+        super().__init__(path)
+        self.f.write(",".join(TIMELINE_COLUMNS) + "\r\n")
+
+    def ticks(self, c: TickColumns) -> None:
+        gate = [_GATE_NAMES[g] for g in c.gate.tolist()]
+        level = [_LEVEL_NAMES[v] for v in c.level.tolist()]
+        reason = [_REASON_NAMES[r] for r in c.reason.tolist()]
+        t0 = self.t0
+        rows = [
+            f"{t:.3f},{(t - t0) / 3600.0:.6f},{g},{ms:.2f},{mp:.2f},{mw:.2f},{rr:.3f},{rf:.3f},{int(fv)},"
+            f"{lk:.3f},{lv},{rs},{tb:.1f}\r\n"
+            for t, g, ms, mp, mw, rr, rf, fv, lk, lv, rs, tb in zip(
+                c.t_s.tolist(),
+                gate,
+                c.motor_speed_meas_rpm.tolist(),
+                c.motor_speed_pred_rpm.tolist(),
+                c.motor_speed_whitebox_rpm.tolist(),
+                c.ratio_raw_pct.tolist(),
+                c.ratio_filt_pct.tolist(),
+                c.filt_valid.tolist(),
+                c.extra_leak_lpm.tolist(),
+                level,
+                reason,
+                c.time_below_s.tolist(),
+                strict=True,
+            )
+        ]
+        self.f.writelines(rows)
+
+
+class EmitWriter(_FileSink):
+    """The emitted frames as a ``candump -l`` log."""
+
+    wants_frames = True
+
+    def __init__(self, path: str | Path, channel: str = "can0") -> None:
+        super().__init__(path)
+        self.channel = channel
+
+    def frames(self, frames: Sequence[Frame]) -> None:
+        from cmcan.io.candump import candump_line
+
+        self.f.writelines(candump_line(f, self.channel) for f in frames)
 
 
 @dataclass
-class ReplayResult:
+class TimelineCollector:
+    """Keeps every tick (for a plot or a test): memory grows with the log."""
+
+    wants_ticks = True
+    wants_frames = False
+
+    chunks: list[TickColumns] = field(default_factory=list)
+    t0: float = 0.0
+
+    def start(self, t0: float) -> None:
+        self.t0 = t0
+
+    def ticks(self, chunk: TickColumns) -> None:
+        self.chunks.append(chunk)
+
+    def frames(self, frames: Sequence[Frame]) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+    def abort(self) -> None:
+        pass
+
+    @property
+    def timeline(self) -> TickColumns:
+        return TickColumns.concat(self.chunks)
+
+
+@dataclass
+class FrameCollector:
+    """Keeps every emitted frame."""
+
+    wants_ticks = False
+    wants_frames = True
+
     frames_out: list[Frame] = field(default_factory=list)
-    first_t: float | None = None
-    last_t: float | None = None
+
+    def start(self, t0: float) -> None:
+        pass
+
+    def ticks(self, chunk: TickColumns) -> None:
+        pass
+
+    def frames(self, frames: Sequence[Frame]) -> None:
+        self.frames_out.extend(frames)
+
+    def close(self) -> None:
+        pass
+
+    def abort(self) -> None:
+        pass
 
 
-def replay(monitor: Monitor, frames_in: Iterable[Frame], emit: bool = True) -> ReplayResult:
-    """Feed every frame to the monitor in log order; the output frames it would have sent."""
-    res = ReplayResult()
+@dataclass
+class ReplaySummary:
+    first_t: float | None
+    last_t: float | None
+    counters: dict[str, int]
+    warnings: list[dict[str, Any]]  # level changes, with operating hours since the first frame
+    snapshot: dict[str, Any]
+    totals: dict[str, Any]
+    frames_emitted: int
+
+
+def replay(monitor: Monitor, frames_in: Iterable[Frame], sinks: Sequence[Sink] = ()) -> ReplaySummary:
+    """Feed every frame to the monitor in log order (the streaming engine, frame by frame, exactly as
+    the daemon does); ticks and emitted frames go to the sinks in chunks."""
+    monitor.keep_timeline = any(s.wants_ticks for s in sinks)
+    want_frames = any(s.wants_frames for s in sinks)
     feed = monitor.feed
-    out = res.frames_out
-    first = None
-    last = None
-    for f in frames_in:
-        t = f.timestamp_s
-        if first is None:
-            first = t
-        last = t
-        frames = feed(f)
-        if frames and emit:
-            out.extend(frames)
-    tail = monitor.flush()
-    if emit:
-        out.extend(tail)
-    res.first_t, res.last_t = first, last
-    return res
+    first = last = None
+    out: list[Frame] = []
+    n_out = 0
+    timeline = monitor.timeline
 
+    def drain() -> None:
+        nonlocal n_out
+        if timeline:
+            chunk = TickColumns.from_ticks(timeline)
+            timeline.clear()
+            for s in sinks:
+                s.ticks(chunk)
+        if out:
+            n_out += len(out)
+            for s in sinks:
+                s.frames(out)
+            out.clear()
 
-def write_timeline(path: str | Path, ticks: list[Tick], t0: float) -> None:
-    p = Path(path)
-    tmp = p.with_name(p.name + ".tmp")
-    with open(tmp, "w", newline="", encoding="ascii") as f:
-        w = csv.writer(f)
-        w.writerow(TIMELINE_COLUMNS)
-        for k in ticks:
-            w.writerow(
-                [
-                    f"{k.t_s:.3f}",
-                    f"{(k.t_s - t0) / 3600.0:.6f}",
-                    k.gate.name.lower(),
-                    f"{k.motor_speed_meas_rpm:.2f}",
-                    f"{k.motor_speed_pred_rpm:.2f}",
-                    f"{k.motor_speed_whitebox_rpm:.2f}",
-                    f"{k.ratio_raw_pct:.3f}",
-                    f"{k.ratio_filt_pct:.3f}",
-                    int(k.filt_valid),
-                    f"{k.extra_leak_lpm:.3f}",
-                    LEVEL_NAMES[k.level],
-                    k.reason.name.lower(),
-                    f"{k.time_below_s:.1f}",
-                ]
-            )
-    tmp.replace(p)
-
-
-def warnings_summary(monitor: Monitor, t0: float) -> list[dict[str, Any]]:
-    """Level changes with their times (frame time and hours since the log's first frame)."""
-    return [{**h, "operating_h": (h["t_s"] - t0) / 3600.0} for h in monitor.totals.history]
-
-
-def write_emitted(path: str | Path, frames: list[Frame], channel: str = "can0") -> None:
-    import numpy as np
-
-    from cmcan.io.candump import write_candump
-
-    n = len(frames)
-    data = np.zeros((n, 8), dtype=np.uint8)
-    dlc = np.empty(n, dtype=np.int64)
-    for i, f in enumerate(frames):
-        data[i, : len(f.data)] = np.frombuffer(f.data, dtype=np.uint8)
-        dlc[i] = len(f.data)
-    write_candump(
-        path,
-        np.array([f.timestamp_s for f in frames]),
-        np.array([f.arbitration_id for f in frames]),
-        dlc,
-        data,
-        channel,
+    try:
+        for f in frames_in:
+            t = f.timestamp_s
+            if first is None:
+                first = t
+                for s in sinks:
+                    s.start(t)
+            last = t
+            res = feed(f)
+            if res and want_frames:
+                out.extend(res)
+            if len(timeline) >= CHUNK_TICKS or len(out) >= 3 * CHUNK_TICKS:
+                drain()
+        tail = monitor.flush()
+        if want_frames:
+            out.extend(tail)
+        drain()
+    except BaseException:
+        for s in sinks:
+            s.abort()
+        raise
+    for s in sinks:
+        s.close()
+    t0 = first if first is not None else 0.0
+    return ReplaySummary(
+        first_t=first,
+        last_t=last,
+        counters=dict(monitor.counters),
+        warnings=[{**h, "operating_h": (h["t_s"] - t0) / 3600.0} for h in monitor.totals.history],
+        snapshot=monitor.snapshot(),
+        totals={k: v for k, v in monitor.save_totals().to_dict().items() if not k.startswith("filter_")},
+        frames_emitted=n_out,
     )
+
+
+ENGINES = ("columnar", "streaming")
+
+
+def replay_file(
+    path: str | Path, monitor: Monitor, sinks: Sequence[Sink] = (), engine: str = "columnar"
+) -> ReplaySummary:
+    """Replay a log file with the chosen engine. Both give the same ticks, frames and summary; the
+    columnar engine reads and evaluates the log in large chunks of arrays, the streaming engine
+    frame by frame as the daemon does."""
+    from cmcan.io.candump import iter_frames
+
+    if engine not in ENGINES:
+        raise ValueError(f"engine {engine!r} is not one of {', '.join(ENGINES)}")
+    # The columnar engine lands with issue 13; until then every replay is streamed.
+    return replay(monitor, iter_frames(path), sinks)

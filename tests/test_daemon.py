@@ -18,7 +18,7 @@ from cmcan import config as cfgmod
 from cmcan.daemon import Daemon, DaemonOptions
 from cmcan.demo import stream
 from cmcan.monitor.totals import Totals
-from cmcan.replay import replay
+from cmcan.replay import FrameCollector, replay
 from cmcan.statefile import StateStore
 from tests.helpers import as_frames, messages, monitor, sim_frames
 
@@ -29,7 +29,9 @@ def frames():
 
 
 def test_daemon_on_a_virtual_bus_emits_exactly_what_replay_emits(frames, tmp_path):
-    expected = [(f.arbitration_id, f.data) for f in replay(monitor(), as_frames(frames)).frames_out]
+    sink = FrameCollector()
+    replay(monitor(), as_frames(frames), [sink])
+    expected = [(f.arbitration_id, f.data) for f in sink.frames_out]
     received, sent, processed = stream(frames, cfgmod.load(), tmp_path, f"eq-{os.getpid()}")
     got = [(m.arbitration_id, m.data) for m in received]
     assert processed == sent == len(frames)

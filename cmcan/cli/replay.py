@@ -12,7 +12,7 @@ from cmcan.cli.common import load_config
 from cmcan.cli.errors import ensure_writable, require_extra
 from cmcan.errors import CmcanError, Kind
 from cmcan.io.candump import iter_frames
-from cmcan.replay import replay, warnings_summary, write_emitted, write_timeline
+from cmcan.replay import EmitWriter, TimelineCollector, TimelineWriter, replay
 
 
 def add_subparser(sub: argparse._SubParsersAction) -> None:
@@ -40,37 +40,41 @@ def run(args: argparse.Namespace) -> int:
     if not Path(args.log).exists():
         raise CmcanError(f"{args.log}: log file not found", Kind.NO_INPUT)
     cfg = load_config(args.config, check_dbc=False)
-    mon = assemble(cfg, args.model, keep_timeline=bool(args.out or args.plot)).monitor
+    mon = assemble(cfg, args.model).monitor
+    sinks: list = []
+    if "out" in outs:
+        sinks.append(TimelineWriter(outs["out"]))
+    if "emit" in outs:
+        sinks.append(EmitWriter(outs["emit"]))
+    plot = TimelineCollector() if "plot" in outs else None
+    if plot is not None:
+        sinks.append(plot)
     try:
-        res = replay(mon, iter_frames(args.log), emit=bool(args.emit))
+        res = replay(mon, iter_frames(args.log), sinks)
     except (ValueError, OSError) as exc:
         raise CmcanError(f"{args.log}: cannot read as a CAN log: {exc}", Kind.DATA) from None
     if res.first_t is None:
         raise CmcanError(f"{args.log}: no frames in the log", Kind.DATA)
     t0 = res.first_t
-    if "out" in outs:
-        write_timeline(outs["out"], mon.timeline, t0)
-    if "emit" in outs:
-        write_emitted(outs["emit"], res.frames_out)
-    if "plot" in outs:
+    if plot is not None:
         from cmcan.plots import plot_ratio
 
         th = cfg.thresholds
-        plot_ratio(mon.timeline, t0, th.low_pct, th.high_pct, outs["plot"], title=f"CM ratio: {args.log}")
+        plot_ratio(plot.timeline, t0, th.low_pct, th.high_pct, outs["plot"], title=f"CM ratio: {args.log}")
     summary = {
         "log": str(args.log),
         "first_timestamp_s": t0,
         "duration_h": ((res.last_t or t0) - t0) / 3600.0,
-        "warnings": warnings_summary(mon, t0),
-        "final": mon.snapshot(),
-        "totals": {k: v for k, v in mon.save_totals().to_dict().items() if not k.startswith("filter_")},
-        "frames_emitted": len(res.frames_out) if args.emit else None,
+        "warnings": res.warnings,
+        "final": res.snapshot,
+        "totals": res.totals,
+        "frames_emitted": res.frames_emitted if args.emit else None,
     }
     if args.json:
         json.dump(summary, sys.stdout, indent=2)
         sys.stdout.write("\n")
     else:
-        c = mon.counters
+        c = res.counters
         print(
             f"{args.log}: {c['frames_total']} frames ({c['accepted']} inputs), {summary['duration_h']:.2f} h, "
             f"{c['evaluated']} of {c['ticks']} ticks evaluated"

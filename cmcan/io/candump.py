@@ -44,6 +44,17 @@ def write_candump(
     return len(timestamp_s)
 
 
+def candump_line(f: Frame, channel: str | None = None) -> str:
+    """One frame as ``candump -l`` writes it (the frame's own channel unless ``channel`` is given)."""
+    ch = channel or f.channel or "can0"
+    cid = f"{f.arbitration_id:08X}" if f.extended else f"{f.arbitration_id:03X}"
+    if f.remote:
+        return f"({f.timestamp_s:017.6f}) {ch} {cid}#R\n"
+    if f.fd:
+        return f"({f.timestamp_s:017.6f}) {ch} {cid}##0{f.data.hex().upper()}\n"
+    return f"({f.timestamp_s:017.6f}) {ch} {cid}#{f.data.hex().upper()}\n"
+
+
 def _hex_rows(data: NDArray[np.uint8], dlc: NDArray[np.int64]) -> list[str]:
     full = [bytes(r).hex().upper() for r in data]
     if np.all(dlc == data.shape[1]):

@@ -24,7 +24,7 @@ import yaml
 from cmcan import config as cfgmod
 from cmcan.assemble import assemble, dbc_for
 from cmcan.io.candump import iter_frames, write_candump
-from cmcan.replay import replay
+from cmcan.replay import FrameCollector, replay
 from cmcan.sim import scenario as scn
 from cmcan.sim.frames import frames_from_run
 from cmcan.sim.run import simulate
@@ -233,7 +233,9 @@ def test_canplayer_log_gives_the_frames_replay_computes(daemon, work):
     live = recorded(tmp / "out.log")
     parts = assemble(cfgmod.load(work["cfg"]))
     db, mon = parts.db, parts.monitor
-    offline = [(f.timestamp_s, f.arbitration_id, f.data) for f in replay(mon, iter_frames(work["leak_log"])).frames_out]
+    sink = FrameCollector()
+    replay(mon, iter_frames(work["leak_log"]), [sink])
+    offline = [(f.timestamp_s, f.arbitration_id, f.data) for f in sink.frames_out]
     # every live frame decodes with the DBC
     for _, i, d in live:
         db.decode_message(i, d)
