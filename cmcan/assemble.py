@@ -111,7 +111,8 @@ def input_messages(cfg: Config, db: Database) -> dict[int, InputMessage]:
         frames[msg.frame_id] = InputMessage(
             frame_id=msg.frame_id,
             length=msg.length,
-            decode=codec.compile_checked_decoder(msg, [ref.signal for _, ref in items]),
+            layouts=codec.message_layouts(msg, [ref.signal for _, ref in items]),
+            size=codec.frame_bytes(msg),
             roles=tuple(role for role, _ in items),
         )
     return frames
@@ -138,7 +139,9 @@ def outputs(cfg: Config, db: Database) -> Outputs:
         return OutputMessage(
             frame_id=msg.frame_id,
             extended=bool(msg.is_extended_frame),
-            encode=codec.compile_encoder(msg),
+            layouts=codec.message_layouts(msg),
+            size=codec.frame_bytes(msg),
+            length=msg.length,
             every_ticks=max(1, round(out.period_ms / period_ms)),
         )
 

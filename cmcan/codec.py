@@ -125,7 +125,12 @@ def quantize(msg: Message, name: str, phys: NDArray[np.float64]) -> NDArray[np.f
 # -- many frames (numpy) ------------------------------------------------------------------------------
 
 
-def _words(msg: Message, data: NDArray[np.uint8], big_endian: bool) -> NDArray[np.uint64]:
+def message_layouts(msg: Message, names: Sequence[str] | None = None) -> tuple[Layout, ...]:
+    """Layouts of the signals ``names`` (all by default), in that order."""
+    return tuple(layout(msg, n) for n in (names if names is not None else [s.name for s in msg.signals]))
+
+
+def _words(data: NDArray[np.uint8], big_endian: bool) -> NDArray[np.uint64]:
     n = data.shape[0]
     padded = np.zeros((n, 8), dtype=np.uint8)
     width = min(data.shape[1], 8)
@@ -133,20 +138,26 @@ def _words(msg: Message, data: NDArray[np.uint8], big_endian: bool) -> NDArray[n
     return padded.view(">u8" if big_endian else "<u8").reshape(n).astype(np.uint64)
 
 
-def decode_raw(msg: Message, data: NDArray[np.uint8], names: Sequence[str]) -> dict[str, NDArray[np.int64]]:
-    """Raw values of the signals ``names`` from frames (n, >= msg.length), classic CAN (<= 8 bytes)."""
-    if frame_bytes(msg) > 8:
-        rows = [bytes(r) for r in data]
-        out = {k: np.empty(len(rows), dtype=np.int64) for k in names}
-        dec = compile_raw_decoder(msg, list(names))
-        for i, r in enumerate(rows):
-            for k, v in zip(names, dec(r), strict=True):
-                out[k][i] = v
+def extract_all(data: NDArray[np.uint8], lays: Sequence[Layout], size: int) -> list[NDArray[np.int64]]:
+    """Raw values of each layout from frames (n, >= their length) of a message read as ``size`` bytes."""
+    if size > 8:
+        out = [np.empty(data.shape[0], dtype=np.int64) for _ in lays]
+        need_be = any(x.big_endian for x in lays)
+        for i, row in enumerate(data):
+            d = bytes(row[:size]).ljust(size, b"\0")
+            le = int.from_bytes(d, "little")
+            be = int.from_bytes(d, "big") if need_be else 0
+            for o, x in zip(out, lays, strict=True):
+                o[i] = extract(be if x.big_endian else le, x)
         return out
-    lays = [layout(msg, k) for k in names]
-    le = _words(msg, data, False) if any(not x.big_endian for x in lays) else None
-    be = _words(msg, data, True) if any(x.big_endian for x in lays) else None
-    return {x.name: extract(be if x.big_endian else le, x) for x in lays}
+    le = _words(data, False) if any(not x.big_endian for x in lays) else None
+    be = _words(data, True) if any(x.big_endian for x in lays) else None
+    return [extract(be if x.big_endian else le, x) for x in lays]
+
+
+def decode_raw(msg: Message, data: NDArray[np.uint8], names: Sequence[str]) -> dict[str, NDArray[np.int64]]:
+    """Raw values of the signals ``names`` from frames (n, >= msg.length)."""
+    return dict(zip(names, extract_all(data, message_layouts(msg, names), frame_bytes(msg)), strict=True))
 
 
 def decode(msg: Message, data: NDArray[np.uint8], names: Sequence[str] | None = None) -> dict[str, NDArray[np.float64]]:
@@ -160,29 +171,35 @@ def decode(msg: Message, data: NDArray[np.uint8], names: Sequence[str] | None = 
     return out
 
 
-def encode(msg: Message, values: Mapping[str, NDArray[np.float64]]) -> NDArray[np.uint8]:
-    """Frames (n, msg.length) of ``msg`` with each signal's physical values; missing signals are 0.
-
-    Values are clipped to the signal's range first (a saturated sensor), so encoding never fails.
-    """
+def encode_all(
+    lays: Sequence[Layout], size: int, length: int, values: Mapping[str, NDArray[np.float64]]
+) -> NDArray[np.uint8]:
+    """Frames (n, length) with each signal's physical values (missing signals 0, values saturated)."""
     n = len(next(iter(values.values()))) if values else 0
-    if frame_bytes(msg) > 8:
-        enc = compile_encoder(msg)
+    if size > 8:
+        enc = frame_encoder(lays, size, length)
         rows = [enc({k: float(v[i]) for k, v in values.items()}) for i in range(n)]
-        return np.frombuffer(b"".join(rows), dtype=np.uint8).reshape(n, msg.length).copy()
+        return np.frombuffer(b"".join(rows), dtype=np.uint8).reshape(n, length).copy()
     le = np.zeros(n, dtype=np.uint64)
     be = np.zeros(n, dtype=np.uint64)
-    for s in msg.signals:
-        if s.name not in values:
+    for lay in lays:
+        if lay.name not in values:
             continue
-        lay = layout(msg, s.name)
-        raw = to_raw(lay, np.asarray(values[s.name], dtype=float))
+        raw = to_raw(lay, np.asarray(values[lay.name], dtype=float))
         if lay.big_endian:
             be = insert(be, raw, lay)
         else:
             le = insert(le, raw, lay)
     out = le.astype("<u8").view(np.uint8).reshape(n, 8) | be.astype(">u8").view(np.uint8).reshape(n, 8)
-    return out[:, : msg.length].copy()
+    return out[:, :length].copy()
+
+
+def encode(msg: Message, values: Mapping[str, NDArray[np.float64]]) -> NDArray[np.uint8]:
+    """Frames (n, msg.length) of ``msg`` with each signal's physical values; missing signals are 0.
+
+    Values are clipped to the signal's range first (a saturated sensor), so encoding never fails.
+    """
+    return encode_all(message_layouts(msg), frame_bytes(msg), msg.length, values)
 
 
 # -- one frame (the monitor's per-frame path) ---------------------------------------------------------
@@ -191,7 +208,7 @@ def encode(msg: Message, values: Mapping[str, NDArray[np.float64]]) -> NDArray[n
 def compile_raw_decoder(msg: Message, names: list[str]) -> Callable[[bytes], tuple[int, ...]]:
     """Raw values of the signals ``names`` of one frame, in that order."""
     size = frame_bytes(msg)
-    lays = [layout(msg, n) for n in names]
+    lays = message_layouts(msg, names)
     need_be = any(x.big_endian for x in lays)
 
     def decode(data: bytes) -> tuple[int, ...]:
@@ -203,11 +220,9 @@ def compile_raw_decoder(msg: Message, names: list[str]) -> Callable[[bytes], tup
     return decode
 
 
-def compile_checked_decoder(msg: Message, names: list[str]) -> Callable[[bytes], tuple[int, ...] | None]:
-    """Like :func:`compile_raw_decoder`, or None when a value's physical value (raw * scale +
-    offset) is outside its DBC range: an implausible frame."""
-    size = frame_bytes(msg)
-    lays = [layout(msg, n) for n in names]
+def checked_decoder(lays: Sequence[Layout], size: int) -> Callable[[bytes], tuple[int, ...] | None]:
+    """Raw values of one frame (a message read as ``size`` bytes), or None when a value's physical
+    value (raw * scale + offset) is outside its DBC range: an implausible frame."""
     specs = [(x, x.scale, x.offset, x.minimum, x.maximum, x.big_endian) for x in lays]
     need_be = any(x.big_endian for x in lays)
     from_bytes = int.from_bytes
@@ -228,13 +243,12 @@ def compile_checked_decoder(msg: Message, names: list[str]) -> Callable[[bytes],
     return decode
 
 
-def compile_encoder(msg: Message) -> Callable[[Mapping[str, float]], bytes]:
-    """One frame from physical values (missing signals 0, values saturated to the signal's range):
-    the monitor's output frames."""
-    size = frame_bytes(msg)
-    lays = [layout(msg, s.name) for s in msg.signals]
-    length = msg.length
+def compile_checked_decoder(msg: Message, names: list[str]) -> Callable[[bytes], tuple[int, ...] | None]:
+    """:func:`checked_decoder` of the signals ``names`` of ``msg``."""
+    return checked_decoder(message_layouts(msg, names), frame_bytes(msg))
 
+
+def frame_encoder(lays: Sequence[Layout], size: int, length: int) -> Callable[[Mapping[str, float]], bytes]:
     def encode(values: Mapping[str, float]) -> bytes:
         le = be = 0
         for lay in lays:
@@ -250,3 +264,9 @@ def compile_encoder(msg: Message) -> Callable[[Mapping[str, float]], bytes]:
         return both.to_bytes(size, "big")[:length]
 
     return encode
+
+
+def compile_encoder(msg: Message) -> Callable[[Mapping[str, float]], bytes]:
+    """One frame from physical values (missing signals 0, values saturated to the signal's range):
+    the monitor's output frames."""
+    return frame_encoder(message_layouts(msg), frame_bytes(msg), msg.length)

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from typing import Any, NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
 
 
 class Frame(NamedTuple):
@@ -47,3 +51,69 @@ def to_message_kwargs(f: Frame) -> dict[str, Any]:
         "data": f.data,
         **({"channel": f.channel} if f.channel else {}),
     }
+
+
+@dataclass(frozen=True)
+class FrameColumns:
+    """Many frames as arrays (the columnar replay's unit of work), in arrival order."""
+
+    timestamp_s: NDArray[np.float64]
+    channel: NDArray[np.int16]  # codes into channel_names
+    channel_names: tuple[str, ...]
+    arbitration_id: NDArray[np.uint32]
+    extended: NDArray[np.bool_]
+    remote: NDArray[np.bool_]
+    error: NDArray[np.bool_]
+    fd: NDArray[np.bool_]
+    dlc: NDArray[np.int16]  # payload length in bytes
+    data: NDArray[np.uint8]  # (n, 8): the first 8 bytes, zero padded
+    long_data: dict[int, bytes] = field(default_factory=dict)  # whole payloads beyond 8 bytes, by row
+
+    def __len__(self) -> int:
+        return len(self.timestamp_s)
+
+    def payload(self, i: int) -> bytes:
+        if i in self.long_data:
+            return self.long_data[i]
+        return self.data[i, : self.dlc[i]].tobytes()
+
+    def frame(self, i: int) -> Frame:
+        return Frame(
+            float(self.timestamp_s[i]),
+            self.channel_names[self.channel[i]] if len(self.channel_names) else "",
+            int(self.arbitration_id[i]),
+            bool(self.extended[i]),
+            bool(self.remote[i]),
+            bool(self.error[i]),
+            bool(self.fd[i]),
+            self.payload(i),
+        )
+
+    def frames(self) -> list[Frame]:
+        return [self.frame(i) for i in range(len(self))]
+
+    @classmethod
+    def from_frames(cls, frames: list[Frame]) -> FrameColumns:
+        names: dict[str, int] = {}
+        n = len(frames)
+        data = np.zeros((n, 8), dtype=np.uint8)
+        long: dict[int, bytes] = {}
+        for i, f in enumerate(frames):
+            d = f.data
+            if len(d) > 8:
+                long[i] = d
+            elif d:
+                data[i, : len(d)] = np.frombuffer(d, dtype=np.uint8)
+        return cls(
+            timestamp_s=np.fromiter((f.timestamp_s for f in frames), np.float64, n),
+            channel=np.fromiter((names.setdefault(f.channel, len(names)) for f in frames), np.int16, n),
+            channel_names=tuple(names),
+            arbitration_id=np.fromiter((f.arbitration_id for f in frames), np.uint32, n),
+            extended=np.fromiter((f.extended for f in frames), bool, n),
+            remote=np.fromiter((f.remote for f in frames), bool, n),
+            error=np.fromiter((f.error for f in frames), bool, n),
+            fd=np.fromiter((f.fd for f in frames), bool, n),
+            dlc=np.fromiter((len(f.data) for f in frames), np.int16, n),
+            data=data,
+            long_data=long,
+        )

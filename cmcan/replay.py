@@ -10,7 +10,7 @@ renames it only when the replay completes: a failed replay leaves nothing behind
 from __future__ import annotations
 
 import os
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -300,6 +300,10 @@ def replay(monitor: Monitor, frames_in: Iterable[Frame], sinks: Sequence[Sink] =
         raise
     for s in sinks:
         s.close()
+    return summarize(monitor, first, last, n_out)
+
+
+def summarize(monitor: Monitor, first: float | None, last: float | None, n_out: int) -> ReplaySummary:
     t0 = first if first is not None else 0.0
     return ReplaySummary(
         first_t=first,
@@ -316,7 +320,11 @@ ENGINES = ("columnar", "streaming")
 
 
 def replay_file(
-    path: str | Path, monitor: Monitor, sinks: Sequence[Sink] = (), engine: str = "columnar"
+    path: str | Path,
+    monitor: Monitor,
+    sinks: Sequence[Sink] = (),
+    engine: str = "columnar",
+    progress: Callable[[int, int], None] | None = None,
 ) -> ReplaySummary:
     """Replay a log file with the chosen engine. Both give the same ticks, frames and summary; the
     columnar engine reads and evaluates the log in large chunks of arrays, the streaming engine
@@ -325,5 +333,9 @@ def replay_file(
 
     if engine not in ENGINES:
         raise ValueError(f"engine {engine!r} is not one of {', '.join(ENGINES)}")
-    # The columnar engine lands with issue 13; until then every replay is streamed.
-    return replay(monitor, iter_frames(path), sinks)
+    if engine == "streaming":
+        return replay(monitor, iter_frames(path), sinks)
+    # progress(bytes of the file read, frames): after each chunk (-1 bytes: unknown)
+    from cmcan.columnar import column_chunks, replay_columns
+
+    return replay_columns(monitor, column_chunks(path, progress=progress), sinks)

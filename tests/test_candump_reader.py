@@ -1,6 +1,7 @@
 """The fast candump reader has python-can's CanutilsLogReader semantics."""
 
 import can
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -61,3 +62,45 @@ def test_a_broken_line_names_file_and_line(tmp_path):
 
     with pytest.raises(ValueError, match=r"b.log: line 2: not a candump -l line"):
         list(iter_candump(p))
+
+
+# -- the columnar reader: the same frames as the line reader, whatever the mix of line shapes ------
+
+std_line = st.tuples(
+    st.floats(0, 2e9, allow_nan=False).map(lambda t: f"({t:017.6f})"),
+    st.sampled_from(["can0", "can1", "vcan0", "1"]),
+    st.one_of(std_id, ext_id, err_id, st.integers(0, 0xFFFF).map(lambda i: f"{i:04X}")),
+    st.one_of(payload, remote, fd, st.sampled_from(["0", "ZZ", "00112"])),
+    st.sampled_from(["", "", "", " R", " T"]),
+).map(lambda x: f"{x[0]} {x[1]} {x[2]}#{x[3]}{x[4]}")
+odd_line = st.sampled_from(["(1e9) can0 100#00", "(12.5) can0 7FF#", "   ", "(1767225600.000001) can0 100#0011"])
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.lists(st.one_of(line, std_line, odd_line), min_size=1, max_size=60), st.integers(16, 400))
+def test_columnar_reader_gives_the_line_readers_frames(tmp_path_factory, lines, chunk):
+    from cmcan.io.candump_columns import iter_candump_columns
+
+    p = tmp_path_factory.mktemp("c") / "x.log"
+    p.write_text("\n".join(lines) + "\n")
+    try:
+        want = list(iter_candump(p))
+    except ValueError as exc:  # a line the reader of record refuses: the columnar one refuses it too
+        with pytest.raises(ValueError, match=str(exc).split(": ", 1)[1][:20].replace("(", r"\(")):
+            [f for c in iter_candump_columns(p, chunk_bytes=chunk) for f in c.frames()]
+        return
+    got = [f for c in iter_candump_columns(p, chunk_bytes=chunk) for f in c.frames()]
+    assert got == want
+
+
+def test_columnar_reader_on_a_long_uniform_log(tmp_path):
+    from cmcan.io.candump_columns import iter_candump_columns
+
+    lines = [
+        f"({1767225600 + i * 0.000137:017.6f}) can0 {0x100 + i % 4:03X}#{i % 65536:04X}00FF{i % 251:02X}00AA\n"
+        for i in range(20000)
+    ]
+    p = tmp_path / "u.log"
+    p.write_text("".join(lines))
+    got = [f for c in iter_candump_columns(p, chunk_bytes=1 << 16) for f in c.frames()]
+    assert got == list(iter_candump(p))

@@ -49,13 +49,19 @@ def test_onnx_equals_python_reference_over_the_envelope_and_beyond(trained):
         np.testing.assert_allclose(parts["whitebox"], model.whitebox(xs), rtol=1e-12)
 
 
-def test_single_sample_and_batch_agree(trained):
+def test_a_row_gives_the_same_bits_alone_or_anywhere_in_a_batch(trained):
+    """The columnar replay evaluates ticks in batches, the daemon one by one: their outputs must be
+    equal to the last bit, so the graph must not round a row differently by its place in a batch."""
     m = load_model(trained[0])
-    x = envelope_samples(trained[1], n=20)
+    x = np.concatenate([envelope_samples(trained[1], n=600), envelope_samples(trained[1], n=300, seed=3, widen=0.6)])
     pred, wb = m.predict(x)
-    for i in range(len(x)):
-        p1, w1 = m.predict_one(*x[i])
-        assert p1 == pytest.approx(pred[i], rel=1e-13) and w1 == pytest.approx(wb[i], rel=1e-13)
+    single = np.array([m.predict_one(*row) for row in x])
+    assert np.array_equal(single[:, 0], pred) and np.array_equal(single[:, 1], wb)
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        a = int(rng.integers(0, len(x) - 1))
+        b = int(rng.integers(a + 1, len(x) + 1))
+        assert np.array_equal(m.predict(x[a:b])[0], pred[a:b])
 
 
 def test_one_graph_holds_physics_correction_and_whitebox(trained):
@@ -65,7 +71,7 @@ def test_one_graph_holds_physics_correction_and_whitebox(trained):
     assert [o.name for o in g.output] == ["predicted", "physics", "whitebox"]
     assert [i.name for i in g.input] == ["x"]
     assert g.input[0].type.tensor_type.elem_type == onnx.TensorProto.DOUBLE
-    assert len(g.node) <= 32  # about 0.35 us per node on a single-sample call
+    assert len(g.node) <= 34  # about 0.35 us per node on a single-sample call
 
 
 def test_physics_coefficients_are_non_negative_and_carry_the_model(trained):

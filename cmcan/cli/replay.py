@@ -11,8 +11,7 @@ from cmcan.assemble import assemble
 from cmcan.cli.common import load_config
 from cmcan.cli.errors import ensure_writable, require_extra
 from cmcan.errors import CmcanError, Kind
-from cmcan.io.candump import iter_frames
-from cmcan.replay import EmitWriter, TimelineCollector, TimelineWriter, replay
+from cmcan.replay import ENGINES, EmitWriter, TimelineCollector, TimelineWriter, replay_file
 
 
 def add_subparser(sub: argparse._SubParsersAction) -> None:
@@ -28,6 +27,13 @@ def add_subparser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", help="write the evaluation timeline as CSV")
     p.add_argument("--emit", help="write the frames the daemon would have sent as a candump -l log")
     p.add_argument("--plot", help="write the CM ratio over operating hours as PNG")
+    p.add_argument(
+        "--engine",
+        choices=ENGINES,
+        default="columnar",
+        help="columnar (default): the log in chunks of arrays; streaming: frame by frame as the daemon. "
+        "Both give the same output byte for byte",
+    )
     p.add_argument("--json", action="store_true", help="print the summary (warnings, counters) as JSON")
     p.add_argument("--force", action="store_true", help="overwrite existing output files")
     p.set_defaults(func=run)
@@ -49,10 +55,14 @@ def run(args: argparse.Namespace) -> int:
     plot = TimelineCollector() if "plot" in outs else None
     if plot is not None:
         sinks.append(plot)
+    progress = _Progress(Path(args.log)) if sys.stdout.isatty() and not args.json else None
     try:
-        res = replay(mon, iter_frames(args.log), sinks)
+        res = replay_file(args.log, mon, sinks, engine=args.engine, progress=progress)
     except (ValueError, OSError) as exc:
         raise CmcanError(f"{args.log}: cannot read as a CAN log: {exc}", Kind.DATA) from None
+    finally:
+        if progress is not None:
+            progress.done()
     if res.first_t is None:
         raise CmcanError(f"{args.log}: no frames in the log", Kind.DATA)
     t0 = res.first_t
@@ -85,3 +95,28 @@ def run(args: argparse.Namespace) -> int:
         if not summary["warnings"]:
             print("  no warnings")
     return 0
+
+
+class _Progress:
+    """A one-line progress bar on stderr for long replays at a terminal."""
+
+    def __init__(self, path: Path) -> None:
+        self.total = max(path.stat().st_size, 1)
+        self.shown = -1
+
+    def __call__(self, done_bytes: int, frames: int) -> None:
+        if done_bytes < 0:  # how far into the file is unknown: frames only
+            sys.stderr.write(f"\rreplay {frames:,} frames")
+            sys.stderr.flush()
+            self.shown = 0
+            return
+        pct = min(100, int(100 * done_bytes / self.total))
+        if pct != self.shown:
+            self.shown = pct
+            bar = "#" * (pct // 4)
+            sys.stderr.write(f"\rreplay [{bar:<25}] {pct:3d} %  {frames:,} frames")
+            sys.stderr.flush()
+
+    def done(self) -> None:
+        if self.shown >= 0:
+            sys.stderr.write("\n")

@@ -66,6 +66,36 @@ CAN_ERR_FLAG = 0x20000000
 CAN_ERR_BUSERROR = 0x00000080
 
 
+def parse_candump_line(line: str, path: Path | str, n: int) -> Frame | None:
+    """One ``candump -l`` line as python-can's ``CanutilsLogReader`` reads it (None for a blank
+    line); ValueError names the file and line."""
+    parts = line.split()
+    if not parts:
+        return None
+    try:
+        stamp, channel, frame = parts[0], parts[1], parts[2]
+        t = float(stamp[1:-1])
+        cid_s, data = frame.split("#", 1)
+        cid = int(cid_s, 16)
+    except (IndexError, ValueError):
+        raise ValueError(f"{path}: line {n}: not a candump -l line: {line.strip()[:80]!r}") from None
+    fd = data[:1] == "#"
+    if fd:  # CAN FD: '##' and one flags digit
+        data = data[2:]
+    remote = data[:1] in ("R", "r")
+    if remote:
+        payload = b""
+    else:
+        try:
+            payload = bytes.fromhex(data)
+        except ValueError:
+            raise ValueError(f"{path}: line {n}: bad data {data[:40]!r}") from None
+    if cid & CAN_ERR_FLAG and cid & CAN_ERR_BUSERROR:
+        # as python-can builds it: Message(is_error_frame=True)
+        return Frame(t, channel, 0, True, False, True, False, b"")
+    return Frame(t, channel, cid & 0x1FFFFFFF, len(cid_s) > 3, remote, False, fd, payload)
+
+
 def iter_candump(path: str | Path) -> Iterator[Frame]:
     """Frames of a ``candump -l`` log, with the semantics of python-can's ``CanutilsLogReader``
     (tests check both agree) but about three times faster: it builds no ``can.Message``."""
@@ -73,32 +103,9 @@ def iter_candump(path: str | Path) -> Iterator[Frame]:
     opener = gzip.open if p.suffix == ".gz" else open
     with opener(p, "rt", encoding="ascii", errors="replace") as f:  # type: ignore[operator]
         for n, line in enumerate(f, 1):
-            parts = line.split()
-            if not parts:
-                continue
-            try:
-                stamp, channel, frame = parts[0], parts[1], parts[2]
-                t = float(stamp[1:-1])
-                cid_s, data = frame.split("#", 1)
-                cid = int(cid_s, 16)
-            except (IndexError, ValueError):
-                raise ValueError(f"{p}: line {n}: not a candump -l line: {line.strip()[:80]!r}") from None
-            fd = data[:1] == "#"
-            if fd:  # CAN FD: '##' and one flags digit
-                data = data[2:]
-            remote = data[:1] in ("R", "r")
-            if remote:
-                payload = b""
-            else:
-                try:
-                    payload = bytes.fromhex(data)
-                except ValueError:
-                    raise ValueError(f"{p}: line {n}: bad data {data[:40]!r}") from None
-            if cid & CAN_ERR_FLAG and cid & CAN_ERR_BUSERROR:
-                # as python-can builds it: Message(is_error_frame=True)
-                yield Frame(t, channel, 0, True, False, True, False, b"")
-            else:
-                yield Frame(t, channel, cid & 0x1FFFFFFF, len(cid_s) > 3, remote, False, fd, payload)
+            frame = parse_candump_line(line, p, n)
+            if frame is not None:
+                yield frame
 
 
 def iter_frames(path: str | Path) -> Iterator[Frame]:

@@ -17,6 +17,19 @@ import numpy as np
 from cmcan.model.metadata import INPUT_NAME, OUTPUT_PHYSICS, OUTPUT_PRED, OUTPUT_WHITEBOX
 
 OPSET = 17
+LANES = 16  # doubles per row handed to Log and Exp: a multiple of any x86 SIMD width (AVX-512: 8)
+
+
+def _padded(centers: Any, weights: Any) -> tuple[Any, Any]:
+    """Centres and weights padded with copies of the first centre at weight 0 to a multiple of LANES."""
+    n = len(centers)
+    extra = (-n) % LANES
+    if not extra:
+        return centers, weights
+    return (
+        np.concatenate([centers, np.repeat(centers[:1], extra, axis=0)]),
+        np.concatenate([weights, np.zeros(extra)]),
+    )
 
 
 def build(model: Any) -> Any:
@@ -47,13 +60,16 @@ def build(model: Any) -> Any:
     # |n_P V_P| in cm3/min (the 1/1000 to l/min is folded into the coefficients).
     nv = node("Abs", [node("Mul", ["n_p", "v_p"], "nv_signed")], "nv")
     # ASTM D341: nu + 0.7 = 10^(10^(A - B log10 T_K)) = exp(exp(A ln10 + ln ln10 - B ln T_K)).
-    ln_tk = node("Log", [node("Add", ["temp", const("kelvin", [273.15])], "t_k")], "ln_tk")
-    u = node(
-        "Gemm",
-        [ln_tk, const("walther_b", [[-b]]), const("walther_a", [a * math.log(10.0) + math.log(math.log(10.0))])],
-        "walther_u",
-    )
-    nu = node("Sub", [node("Exp", [node("Exp", [u], "walther_e1")], "walther_e2"), const("k_0_7", [0.7])], "nu_cst")
+    # Log and Exp run on LANES copies of the temperature and one column is kept: onnxruntime computes
+    # a transcendental function in its vectorized loop and a remainder elementwise, with other
+    # rounding; with whole vectors per row a row gets the same bits alone or in a batch.
+    t_lanes = node("Expand", ["temp", const("lanes", [1, LANES], np.int64)], "temp_lanes")
+    ln_tk = node("Log", [node("Add", [t_lanes, const("kelvin", [273.15])], "t_k")], "ln_tk")
+    walther_a = const("walther_a", [a * math.log(10.0) + math.log(math.log(10.0))])
+    u = node("Add", [node("Mul", [ln_tk, const("walther_b", [-b])], "walther_bu"), walther_a], "walther_u")
+    e2 = node("Exp", [node("Exp", [u], "walther_e1")], "walther_e2")
+    col = [const("col0", [0], np.int64), const("col1", [1], np.int64), const("axis1", [1], np.int64)]
+    nu = node("Sub", [node("Slice", [e2, *col], "walther_col"), const("k_0_7", [0.7])], "nu_cst")
     lam = node("Div", ["dp", nu], "dp_over_nu")
     turb = node(
         "Mul", [node("Sign", ["dp"], "dp_sign"), node("Sqrt", [node("Abs", ["dp"], "dp_abs")], "dp_sqrt")], "sqrt_dp"
@@ -83,9 +99,10 @@ def build(model: Any) -> Any:
     )
     # |zs|^2 + |d|^2 in one reduction; the fade's exp(-|d|^2) multiplies every basis function.
     sq = node("ReduceSumSquare", [node("Concat", [zs, beyond], "rbf_fade", axis=1)], "sq", axes=[1], keepdims=1)
-    centers = corr.centers
+    # Centres padded to whole vectors (see LANES) with weight 0.
+    centers, weights = _padded(corr.centers, corr.weights)
     arg = node("Gemm", [zs, const("rbf_centers", 2.0 * math.sqrt(s) * centers.T), sq], "rbf_arg", beta=-1.0)
-    w = k * corr.weights * np.exp(-s * np.sum(centers * centers, axis=1))
+    w = k * weights * np.exp(-s * np.sum(centers * centers, axis=1))
     raw = node("MatMul", [node("Exp", [arg], "rbf"), const("rbf_w", w[:, None])], "corr_faded")
     bound = k * corr.bound_lpm
     bounded = node("Clip", [raw, const("corr_lo", -bound), const("corr_hi", bound)], "correction")

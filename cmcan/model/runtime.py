@@ -86,15 +86,22 @@ class GrayBoxModel:
 
     def predict(self, x: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """(predicted, white-box) output quantity for inputs (n, 4) in the model's input order."""
-        xx = np.ascontiguousarray(np.atleast_2d(x), dtype=np.float64)
-        pred, wb = self.session.run(self._outputs, {INPUT_NAME: xx})
-        return pred[:, 0], wb[:, 0]
+        parts = self._run(x, self._outputs)
+        return parts[0], parts[1]
 
     def predict_parts(self, x: NDArray[np.float64]) -> dict[str, NDArray[np.float64]]:
         """Every output of the graph: predicted (gray box), physics (light gray) and white-box."""
-        xx = np.ascontiguousarray(np.atleast_2d(x), dtype=np.float64)
         names = [OUTPUT_PRED, OUTPUT_PHYSICS, OUTPUT_WHITEBOX]
-        return {n: v[:, 0] for n, v in zip(names, self.session.run(names, {INPUT_NAME: xx}), strict=True)}
+        return dict(zip(names, self._run(x, names), strict=True))
+
+    def _run(self, x: NDArray[np.float64], names: list[str]) -> list[NDArray[np.float64]]:
+        """The graph over rows. A row gives the same bits alone or anywhere in a batch (the graph
+        hands whole vectors to its transcendental functions; tests check), so the columnar replay's
+        batched calls equal the daemon's single ones."""
+        xx = np.ascontiguousarray(np.atleast_2d(x), dtype=np.float64)
+        if len(xx) == 0:
+            return [np.empty(0) for _ in names]
+        return [v[:, 0] for v in self.session.run(names, {INPUT_NAME: xx})]
 
     def predict_one(
         self, pump_speed_rpm: float, pump_disp_cc: float, dp_bar: float, temp_c: float

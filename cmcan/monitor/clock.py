@@ -68,6 +68,11 @@ class TickClock:
         if t > self.last_frame_t:
             self.last_frame_t = t
 
+    def resume(self, next_k: int, last_frame_t: float) -> None:
+        """Continue from a state computed elsewhere (the columnar replay's write-back)."""
+        self._set_next(next_k)
+        self.last_frame_t = last_frame_t
+
     def reset(self) -> None:
         self._set_next(None)
         self.last_frame_t = -math.inf

@@ -14,6 +14,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+from cmcan.codec import Layout, checked_decoder
 from cmcan.frame import Frame
 from cmcan.monitor.clock import TickClock
 from cmcan.monitor.filter import RatioFilter
@@ -47,13 +48,19 @@ class Predictor(Protocol):
 
 @dataclass(frozen=True)
 class InputMessage:
-    """How to read one input message: a decoder of the raw values of its mapped signals (None when
-    a value is outside its DBC range: an implausible frame), and the role of each value in order."""
+    """How to read one input message: the layouts of its mapped signals (read as ``size`` bytes) and
+    the role of each value in order. ``decode`` gives the raw values of one frame, or None when a
+    value is outside its DBC range (an implausible frame)."""
 
     frame_id: int
     length: int
-    decode: Callable[[bytes], tuple[int, ...] | None]
+    layouts: tuple[Layout, ...]
+    size: int
     roles: tuple[str, ...]
+    decode: Callable[[bytes], tuple[int, ...] | None] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "decode", checked_decoder(self.layouts, self.size))
 
 
 @dataclass(frozen=True)

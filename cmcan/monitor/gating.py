@@ -10,6 +10,7 @@ about to define), so transients never teach the model.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from enum import IntEnum
 
@@ -102,8 +103,8 @@ def gate_point(
     count: dict[str, int],
     age_s: dict[str, float],
     limits: GateLimits,
-    max_age_s: dict[str, float] | None = None,
-    envelope: dict[str, tuple[float, float]] | None = None,
+    max_age_s: Mapping[str, float] | None = None,
+    envelope: Mapping[str, tuple[float, float]] | None = None,
 ) -> Gate:
     """The gate of one operating point; the first failing rule in the order of :class:`Gate` wins.
 
@@ -145,31 +146,70 @@ def gate_point(
     return Gate.EVALUATING
 
 
+def gate_columns(
+    mean: dict[str, NDArray[np.float64]],
+    std: dict[str, NDArray[np.float64]],
+    count: dict[str, NDArray[np.int64]],
+    age_s: dict[str, NDArray[np.float64]],
+    limits: GateLimits,
+    max_age_s: Mapping[str, float] | None = None,
+    envelope: Mapping[str, tuple[float, float]] | None = None,
+) -> NDArray[np.int8]:
+    """:func:`gate_point` over arrays of operating points, rule for rule (tests hold the two equal):
+    training, evaluation and the columnar replay call this one, the streaming core the other."""
+    roles = [r for r in GATED_ROLES if r in mean]
+    n = len(mean[roles[0]]) if roles else 0
+    out = np.full(n, Gate.EVALUATING, dtype=np.int8)
+    open_ = np.ones(n, dtype=bool)  # no rule has decided yet
+
+    def decide(mask: NDArray[np.bool_], g: Gate) -> None:
+        nonlocal open_
+        hit = open_ & mask
+        out[hit] = g
+        open_ = open_ & ~hit
+
+    missing = np.zeros(n, dtype=np.int64)
+    for r in roles:
+        a = age_s[r]
+        limit = max_age_s.get(r, math.inf) if max_age_s is not None else math.inf
+        missing += (a == math.inf) | (a > limit)
+    decide(missing == len(roles), Gate.NO_INPUT)
+    decide(missing > 0, Gate.STALE_INPUT)
+    for r in roles:
+        decide(count[r] < limits.min_samples, Gate.WARMING_UP)
+    for r in roles:
+        lo, hi = limits.plausible.get(r, (-math.inf, math.inf))
+        m = mean[r]
+        with np.errstate(invalid="ignore"):
+            decide(~((lo <= m) & (m <= hi)), Gate.IMPLAUSIBLE_INPUT)  # NaN too
+    with np.errstate(invalid="ignore"):
+        decide(
+            (mean["pump_speed_rpm"] < limits.min_pump_speed_rpm)
+            | (np.abs(mean["pump_disp_cc"]) < limits.min_pump_disp_cc)
+            | (mean["motor_speed_rpm"] < limits.min_motor_speed_rpm),
+            Gate.LOW_SPEED,
+        )
+        transient = np.zeros(n, dtype=bool)
+        for r, lim in limits.max_std.items():
+            if r in std:
+                transient |= std[r] > lim
+        decide(transient, Gate.TRANSIENT)
+        if envelope is not None:
+            outside = np.zeros(n, dtype=bool)
+            for r, (lo, hi) in envelope.items():
+                outside |= ~((lo <= mean[r]) & (mean[r] <= hi))
+            decide(outside, Gate.OUTSIDE_ENVELOPE)
+    return out
+
+
 def gate(
     stats: WindowStats,
     limits: GateLimits,
-    max_age_s: dict[str, float] | None = None,
-    envelope: dict[str, tuple[float, float]] | None = None,
+    max_age_s: Mapping[str, float] | None = None,
+    envelope: Mapping[str, tuple[float, float]] | None = None,
 ) -> NDArray[np.int64]:
     """:func:`gate_point` over many windows (training and evaluation)."""
-    roles = [r for r in GATED_ROLES if r in stats.mean]
-    cols = {
-        r: (stats.mean[r].tolist(), stats.std[r].tolist(), stats.count[r].tolist(), stats.age_s[r].tolist())
-        for r in roles
-    }
-    n = len(stats.mean[roles[0]]) if roles else 0
-    out = np.empty(n, dtype=np.int64)
-    for i in range(n):
-        out[i] = gate_point(
-            {r: c[0][i] for r, c in cols.items()},
-            {r: c[1][i] for r, c in cols.items()},
-            {r: c[2][i] for r, c in cols.items()},
-            {r: c[3][i] for r, c in cols.items()},
-            limits,
-            max_age_s,
-            envelope,
-        )
-    return out
+    return gate_columns(stats.mean, stats.std, stats.count, stats.age_s, limits, max_age_s, envelope).astype(np.int64)
 
 
 def eval_times(t_first: float, t_last: float, rate_hz: float) -> NDArray[np.float64]:

@@ -8,8 +8,9 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
+from cmcan.codec import Layout, frame_encoder
 from cmcan.frame import Frame
 from cmcan.monitor.gating import Gate
 from cmcan.monitor.tick import Tick
@@ -19,12 +20,19 @@ ALIVE_MODULO = 16
 
 @dataclass(frozen=True)
 class OutputMessage:
-    """One output message: its identifier, how to encode physical values, and its period in ticks."""
+    """One output message: its identifier, its signals' layouts (read as ``size`` bytes, sent as
+    ``length``), and its period in ticks. ``encode`` makes one frame from physical values."""
 
     frame_id: int
     extended: bool
-    encode: Callable[[Mapping[str, float]], bytes]
+    layouts: tuple[Layout, ...]
+    size: int
+    length: int
     every_ticks: int
+    encode: Callable[[Mapping[str, float]], bytes] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "encode", frame_encoder(self.layouts, self.size, self.length))
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,325 @@
+"""``candump -l`` logs read in large chunks straight into arrays (the columnar replay's reader).
+
+A chunk of the file is one numpy byte buffer; its lines are grouped by length and, within a length,
+by the positions of ``)``, the second space and ``#``: every line of such a group has its fields in
+the same columns, so timestamps, identifiers and payloads are parsed for the whole group at once
+with array arithmetic. A line that does not fit the common shape (a timestamp in exponent notation,
+trailing tokens, odd hex) goes through the line-by-line reader of :mod:`cmcan.io.candump`, which
+defines the semantics; tests check both give the same frames.
+
+Timestamps: ``(SSSSSSSSSS.ffffff)`` is read as the exact integer N = SSSSSSSSSSffffff and divided
+by 10^6 in floating point, which is the correctly rounded value of the decimal, exactly what
+Python's ``float()`` of the same text gives.
+"""
+
+from __future__ import annotations
+
+import gzip
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import BinaryIO
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cmcan.frame import FrameColumns
+from cmcan.io.candump import CAN_ERR_BUSERROR, CAN_ERR_FLAG, parse_candump_line
+
+CHUNK_BYTES = 8 << 20
+_NIBBLE = np.full(256, 255, dtype=np.uint8)
+for _i, _c in enumerate(b"0123456789ABCDEF"):
+    _NIBBLE[_c] = _i
+for _i, _c in enumerate(b"abcdef"):
+    _NIBBLE[_c] = 10 + _i
+_DIGIT = np.full(256, 255, dtype=np.uint8)
+for _i, _c in enumerate(b"0123456789"):
+    _DIGIT[_c] = _i
+
+
+def iter_candump_columns(
+    path: str | Path, chunk_bytes: int = CHUNK_BYTES, progress: Callable[[int], None] | None = None
+) -> Iterator[FrameColumns]:
+    """The frames of a candump log (``.log`` or ``.log.gz``) in chunks of about ``chunk_bytes``;
+    ``progress`` is told the bytes of the file read so far."""
+    p = Path(path)
+    opener = gzip.open if p.suffix == ".gz" else open
+    channels: dict[bytes, int] = {}
+    line0 = 1
+    with opener(p, "rb") as f:  # type: ignore[operator]
+        raw = getattr(f, "fileobj", None) or f  # for .gz: the compressed file, as its size on disk counts
+        rest = b""
+        while True:
+            block = _read(f, chunk_bytes)
+            if progress is not None:
+                progress(raw.tell())
+            if not block:
+                break
+            data = rest + block
+            cut = data.rfind(b"\n") + 1
+            if cut == 0:  # no newline yet: a very long line, read on
+                rest = data
+                continue
+            rest = data[cut:]
+            cols, n_lines = parse_chunk(data[:cut], p, line0, channels)
+            line0 += n_lines
+            if len(cols):
+                yield cols
+        if rest.strip():
+            cols, _ = parse_chunk(rest + b"\n", p, line0, channels)
+            if len(cols):
+                yield cols
+
+
+def _read(f: BinaryIO, n: int) -> bytes:
+    try:
+        return f.read(n)
+    except (EOFError, OSError, gzip.BadGzipFile) as exc:  # a truncated or corrupt .gz
+        raise ValueError(f"{getattr(f, 'name', '')}: cannot read: {exc}") from None
+
+
+def parse_chunk(text: bytes, path: Path, line0: int, channels: dict[bytes, int]) -> tuple[FrameColumns, int]:
+    """Frames of the complete lines in ``text`` (which ends with a newline). ``channels`` maps
+    channel names to codes across chunks; ``line0`` is the number of the chunk's first line."""
+    buf = np.frombuffer(text, dtype=np.uint8)
+    ends = np.flatnonzero(buf == 10)
+    n_lines = len(ends)
+    out = _Out(n_lines)
+    slow: list[int] = []
+    width = int(ends[0]) + 1
+    if len(buf) == width * n_lines and (buf[width - 1 :: width] == 10).all():
+        # every line equally long (the usual candump log): the chunk is a matrix as it is
+        slow += _parse_group(buf.reshape(n_lines, width)[:, :-1], np.arange(n_lines), out, channels)
+    else:
+        starts = np.empty_like(ends)
+        starts[0] = 0
+        starts[1:] = ends[:-1] + 1
+        lengths = ends - starts
+        for length in np.unique(lengths):
+            idx = np.flatnonzero(lengths == length)
+            if length < 8:
+                slow += idx.tolist()
+                continue
+            for k in range(0, len(idx), _BATCH):  # gather a bounded number of lines at a time
+                sub = idx[k : k + _BATCH]
+                rows = buf[starts[sub, None] + np.arange(length, dtype=np.int64)]
+                slow += _parse_group(rows, sub, out, channels)
+    for i in sorted(slow):
+        start = int(ends[i - 1]) + 1 if i else 0
+        line = text[start : int(ends[i])].decode("ascii", errors="replace")
+        f = parse_candump_line(line, path, line0 + i)
+        if f is None:
+            continue
+        out.set_one(i, f, channels)
+    return out.columns(channels), n_lines
+
+
+_BATCH = 1 << 16
+
+
+class _Out:
+    """Per-line result arrays (in line order); lines without a frame stay marked absent."""
+
+    def __init__(self, n: int) -> None:
+        self.present = np.zeros(n, dtype=bool)
+        self.t = np.zeros(n)
+        self.ch = np.zeros(n, dtype=np.int16)
+        self.cid = np.zeros(n, dtype=np.uint32)
+        self.ext = np.zeros(n, dtype=bool)
+        self.rtr = np.zeros(n, dtype=bool)
+        self.err = np.zeros(n, dtype=bool)
+        self.fd = np.zeros(n, dtype=bool)
+        self.dlc = np.zeros(n, dtype=np.int16)
+        self.data = np.zeros((n, 8), dtype=np.uint8)
+        self.long: dict[int, bytes] = {}  # CAN FD payloads beyond 8 bytes, by line
+
+    def set_one(self, i: int, f: object, channels: dict[bytes, int]) -> None:
+        from cmcan.frame import Frame
+
+        assert isinstance(f, Frame)
+        self.present[i] = True
+        self.t[i] = f.timestamp_s
+        self.ch[i] = _code(channels, f.channel.encode())
+        self.cid[i] = f.arbitration_id
+        self.ext[i], self.rtr[i], self.err[i], self.fd[i] = f.extended, f.remote, f.error, f.fd
+        self.dlc[i] = len(f.data)
+        if len(f.data) > 8:
+            self.long[i] = f.data
+        else:
+            self.data[i, : len(f.data)] = np.frombuffer(f.data, dtype=np.uint8)
+
+    def columns(self, channels: dict[bytes, int]) -> FrameColumns:
+        keep = self.present
+        names = tuple(k.decode("ascii", errors="replace") for k in sorted(channels, key=channels.__getitem__))
+        long = {}
+        if self.long:
+            pos = np.cumsum(keep) - 1
+            long = {int(pos[i]): v for i, v in self.long.items()}
+        return FrameColumns(
+            timestamp_s=self.t[keep],
+            channel=self.ch[keep],
+            channel_names=names,
+            arbitration_id=self.cid[keep],
+            extended=self.ext[keep],
+            remote=self.rtr[keep],
+            error=self.err[keep],
+            fd=self.fd[keep],
+            dlc=self.dlc[keep],
+            data=self.data[keep],
+            long_data=long,
+        )
+
+
+def _code(channels: dict[bytes, int], name: bytes) -> int:
+    if name not in channels:
+        channels[name] = len(channels)
+    return channels[name]
+
+
+def _unique(keys: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """np.unique(return_inverse=True) with a shortcut for the usual case of one value."""
+    if len(keys) and (keys == keys[0]).all():
+        return keys[:1], np.zeros(len(keys), dtype=np.int64)
+    u, inv = np.unique(keys, return_inverse=True)
+    return u, inv.ravel()
+
+
+def _shape_of(row: bytes) -> tuple[int, int, int, int] | None:
+    """Columns of ')', the two spaces and '#' in one line, or None when it is not of the common form."""
+    c = row.find(b")")
+    a = row.find(b" ")
+    b = row.find(b" ", a + 1)
+    h = row.find(b"#")
+    if row[:1] == b"(" and c > 0 and c + 1 == a and a + 1 < b < h and h - b - 1 in (3, 8):
+        return c, a, b, h
+    return None
+
+
+def _parse_group(rows: NDArray[np.uint8], idx: NDArray[np.int64], out: _Out, channels: dict[bytes, int]) -> list[int]:
+    """Parse lines of one length, shape by shape: the first unparsed line's field columns are
+    checked on all the others (four columns and two runs, not whole lines); lines of that shape are
+    parsed together, the rest tried with the next shape. Returns the lines left to the slow path."""
+    slow: list[int] = []
+    todo = np.arange(len(rows))
+    for _ in range(8):  # a handful of shapes per length at most; beyond, the slow path
+        if not len(todo):
+            break
+        shape = _shape_of(rows[todo[0]].tobytes())
+        if shape is None:
+            slow.append(int(idx[todo[0]]))
+            todo = todo[1:]
+            continue
+        c, a, b, h = shape
+        r = rows[todo]
+        match = (r[:, c] == ord(")")) & (r[:, a] == ord(" ")) & (r[:, b] == ord(" ")) & (r[:, h] == ord("#"))
+        match &= (r[:, a + 1 : b] != ord(" ")).all(axis=1)
+        sel = todo[match]
+        slow += _parse_shape(rows[sel], idx[sel], shape, out, channels)
+        todo = todo[~match]
+    slow += idx[todo].tolist()
+    return slow
+
+
+def _parse_shape(
+    rows: NDArray[np.uint8],
+    idx: NDArray[np.int64],
+    pos: tuple[int, int, int, int],
+    out: _Out,
+    channels: dict[bytes, int],
+) -> list[int]:
+    c, a, b, h = pos
+    width = rows.shape[1]
+    n = len(rows)
+    good = rows[:, 0] == ord("(")
+    # timestamp: digits, the decimal point where the first line has it, digits
+    first_row = rows[0, 1:c].tobytes()
+    d = first_row.find(b".")
+    n_frac = c - 2 - d if d >= 0 else 0
+    t = np.zeros(n)
+    if d < 0 or c - 2 > 19:  # no point or more digits than uint64 holds: the slow path decides
+        good[:] = False
+    else:
+        good &= rows[:, 1 + d] == ord(".")
+        # digit columns, transposed to contiguous rows: a column of a row-major block is slow to walk
+        dig = _DIGIT[np.ascontiguousarray(np.concatenate([rows[:, 1 : 1 + d], rows[:, 2 + d : c]], axis=1).T)]
+        good &= dig.max(axis=0) != 255
+        num = np.zeros(n, dtype=np.uint64)
+        ten = np.uint64(10)
+        for col in dig:
+            num *= ten
+            num += col
+        good &= num < np.uint64(1 << 53)  # below 2^53 the integer is exact as a float
+        t = num.astype(np.float64) / float(10**n_frac)
+    # identifier: 3 or 8 hex digits
+    nib = _NIBBLE[np.ascontiguousarray(rows[:, b + 1 : h].T)]
+    good &= nib.max(axis=0) != 255
+    cid = np.zeros(n, dtype=np.uint64)
+    four = np.uint64(4)
+    for col in nib:
+        cid <<= four
+        cid |= col
+    extended = h - b - 1 > 3
+    # payload: after '#', hex pairs to the end of the line; '##f' is CAN FD, 'R' remote
+    tail = rows[:, h + 1 :]
+    n_tail = width - h - 1
+    first = tail[:, 0] if n_tail else np.zeros(len(rows), dtype=np.uint8)
+    fd = first == ord("#")
+    remote = (first == ord("R")) | (first == ord("r"))
+    good &= ~fd | (n_tail >= 2)
+    classic = ~fd & ~remote
+    data = np.zeros((len(rows), 8), dtype=np.uint8)
+    dlc = np.zeros(len(rows), dtype=np.int16)
+    long_rows: dict[int, bytes] = {}
+    for kind_mask, skip in ((classic, 0), (fd, 2)):
+        if not kind_mask.any():
+            continue
+        hexpart = tail[kind_mask, skip:]
+        nib = _NIBBLE[hexpart]
+        ok = ((nib != 255).all(axis=1)) & (hexpart.shape[1] % 2 == 0)
+        nbytes = hexpart.shape[1] // 2
+        sel = np.flatnonzero(kind_mask)
+        good[sel[~ok]] = False
+        if hexpart.shape[1] % 2:
+            continue
+        vals = (nib[:, 0::2].astype(np.uint8) << 4) | nib[:, 1::2]
+        dlc[sel] = nbytes
+        if nbytes <= 8:
+            data[sel, :nbytes] = vals
+        else:
+            for j, r in zip(sel.tolist(), vals, strict=True):
+                long_rows[j] = bytes(r)
+    # CAN FD flags digit must be hex, remote frames carry nothing
+    if fd.any():
+        good[fd] &= _NIBBLE[tail[fd, 1]] != 255
+    err = ((cid & np.uint64(CAN_ERR_FLAG)) != 0) & ((cid & np.uint64(CAN_ERR_BUSERROR)) != 0)
+    # the channel name
+    ch_bytes = rows[:, a + 1 : b]
+    if ch_bytes.shape[1] <= 8:  # a name of up to 8 characters is one integer
+        packed = np.zeros((len(rows), 8), dtype=np.uint8)
+        packed[:, : ch_bytes.shape[1]] = ch_bytes
+        uniq, ch_inv = _unique(packed.view("<u8").ravel())
+        names = [
+            uniq_row.tobytes()[: ch_bytes.shape[1]] for uniq_row in uniq.astype("<u8").view(np.uint8).reshape(-1, 8)
+        ]
+    else:
+        uniq_rows, ch_inv = np.unique(ch_bytes, axis=0, return_inverse=True)
+        ch_inv = ch_inv.ravel()
+        names = [bytes(r) for r in uniq_rows]
+    codes = np.array([_code(channels, nm) for nm in names], dtype=np.int16)[ch_inv]
+
+    g = np.flatnonzero(good)
+    lines = idx[g]
+    out.present[lines] = True
+    out.t[lines] = t[g]
+    out.ch[lines] = codes[g]
+    e = err[g]
+    out.err[lines] = e
+    out.cid[lines] = np.where(e, 0, cid[g] & np.uint64(0x1FFFFFFF)).astype(np.uint32)
+    out.ext[lines] = np.where(e, True, extended)
+    out.rtr[lines] = remote[g] & ~e
+    out.fd[lines] = fd[g] & ~e
+    out.dlc[lines] = np.where(e | remote[g], 0, dlc[g])
+    out.data[lines] = np.where((e | remote[g])[:, None], 0, data[g])
+    for j, payload in long_rows.items():
+        if good[j] and not err[j]:
+            out.long[int(idx[j])] = payload
+    return idx[~good].tolist()
