@@ -56,9 +56,7 @@ def add_subparser(sub: argparse._SubParsersAction) -> None:
     )
     pts = d.add_argument_group("operating-point tables (cycle means, rig logs)")
     pts.add_argument("--points", metavar="SPEC", help="YAML naming columns, constants and row filters")
-    pts.add_argument(
-        "--column", action="append", default=[], metavar="ROLE=COLUMN", help="the column holding a role"
-    )
+    pts.add_argument("--column", action="append", default=[], metavar="ROLE=COLUMN", help="the column holding a role")
     pts.add_argument(
         "--constant",
         action="append",

@@ -44,6 +44,7 @@ NATURAL = {
 SIGNED = {"motor_disp_offset"} | {n for n, e in LIBRARY.items() if e.kind == "sensor"} - {"output_sensor_lag"}
 OUTSIDE = ("centrifugal_loss", "high_pressure_leak")  # not in the library
 HP_LEAK_FROM_BAR = 300.0
+MEASURED = ("pump_speed_rpm", "pump_disp_cc", "dp_bar", "temp_c", "motor_speed_rpm")  # what the diagnosis gets
 # Effects that are (nearly) one constant factor on the output: two of them at once are one factor.
 FACTOR = {"motor_disp_offset", "output_sensor_gain", "pump_speed_sensor_gain", "disp_sensor_gain"}
 
@@ -61,6 +62,7 @@ class TrialSpec:
     temp_phase: float
     size_pct: float
     signs: tuple[float, ...]
+    values: tuple[float, ...] | None = None  # the effects' parameters as given (None: drawn)
 
 
 @dataclass(frozen=True)
@@ -194,6 +196,13 @@ def _value(p: DriveParams, x: Inputs, scale: Scale, spec: TrialSpec, k: int) -> 
 
 def trial_data(spec: TrialSpec, p: DriveParams | None = None) -> tuple[GapData, tuple[float, ...]]:
     """The trial's measured data from the dynamic simulator with its effects inside, and their values."""
+    r, values = trial_run(spec, p)
+    series = {k: (r["time_s"], r[k]) for k in MEASURED}
+    return from_series(series, "motor_speed_rpm", GateLimits(), f"trial {spec.seed}"), values
+
+
+def trial_run(spec: TrialSpec, p: DriveParams | None = None) -> tuple[simrun.Run, tuple[float, ...]]:
+    """The trial's run of the dynamic simulator with its effects inside, and their values."""
     p = p or DriveParams()
     doc = _doc(spec)
     values: tuple[float, ...] = ()
@@ -210,13 +219,10 @@ def trial_data(spec: TrialSpec, p: DriveParams | None = None) -> tuple[GapData, 
             np.zeros(len(t), dtype=np.int64),
         )
         scale = Scale.of(p, x, simulate(p, x, []))
-        values = tuple(_value(p, x, scale, spec, k) for k in range(len(spec.truth)))
+        values = spec.values or tuple(_value(p, x, scale, spec, k) for k in range(len(spec.truth)))
         for name, v in zip(spec.truth, values, strict=True):
             _put(doc, name, v)
-    r = simrun.simulate(scn.from_dict(doc, source=doc["name"]))
-    roles = ("pump_speed_rpm", "pump_disp_cc", "dp_bar", "temp_c", "motor_speed_rpm")
-    series = {k: (r["time_s"], r[k]) for k in roles}
-    return from_series(series, "motor_speed_rpm", GateLimits(), f"trial {spec.seed}"), values
+    return simrun.simulate(scn.from_dict(doc, source=doc["name"])), values
 
 
 def score(spec: TrialSpec, values: tuple[float, ...], diag: Diagnosis) -> Score:

@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cmcan.gap.data import GapData
-from cmcan.gap.effects import LIBRARY, Effect, Scale, output_scale, simulate
+from cmcan.gap.effects import LIBRARY, OUTPUT_UNIT, Effect, Scale, output_scale, simulate
 from cmcan.gap.result import (
     HIGH,
     LOW,
@@ -321,7 +321,8 @@ def _param_fits(ctx: Context, e: Effect, th: NDArray[np.float64], sg: NDArray[np
         lo, hi = q.plausible(ctx.scale)
         lo = max(lo, q.bound_lo)
         tol = 1e-3 * (hi - lo)
-        out.append(ParamFit(q.name, q.unit, float(v), float(s), (lo, hi), bool(v <= lo + tol or v >= hi - tol)))
+        unit = ctx.d.unit if q.unit == OUTPUT_UNIT else q.unit
+        out.append(ParamFit(q.name, unit, float(v), float(s), (lo, hi), bool(v <= lo + tol or v >= hi - tol)))
     return tuple(out)
 
 

@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 
 from cmcan.sim.physics import REF_DP_BAR, REF_TEMP_C, DriveParams, UnitLosses, steady_motor_speed_rpm
 
-OUTPUT_UNITS = {"motor_speed_rpm": "rpm", "flow_lpm": "l/min"}
+OUTPUT_UNIT = "output unit"  # a parameter in the output's own unit (rpm or l/min)
 
 
 @dataclass(frozen=True)
@@ -287,7 +287,7 @@ _SENSORS = (
     *_sensor("disp", "pump_disp_cc", "V_P", Param("offset_cc", "cm3/rev", -0.1, 0.1, 0.01, "pump_disp_max_cc"), 10),
     *_sensor("pressure", "dp_bar", "dp", Param("offset_bar", "bar", -0.05, 0.05, 0.01, "dp_max_bar"), 10),
     *_sensor("temp", "temp_c", "T", Param("offset_c", "C", -15.0, 15.0, 0.01), 15),
-    *_sensor("output", "output", "y", Param("offset", "output unit", -0.05, 0.05, 0.01, "output_mean"), 10),
+    *_sensor("output", "output", "y", Param("offset", OUTPUT_UNIT, -0.05, 0.05, 0.01, "output_mean"), 10),
 )
 
 

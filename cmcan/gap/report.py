@@ -113,8 +113,7 @@ def markdown(r: Diagnosis, figs: list[str]) -> str:
     lines = [
         f"# Sim-to-real gap: {r.source}",
         "",
-        f"**Verdict: {r.verdict}.** Effect(s): {_answer(r)}"
-        + (f"; confidence **{conf.level}**." if conf else "."),
+        f"**Verdict: {r.verdict}.** Effect(s): {_answer(r)}" + (f"; confidence **{conf.level}**." if conf else "."),
         "",
     ]
     if conf and conf.reasons:

@@ -182,24 +182,24 @@ def read_points(path: str | Path, spec: PointSpec, roles: Iterable[str], min_row
             f"{p}: no column {missing[0]!r} ({fields[0]} in {spec.source}); the file has {', '.join(names)}", "data"
         )
     body = [row for row in body if any(cell.strip() for cell in row)]
-    cols = {c: _numeric(p, body, index[c], c) for c in sorted(wanted)}
     keep = np.ones(len(body), dtype=bool)
-    for cond in spec.where:
-        keep &= cond.holds(cols[cond.column])
+    for cond in spec.where:  # filter first: a row left out may hold anything in the other columns
+        keep &= cond.holds(_numeric(p, body, index[cond.column], cond.column, keep))
     rows = np.flatnonzero(keep).astype(np.int64) + 1
+    kept = [body[i] for i in np.flatnonzero(keep)]
     values: dict[str, NDArray[np.float64]] = {}
     for r in roles:
         if r in spec.columns:
-            v = cols[spec.columns[r]][keep]
+            v = _numeric(p, kept, index[spec.columns[r]], spec.columns[r], None, rows)
             bad = np.flatnonzero(~np.isfinite(v))
             if len(bad):
                 raise PointsError(f"{p}: row {rows[bad[0]]}: column {spec.columns[r]!r} ({r}) is empty", "data")
             values[r] = v
         else:
-            values[r] = np.full(int(keep.sum()), float(spec.constants[r]))
-    if keep.sum() < min_rows:
+            values[r] = np.full(len(kept), float(spec.constants[r]))
+    if len(kept) < min_rows:
         cond = " and ".join(str(c) for c in spec.where) or "no filter"
-        raise PointsError(f"{p}: {int(keep.sum())} of {len(body)} rows kept ({cond}); need at least {min_rows}", "data")
+        raise PointsError(f"{p}: {len(kept)} of {len(body)} rows kept ({cond}); need at least {min_rows}", "data")
     measured = frozenset(r for r in roles if r in spec.columns)
     return Points(str(p), values, measured, rows, len(body), spec)
 
@@ -209,15 +209,26 @@ def _delimiter(sample: str) -> str:
     return max((",", ";", "\t"), key=first.count)
 
 
-def _numeric(p: Path, body: list[list[str]], col: int, name: str) -> NDArray[np.float64]:
-    out = np.empty(len(body))
+def _numeric(
+    p: Path,
+    body: list[list[str]],
+    col: int,
+    name: str,
+    keep: NDArray[np.bool_] | None = None,
+    rows: NDArray[np.int64] | None = None,
+) -> NDArray[np.float64]:
+    """Column ``col`` as numbers (NaN where empty); only where ``keep`` (the rest NaN); errors name the
+    file's data row (``rows`` maps positions to it)."""
+    out = np.full(len(body), np.nan)
     for k, row in enumerate(body):
+        if keep is not None and not keep[k]:
+            continue
         cell = row[col].strip() if col < len(row) else ""
         if not cell:
-            out[k] = np.nan
             continue
         try:
             out[k] = float(cell)
         except ValueError:
-            raise PointsError(f"{p}: row {k + 1}: column {name!r}: {cell!r} is not a number", "data") from None
+            at = int(rows[k]) if rows is not None else k + 1
+            raise PointsError(f"{p}: row {at}: column {name!r}: {cell!r} is not a number", "data") from None
     return out
