@@ -9,7 +9,9 @@ import pytest
 
 from cmcan.cli.errors import EX_CANTCREAT, EX_CONFIG, EX_DATAERR, EX_NOINPUT, EX_USAGE
 from cmcan.gap import bench
-from cmcan.gap import diagnose as dg
+from cmcan.gap import confidence as conf_mod
+from cmcan.gap import context as ctx_mod
+from cmcan.gap import fit as fit_mod
 from cmcan.gap.diagnose import diagnose
 from cmcan.gap.effects import LIBRARY, Scale
 from cmcan.gap.result import HIGH, LOW
@@ -153,16 +155,16 @@ def test_a_fitted_value_on_its_bound_is_flagged_and_lowers_confidence():
     """Every value of the final joint fit is checked against its plausible range on this machine."""
     spec = replace(bench.draw(3, 10.0, "single"), truth=("pressure_leakage",), signs=(1.0,))
     data, _ = bench.trial_data(spec, P)
-    ctx = dg.prepare(data, P)
+    ctx = ctx_mod.prepare(data, P)
     e = LIBRARY["pressure_leakage"]
-    fit = dg.fit_set(ctx, (e,))
-    (flags,) = [dg.bound_flags(ctx, fit)]
+    fit = fit_mod.fit_set(ctx, (e,))
+    (flags,) = [conf_mod.bound_flags(ctx, fit)]
     assert flags == ()
     hi = e.params[0].plausible(ctx.scale)[1]
-    pinned = dg.SetFit(fit.effects, (np.array([hi]),), fit.sigma, fit.y, fit.judged)
-    flags = dg.bound_flags(ctx, pinned)
+    pinned = fit_mod.SetFit(fit.effects, (np.array([hi]),), fit.sigma, fit.y, fit.judged)
+    flags = conf_mod.bound_flags(ctx, pinned)
     assert len(flags) == 1 and "pressure_leakage.q_ref_lpm" in flags[0].message and flags[0].code == "bound"
-    conf = dg.confidence(ctx, pinned, np.inf, {}, {}, flags)
+    conf = conf_mod.confidence(ctx, pinned, np.inf, {}, {}, flags)
     assert conf.level == LOW and "bound" in conf.reasons[0]
 
 
