@@ -107,7 +107,7 @@ class Mods:
     """What the added effects change in the simulator, accumulated over all of them. Sensor errors
     are stated as reading = (1 + gain) * true + offset, so the true value is recovered from the reading."""
 
-    extra_leak_lpm: NDArray[np.float64] | float = 0.0
+    leak_lpm: dict[str, float] = field(default_factory=dict)  # l/min at the reference point, by law
     compress_add: float = 0.0
     motor_disp_factor: float = 1.0
     sensor_offset: dict[str, float] = field(default_factory=dict)
@@ -201,7 +201,7 @@ def simulate(
         v,
         dp,
         temp,
-        extra_leak_lpm=np.asarray(m.extra_leak_lpm) + line_lpm + relief_lpm,
+        extra_leak_lpm=_leaks(p, m, dp, temp) + line_lpm + relief_lpm,
         motor_disp_factor=m.motor_disp_factor,
     ) * output_scale(p, quantity)
     if m.lag_tau_s > 0:
@@ -213,19 +213,25 @@ def mu_ratio(p: DriveParams, temp_c: NDArray[np.float64]) -> NDArray[np.float64]
     return float(p.oil.dynamic_viscosity_pa_s(REF_TEMP_C)) / p.oil.dynamic_viscosity_pa_s(temp_c)
 
 
-def _laminar(p: DriveParams, x: Inputs, th: NDArray[np.float64], m: Mods) -> None:
-    temp = m.true_value("temp_c", x.temp_c)
-    dp = m.true_value("dp_bar", x.dp_bar)
-    m.extra_leak_lpm = m.extra_leak_lpm + th[0] * dp / REF_DP_BAR * mu_ratio(p, temp)
+def _leaks(p: DriveParams, m: Mods, dp: NDArray[np.float64], temp: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The added leakages at the true pressure and temperature (after every sensor error is undone,
+    whatever order the effects came in)."""
+    q = m.leak_lpm
+    out = np.zeros_like(dp)
+    if q.get("laminar"):
+        out = out + q["laminar"] * dp / REF_DP_BAR * mu_ratio(p, temp)
+    if q.get("pressure"):
+        out = out + q["pressure"] * dp / REF_DP_BAR
+    if q.get("turbulent"):
+        out = out + q["turbulent"] * np.sign(dp) * np.sqrt(np.abs(dp) / REF_DP_BAR)
+    return out
 
 
-def _pressure(p: DriveParams, x: Inputs, th: NDArray[np.float64], m: Mods) -> None:
-    m.extra_leak_lpm = m.extra_leak_lpm + th[0] * m.true_value("dp_bar", x.dp_bar) / REF_DP_BAR
+def _leak(law: str) -> Callable[[DriveParams, Inputs, NDArray[np.float64], Mods], None]:
+    def apply(p: DriveParams, x: Inputs, th: NDArray[np.float64], m: Mods) -> None:
+        m.leak_lpm[law] = m.leak_lpm.get(law, 0.0) + float(th[0])
 
-
-def _turbulent(p: DriveParams, x: Inputs, th: NDArray[np.float64], m: Mods) -> None:
-    dp = m.true_value("dp_bar", x.dp_bar)
-    m.extra_leak_lpm = m.extra_leak_lpm + th[0] * np.sign(dp) * np.sqrt(np.abs(dp) / REF_DP_BAR)
+    return apply
 
 
 def _compress(p: DriveParams, x: Inputs, th: NDArray[np.float64], m: Mods) -> None:
@@ -299,21 +305,21 @@ LIBRARY: dict[str, Effect] = {
             "Q = q_ref * (dp / 300 bar) * (mu(50 C) / mu(T))",
             "gap flow in a rotating group (Wilson): grows with pressure and with thinner, hotter oil",
             (_LEAK,),
-            _laminar,
+            _leak("laminar"),
         ),
         Effect(
             "pressure_leakage",
             "Q = q_ref * (dp / 300 bar)",
             "leakage proportional to pressure and independent of viscosity",
             (replace(_LEAK, unit="l/min at 300 bar"),),
-            _pressure,
+            _leak("pressure"),
         ),
         Effect(
             "turbulent_leakage",
             "Q = q_ref * sqrt(dp / 300 bar)",
             "orifice-like leakage (Schloesser): grows with the square root of pressure",
             (replace(_LEAK, unit="l/min at 300 bar"),),
-            _turbulent,
+            _leak("turbulent"),
         ),
         Effect(
             "compressibility",
