@@ -38,7 +38,7 @@ LAG_RANGE_S = (0.15, 0.6)
 NATURAL = {
     "temp_sensor_offset": (3.0, 10.0),  # C, either sign
     "temp_sensor_gain": (5.0, 15.0),  # %, either sign
-    "pressure_sensor_offset": (0.01, 0.04),  # share of the highest pressure, either sign
+    "pressure_sensor_offset": (0.015, 0.04),  # share of the highest pressure, either sign
     "pressure_sensor_gain": (3.0, 10.0),  # %, either sign
 }
 SIGNED = {"motor_disp_offset"} | {n for n, e in LIBRARY.items() if e.kind == "sensor"} - {"output_sensor_lag"}
@@ -209,12 +209,13 @@ def trial_run(spec: TrialSpec, p: DriveParams | None = None) -> tuple[simrun.Run
     if spec.truth:
         healthy = simrun.simulate(scn.from_dict(copy.deepcopy(doc), source=doc["name"]))
         t = healthy["time_s"]
+        # Sized on what the sensors show (the pressure sensor sees one side of the loop only).
         x = Inputs(
             t,
             healthy["pump_speed_rpm"],
             healthy["pump_disp_cc"],
-            healthy["true_dp_bar"],
-            healthy["true_temp_c"],
+            healthy["dp_bar"],
+            healthy["temp_c"],
             np.zeros(len(t)),
             np.zeros(len(t), dtype=np.int64),
         )
