@@ -92,7 +92,9 @@ def _plots(out: Path, diag: Diagnosis, d: GapData, arrays: Arrays) -> list[str]:
         ax.set_xlabel(LABELS[var])
         ax.set_ylabel(f"gap ({unit})")
     axes[0, 0].legend(markerscale=8, fontsize=8)
-    fig.suptitle("measured minus simulated, before and after adding " + (", ".join(diag.selected) or "nothing"))
+    fig.suptitle(
+        "measured minus simulated, before and after adding " + (", ".join(f.name for f in diag.fitted) or "nothing")
+    )
     fig.tight_layout()
     _save(fig, out / "gap_vs_variables.png")
     plt.close(fig)
