@@ -137,3 +137,62 @@ def plot_residuals(sets: list[Any], report: dict[str, Any], path: str | Path) ->
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def _save(fig: Any, path: Path) -> None:
+    """Write a figure through a temporary file: a failed write leaves no half PNG."""
+    tmp = path.with_name(path.stem + ".tmp.png")
+    fig.savefig(tmp, dpi=100)  # type: ignore[attr-defined]
+    tmp.replace(path)
+
+
+def plot_gap(
+    out: Path, diag: Any, d: Any, arrays: Any, region_vars: tuple[str, ...], labels: dict[str, str]
+) -> list[str]:
+    """The gap diagnosis' figures in ``out``: the gap by operating region (a heat map over dp and
+    oil temperature) and against each input, before and after the fitted effects."""
+    plt = _pyplot()
+
+    unit = diag.unit
+    g0 = d.y - arrays.y_before
+    g1 = d.y - arrays.y_after
+    hold = arrays.holdout
+    names = []
+    if np.ptp(d.x.dp_bar) > 0 and np.ptp(d.x.temp_c) > 0:
+        # Heat map: mean gap over delta pressure x oil temperature.
+        fig, ax = plt.subplots(figsize=(6.5, 4.8))
+        xe = np.unique(np.quantile(d.x.dp_bar, np.linspace(0, 1, 9)))
+        ye = np.unique(np.quantile(d.x.temp_c, np.linspace(0, 1, 9)))
+        sums, _, _ = np.histogram2d(d.x.dp_bar, d.x.temp_c, bins=[xe, ye], weights=g0)
+        counts, _, _ = np.histogram2d(d.x.dp_bar, d.x.temp_c, bins=[xe, ye])
+        with np.errstate(invalid="ignore"):
+            mean = sums / counts
+        lim = np.nanmax(np.abs(mean)) if np.isfinite(mean).any() else 1.0
+        im = ax.pcolormesh(xe, ye, mean.T, cmap="RdBu", vmin=-lim, vmax=lim, shading="flat")
+        fig.colorbar(im, ax=ax, label=f"mean gap, measured - simulated ({unit})")
+        ax.set_xlabel(labels["dp_bar"])
+        ax.set_ylabel(labels["temp_c"])
+        ax.set_title("gap by operating region")
+        fig.tight_layout()
+        _save(fig, out / "gap_heatmap.png")
+        plt.close(fig)
+        names.append("gap_heatmap.png")
+    # Gap against each input, before and after, fit and withheld points apart.
+    fig, axes = plt.subplots(2, 2, figsize=(11, 7.5))
+    for ax, var in zip(axes.ravel(), region_vars, strict=True):
+        v = getattr(d.x, var)
+        ax.plot(v[~hold], g0[~hold], ".", ms=1, alpha=0.25, color="tab:red", label="before (fit part)")
+        ax.plot(v[hold], g0[hold], ".", ms=1, alpha=0.25, color="tab:orange", label="before (withheld)")
+        ax.plot(v[hold], g1[hold], ".", ms=1, alpha=0.4, color="tab:blue", label="after (withheld)")
+        ax.axhline(0, color="k", lw=0.5)
+        ax.set_xlabel(labels[var])
+        ax.set_ylabel(f"gap ({unit})")
+    axes[0, 0].legend(markerscale=8, fontsize=8)
+    fig.suptitle(
+        "measured minus simulated, before and after adding " + (", ".join(f.name for f in diag.fitted) or "nothing")
+    )
+    fig.tight_layout()
+    _save(fig, out / "gap_vs_variables.png")
+    plt.close(fig)
+    names.append("gap_vs_variables.png")
+    return names

@@ -17,6 +17,7 @@ DP = "dp_bar"
 TEMP = "temp_c"
 MOTOR_SPEED = "motor_speed_rpm"
 MOTOR_DIRECTION = "motor_direction"
+FLOW = "flow_lpm"  # delivered flow of an open circuit, at a flow meter
 
 UNITS: dict[str, str] = {
     PUMP_SPEED: "rpm",
@@ -27,6 +28,7 @@ UNITS: dict[str, str] = {
     TEMP: "degC",
     MOTOR_SPEED: "rpm",
     MOTOR_DIRECTION: "",
+    FLOW: "l/min",
 }
 
 # Roles a configuration may map to DBC signals.
@@ -34,6 +36,8 @@ MAPPABLE: tuple[str, ...] = (PUMP_SPEED, PUMP_DISP, HIGH_PRESSURE, LOW_PRESSURE,
 # Inputs of the model, in its input order.
 MODEL_INPUTS: tuple[str, ...] = (PUMP_SPEED, PUMP_DISP, DP, TEMP)
 MODEL_UNITS: dict[str, str] = {r: UNITS[r] for r in MODEL_INPUTS}
+# What a model may predict: a closed circuit's motor speed or an open circuit's delivered flow.
+OUTPUT_QUANTITIES: tuple[str, ...] = (MOTOR_SPEED, FLOW)
 # Roles the monitor keeps windows of and gates on, in this order: the model's inputs and the output.
 GATED: tuple[str, ...] = (*MODEL_INPUTS, MOTOR_SPEED)
 

@@ -84,7 +84,9 @@ class Str:
             return "one of " + ", ".join(repr(c) for c in self.choices)
         return "a string"
 
-    def check(self, value: Any, src: str, path: str) -> str:
+    def check(self, value: Any, src: str, path: str) -> str | None:
+        if value is None and self.default is None:  # an optional field left unset
+            return None
         if not isinstance(value, str) or (self.choices and value not in self.choices):
             raise SchemaError(src, path, f"expected {self.describe()}, got {value!r}")
         return value

@@ -17,9 +17,9 @@ PKG = Path(__file__).resolve().parents[1] / "cmcan"
 LAYERS: list[tuple[str, ...]] = [
     ("cmcan", "cmcan.roles", "cmcan.frame", "cmcan.errors", "cmcan.oil", "cmcan.schema", "cmcan.codec"),
     ("cmcan.monitor",),  # the pure core
-    ("cmcan.model", "cmcan.sim", "cmcan.io", "cmcan.dbc", "cmcan.statefile", "cmcan.sdnotify"),
+    ("cmcan.model", "cmcan.sim", "cmcan.io", "cmcan.dbc", "cmcan.statefile", "cmcan.sdnotify", "cmcan.plots"),
     ("cmcan.gap", "cmcan.config"),
-    ("cmcan.assemble", "cmcan.preflight", "cmcan.plots"),
+    ("cmcan.assemble", "cmcan.preflight"),
     ("cmcan.daemon", "cmcan.replay", "cmcan.columnar", "cmcan.demo", "cmcan.rebuild_default"),
     ("cmcan.cli", "cmcan.__main__"),
 ]

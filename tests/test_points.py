@@ -53,7 +53,7 @@ def test_conditions_parse(text, expected):
 def test_bad_conditions_are_named(text):
     with pytest.raises(PointsError, match="--where") as exc:
         Condition.parse(text)
-    assert exc.value.kind == "spec"
+    assert exc.value.problem == "spec"
 
 
 @given(
@@ -73,16 +73,16 @@ def test_errors_name_the_file_the_column_and_the_row(tmp_path):
     spec = PointSpec({"dp_bar": "ps1", "flow_lpm": "fs1"}, {"pump_speed_rpm": 1.0})
     with pytest.raises(PointsError, match=r"t.csv: row 2: column 'fs1': 'x' is not a number") as exc:
         read_points(p, spec, ROLES)
-    assert exc.value.kind == "data"
+    assert exc.value.problem == "data"
     spec = PointSpec({"dp_bar": "ps9", "flow_lpm": "fs1"}, {"pump_speed_rpm": 1.0}, source="rig.yaml")
     with pytest.raises(PointsError, match=r"no column 'ps9' \(columns.dp_bar in rig.yaml\); the file has ps1, fs1"):
         read_points(p, spec, ROLES)
     with pytest.raises(PointsError, match="no column or constant for pump_speed_rpm") as exc:
         read_points(p, PointSpec({"dp_bar": "ps1", "flow_lpm": "fs1"}), ROLES)
-    assert exc.value.kind == "spec"
+    assert exc.value.problem == "spec"
     with pytest.raises(PointsError, match="file not found") as exc:
         read_points(tmp_path / "none.csv", PointSpec({}, dict.fromkeys(ROLES, 1.0)), ROLES)
-    assert exc.value.kind == "noinput"
+    assert exc.value.problem == "noinput"
     q = table(tmp_path, "ps1,fs1\n150,\n", "empty.csv")
     with pytest.raises(PointsError, match="row 1: column 'fs1' \\(flow_lpm\\) is empty"):
         read_points(q, PointSpec({"dp_bar": "ps1", "flow_lpm": "fs1"}, {"pump_speed_rpm": 1.0}), ROLES)
@@ -111,7 +111,7 @@ def test_spec_files_are_checked(tmp_path):
         bad.write_text(text)
         with pytest.raises(PointsError, match=msg) as exc:
             PointSpec.load(bad)
-        assert exc.value.kind == "spec" and "bad.yaml" in str(exc.value)
+        assert exc.value.problem == "spec" and "bad.yaml" in str(exc.value)
 
 
 def test_command_line_entries_take_precedence():

@@ -7,16 +7,25 @@ import importlib
 import logging
 import sys
 from collections.abc import Sequence
+from typing import NoReturn
 
 from cmcan import __version__
-from cmcan.cli.errors import EX_SOFTWARE, exit_code
+from cmcan.cli.errors import EX_SOFTWARE, EX_USAGE, exit_code
 from cmcan.errors import CmcanError
 
 SUBCOMMANDS = ("simulate", "train", "evaluate", "replay", "run", "check", "demo", "gap")
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse, but a usage error exits with sysexits' EX_USAGE (64) as the README documents, not 2."""
+
+    def error(self, message: str) -> NoReturn:
+        self.print_usage(sys.stderr)
+        self.exit(EX_USAGE, f"{self.prog}: error: {message}\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="cmcan",
         description="Condition monitoring of hydrostatic drives on CAN: simulate, train, monitor, replay.",
     )

@@ -1,16 +1,13 @@
-"""The diagnosis written out: report.json, report.md and the plots it shows."""
+"""The diagnosis written out: report.json, report.md and the plots, all from the typed Diagnosis."""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
-
-import numpy as np
-from numpy.typing import NDArray
 
 from cmcan.gap.data import GapData
 from cmcan.gap.diagnose import REGION_VARS
+from cmcan.gap.result import Arrays, Diagnosis, Regions
 
 LABELS = {
     "dp_bar": "delta pressure (bar)",
@@ -20,18 +17,23 @@ LABELS = {
 }
 
 
-def write(
-    out: Path, report: dict[str, Any], d: GapData, arrays: dict[str, NDArray[np.float64]], plots: bool = True
-) -> list[Path]:
+def to_json(diag: Diagnosis) -> str:
+    return json.dumps(diag.to_dict(), indent=2)
+
+
+def write(out: Path, diag: Diagnosis, d: GapData, arrays: Arrays, plots: bool = True) -> list[Path]:
+    """Each file is written to a temporary name and renamed, so a report is never left half-written."""
     out.mkdir(parents=True, exist_ok=True)
-    written = [_atomic(out / "report.json", json.dumps(report, indent=2))]
+    written = [_atomic(out / "report.json", to_json(diag) + "\n")]
     figs: list[str] = []
     if plots:
         try:
-            figs = _plots(out, report, d, arrays)
-        except ImportError:
+            from cmcan.plots import plot_gap
+
+            figs = plot_gap(out, diag, d, arrays, REGION_VARS, LABELS)
+        except ImportError:  # no matplotlib: the report without figures
             figs = []
-    written.append(_atomic(out / "report.md", markdown(report, figs)))
+    written.append(_atomic(out / "report.md", markdown(diag, figs)))
     written += [out / f for f in figs]
     return written
 
@@ -43,125 +45,105 @@ def _atomic(path: Path, text: str) -> Path:
     return path
 
 
-def _plots(out: Path, report: dict[str, Any], d: GapData, arrays: dict[str, NDArray[np.float64]]) -> list[str]:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    unit = report["unit"]
-    g0 = d.y - arrays["y_before"]
-    g1 = d.y - arrays["y_after"]
-    hold = arrays["holdout"]
-    names = []
-    # Heat map: mean gap over delta pressure x oil temperature.
-    fig, ax = plt.subplots(figsize=(6.5, 4.8))
-    xe = np.quantile(d.x.dp_bar, np.linspace(0, 1, 9))
-    ye = np.quantile(d.x.temp_c, np.linspace(0, 1, 9))
-    sums, _, _ = np.histogram2d(d.x.dp_bar, d.x.temp_c, bins=[xe, ye], weights=g0)
-    counts, _, _ = np.histogram2d(d.x.dp_bar, d.x.temp_c, bins=[xe, ye])
-    with np.errstate(invalid="ignore"):
-        mean = sums / counts
-    lim = np.nanmax(np.abs(mean)) if np.isfinite(mean).any() else 1.0
-    im = ax.pcolormesh(xe, ye, mean.T, cmap="RdBu", vmin=-lim, vmax=lim, shading="flat")
-    fig.colorbar(im, ax=ax, label=f"mean gap, measured - simulated ({unit})")
-    ax.set_xlabel(LABELS["dp_bar"])
-    ax.set_ylabel(LABELS["temp_c"])
-    ax.set_title("gap by operating region")
-    fig.tight_layout()
-    fig.savefig(out / "gap_heatmap.png", dpi=100)
-    plt.close(fig)
-    names.append("gap_heatmap.png")
-    # Gap against each variable, before and after, fit and withheld points apart.
-    fig, axes = plt.subplots(2, 2, figsize=(11, 7.5))
-    for ax, var in zip(axes.ravel(), REGION_VARS, strict=True):
-        v = getattr(d.x, var)
-        ax.plot(v[~hold], g0[~hold], ".", ms=1, alpha=0.25, color="tab:red", label="before (fit part)")
-        ax.plot(v[hold], g0[hold], ".", ms=1, alpha=0.25, color="tab:orange", label="before (withheld)")
-        ax.plot(v[hold], g1[hold], ".", ms=1, alpha=0.4, color="tab:blue", label="after (withheld)")
-        ax.axhline(0, color="k", lw=0.5)
-        ax.set_xlabel(LABELS[var])
-        ax.set_ylabel(f"gap ({unit})")
-    axes[0, 0].legend(markerscale=8, fontsize=8)
-    fig.suptitle("measured minus simulated, before and after adding " + (", ".join(report["selected"]) or "nothing"))
-    fig.tight_layout()
-    fig.savefig(out / "gap_vs_variables.png", dpi=100)
-    plt.close(fig)
-    names.append("gap_vs_variables.png")
-    return names
+def _answer(diag: Diagnosis) -> str:
+    if not diag.groups:
+        return "none"
+    return "; ".join(" or ".join(g) if len(g) > 1 else g[0] for g in diag.groups)
 
 
-def markdown(r: dict[str, Any], figs: list[str]) -> str:
-    u = r["unit"]
-    gb, ga = r["gap_before"], r["gap_after"]
+def markdown(r: Diagnosis, figs: list[str]) -> str:
+    u = r.unit
+    gb, ga = r.before, r.after
+    conf = r.confidence
     lines = [
-        f"# Sim-to-real gap: {r['source']}",
+        f"# Sim-to-real gap: {r.source}",
         "",
-        f"**Verdict: {r['verdict']}.** Selected: {', '.join(r['selected']) or 'none'}.",
-        "",
-        f"- Output quantity: `{r['quantity']}` ({u}); {r['points']} points (0.1 s block means); noise level "
-        f"{r['noise_level']:.2f} {u}",
-        f"- Withheld for judging: `{r['holdout']['spec']}` ({r['holdout']['points']} points)",
-        f"- Gap before: RMSE {gb['rmse']:.2f} {u} ({gb['rmse_pct']:.2f} %), mean {gb['mean']:+.2f} {u}; "
-        f"withheld {gb['heldout_rmse']:.2f} {u}",
-        f"- Gap after: RMSE {ga['rmse']:.2f} {u} ({ga['rmse_pct']:.2f} %); withheld {ga['heldout_rmse']:.2f} {u} "
-        f"({100 * ga['heldout_reduction']:.0f} % less)",
-        "",
-        "## Where",
+        f"**Verdict: {r.verdict}.** Effect(s): {_answer(r)}" + (f"; confidence **{conf.level}**." if conf else "."),
         "",
     ]
-    dom = r["where"]["dominant_region"]
-    lines.append(
-        f"Most of the gap lies at {dom['variable']} {dom['range'][0]:.1f} .. {dom['range'][1]:.1f} "
-        f"({100 * dom['share']:.0f} % of the squared gap). Time lag of measured behind simulated: "
-        f"{r['where']['time_lag']['lag_s']:.2f} s."
-    )
+    if conf and conf.reasons:
+        lines += ["Not higher because: " + "; ".join(conf.reasons) + ".", ""]
+    for f in r.flags:
+        lines += [f"- **Flag ({f.code}):** {f.message}"]
+    if r.flags:
+        lines.append("")
+    kind = "0.1 s block means" if r.data_kind == "series" else "operating points (one per row)"
+    lines += [
+        f"- Output quantity: `{r.quantity}` ({u}); {r.points} points ({kind}); noise level {r.noise_level:.3g} {u}",
+        f"- Withheld for judging: `{r.holdout.spec}` ({r.holdout.points} points, {r.holdout.judged_points} judged "
+        f"on {r.holdout.judged_on})",
+        f"- Gap before: RMSE {gb.rmse:.3g} {u} ({gb.rmse_pct:.2f} %), mean {gb.mean:+.3g} {u}; withheld "
+        f"{gb.heldout_rmse:.3g} {u}",
+        f"- Gap after: RMSE {ga.rmse:.3g} {u} ({ga.rmse_pct:.2f} %); withheld {ga.heldout_rmse:.3g} {u} "
+        f"({100 * ga.heldout_reduction:.0f} % less)",
+    ]
+    if r.fitted:
+        par = "; ".join(
+            f"{f.name}.{q.name} = {q.value:.4g} ± {q.uncertainty:.2g} {q.unit}" for f in r.fitted for q in f.params
+        )
+        lines.append(f"- Fitted: {par}")
+    lines += ["", "## Where", ""]
+    dom, lag = r.where.dominant, r.where.time_lag
+    if dom is not None:
+        lines.append(
+            f"Most of the gap lies at {dom.variable} {dom.lo:.4g} .. {dom.hi:.4g} "
+            f"({100 * dom.share:.0f} % of the squared gap at judged points)."
+        )
+    if lag is not None:
+        lines.append(f"Time lag of measured behind simulated: {lag.lag_s:.2f} s.")
     lines += ["", "| variable | quartile | points | mean gap | RMSE | share |", "|---|---|---|---|---|---|"]
-    for var in REGION_VARS:
-        for b in r["where"]["regions"][var]:
-            lines.append(
-                f"| {var} | {b['range'][0]:.1f} .. {b['range'][1]:.1f} | {b['points']} | "
-                f"{b['mean_gap']:+.2f} | {b['rmse']:.2f} | {100 * b['share']:.0f} % |"
-            )
-    for k in ("steady", "transient"):
-        b = r["where"]["regions"][k]
-        lines.append(f"| {k} | | {b['points']} | | {b['rmse']:.2f} | {100 * b['share']:.0f} % |")
+    lines += _region_rows(r.where.regions)
     lines += [
         "",
         "## Which",
         "",
-        "| effect | fitted parameter | withheld gap reduction | plausible | significant |",
+        "| effect | fitted parameter | plausible range | withheld gap reduction | significant |",
         "|---|---|---|---|---|",
     ]
-    for e in sorted(r["effects"], key=lambda e: -e["heldout_gap_reduction"]):
+    for e in sorted(r.candidates, key=lambda e: -e.heldout_reduction):
         par = "; ".join(
-            f"{k} = {v['value']:.4g} ± {v['uncertainty']:.2g} {v['unit']}" for k, v in e["parameters"].items()
+            f"{q.name} = {q.value:.4g} ± {q.uncertainty:.2g} {q.unit}" + (" (on bound)" if q.at_bound else "")
+            for q in e.params
         )
+        rng = "; ".join(f"{q.plausible[0]:.4g} .. {q.plausible[1]:.4g}" for q in e.params)
         lines.append(
-            f"| {e['name']} | {par} | {100 * e['heldout_gap_reduction']:.0f} % | {'yes' if e['plausible'] else 'no'} "
-            f"| {'yes' if e['significant'] else 'no'} |"
+            f"| {e.name} | {par} | {rng} | {100 * e.heldout_reduction:.0f} % | {'yes' if e.significant else 'no'} |"
         )
-    if r["ambiguous"]:
+    if r.ambiguous:
         lines += [
             "",
             "Cannot be told apart on these data: "
-            + "; ".join(" and ".join(g) for g in r["ambiguous"])
+            + "; ".join(" and ".join(g) for g in r.ambiguous)
             + ". Data with a wider spread of the variable that separates them would decide.",
         ]
-    if r["robustness"]:
+    if r.robustness:
         lines += [
             "",
             "Withheld-region robustness of the selection (refitted with each region withheld): "
-            + ", ".join(f"{k} {100 * v:.0f} %" for k, v in r["robustness"].items())
+            + ", ".join(f"{k} {100 * v:.0f} %" for k, v in r.robustness.items())
             + ".",
         ]
+    if conf:
+        lines += ["", "Confidence figures: " + ", ".join(f"{k} {v:.3g}" for k, v in conf.checks.items()) + "."]
     lines += ["", "## How far", "", "| region (withheld part) | RMSE before | RMSE after |", "|---|---|---|"]
-    before, after = r["holdout"]["regions_before"], ga["regions_heldout"]
+    before, after = r.holdout.regions_before, r.after.regions_heldout
     for var in REGION_VARS:
-        for b0, b1 in zip(before[var], after[var], strict=False):
-            lines.append(
-                f"| {var} {b0['range'][0]:.1f} .. {b0['range'][1]:.1f} | {b0['rmse']:.2f} | {b1['rmse']:.2f} |"
-            )
+        for b0, b1 in zip(before.bins.get(var, ()), after.bins.get(var, ()), strict=False):
+            lines.append(f"| {var} {b0.lo:.4g} .. {b0.hi:.4g} | {b0.rmse:.3g} | {b1.rmse:.3g} |")
     for f in figs:
         lines += ["", f"![{f}]({f})"]
     return "\n".join(lines) + "\n"
+
+
+def _region_rows(reg: Regions) -> list[str]:
+    rows = []
+    for var in REGION_VARS:
+        for b in reg.bins.get(var, ()):
+            rows.append(
+                f"| {var} | {b.lo:.4g} .. {b.hi:.4g} | {b.points} | {b.mean_gap:+.3g} | {b.rmse:.3g} | "
+                f"{100 * b.share:.0f} % |"
+            )
+    for name, part in (("steady", reg.steady), ("transient", reg.transient)):
+        if part.points:
+            rows.append(f"| {name} | | {part.points} | | {part.rmse:.3g} | {100 * part.share:.0f} % |")
+    return rows

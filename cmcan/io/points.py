@@ -21,6 +21,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from cmcan.errors import CmcanError, Kind
+
 _OPS: dict[str, Callable[[float, float], bool]] = {
     "==": operator.eq,
     "!=": operator.ne,
@@ -33,15 +35,16 @@ _OPS: dict[str, Callable[[float, float], bool]] = {
 _CONDITION = re.compile(r"^\s*([^=!<>\s][^=!<>]*?)\s*(==|!=|<=|>=|=|<|>)\s*(.+?)\s*$")
 
 
-class PointsError(ValueError):
+class PointsError(CmcanError, ValueError):
     """An operating-point table or its spec cannot be used; ``str()`` names the file and field.
 
-    ``kind`` says whose fault it is: ``"noinput"`` (the file is missing), ``"data"`` (the file does not
-    hold what the spec asks for), ``"spec"`` (the spec itself is malformed)."""
+    ``problem`` says whose fault it is: ``"noinput"`` (the file is missing), ``"data"`` (the file does
+    not hold what the spec asks for), ``"spec"`` (the spec itself is malformed: a configuration error,
+    or a usage error when the spec came from the command line)."""
 
-    def __init__(self, message: str, kind: str) -> None:
-        super().__init__(message)
-        self.kind = kind
+    def __init__(self, message: str, problem: str) -> None:
+        super().__init__(message, {"noinput": Kind.NO_INPUT, "data": Kind.DATA}.get(problem, Kind.CONFIG))
+        self.problem = problem
 
 
 @dataclass(frozen=True)

@@ -68,7 +68,12 @@ def integrate(p: DriveParams, u: DriveInputs, dt_s: float, start: DriveState) ->
     lam_p = p.pump.laminar_cs * vp_max / TWO_PI
     lam_m = p.motor.laminar_cs * vm_max / TWO_PI
     turb = p.pump.turbulent_ct * vp_max ** (2 / 3) + p.motor.turbulent_ct * vm_max ** (2 / 3)
-    comp_p = p.pump.compress_factor / bulk
+    comp_p = (p.pump.compress_factor + p.extra.compress_factor) / bulk
+    # Extra loss terms (0 unless a scenario or the gap bench adds them; adding 0.0 changes no bit).
+    lam_x = p.extra.laminar_g(p.oil)
+    lin_x = p.extra.pressure_g()
+    orf_x = p.extra.turbulent_h()
+    fill_x = p.extra.filling_c()
     comp_m = p.motor.compress_factor / bulk
     relief_dp = p.relief_dp_bar * BAR
     relief_gain = p.relief_gain_lpm_per_bar * LPM / BAR
@@ -106,16 +111,18 @@ def integrate(p: DriveParams, u: DriveInputs, dt_s: float, start: DriveState) ->
         mu = nu * 1e-6 * rho
         n_p = n_p_l[i]
         q_geo = n_p / 60.0 * v_p_l[i] * CC
+        q_fill = fill_x * n_p * n_p
         d_m = d_m_nom * mf_l[i]
 
         # Leakage conductance (linear part) and sqrt-law part at the current pressure.
-        g_lin = (lam_p + lam_m + gp_l[i] + gm_l[i]) / mu + comp_p * q_geo
+        g_lin = (lam_p + lam_m + lam_x + gp_l[i] + gm_l[i]) / mu + lin_x + comp_p * q_geo
         adp = dp if dp >= 0.0 else -dp
         root = sqrt(2.0 * adp / rho)
-        h_sq = turb * root + hb_l[i] * sqrt(adp)
+        h_b = hb_l[i] + orf_x
+        h_sq = turb * root + h_b * sqrt(adp)
         q_sq = h_sq if dp >= 0.0 else -h_sq
         adp_c = adp if adp > _MIN_DP_FOR_SQRT else _MIN_DP_FOR_SQRT
-        dq_sq = 0.5 * (turb * sqrt(2.0 / (rho * adp_c)) + hb_l[i] / sqrt(adp_c))
+        dq_sq = 0.5 * (turb * sqrt(2.0 / (rho * adp_c)) + h_b / sqrt(adp_c))
         q_motor = w * d_m * (1.0 + comp_m * dp)
         q_base = g_lin * dp + q_sq
         fd_base = -k_line * (g_lin + dq_sq + w * d_m * comp_m)
@@ -140,7 +147,7 @@ def integrate(p: DriveParams, u: DriveInputs, dt_s: float, start: DriveState) ->
             else:
                 q_leak = q_base
                 fd = fd_base
-            f0 = k_line * (q_geo - q_leak - q_motor)
+            f0 = k_line * (q_geo - q_fill - q_leak - q_motor)
             a11 = 1.0 - dt_s * fd
             a12 = -dt_s * fw
             a21 = -dt_s * gd

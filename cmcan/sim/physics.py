@@ -7,6 +7,10 @@ quasi-static law used by the gap diagnosis and by tests).
 - laminar leakage (Wilson):     Q = C_s * D * dp / mu          D = V / (2 pi) in m3/rad
 - turbulent leakage (Schloesser): Q = C_t * V^(2/3) * sqrt(2 dp / rho)
 - compressibility loss:         Q = f_c * n * V * dp / K       n in rev/s, V in m3/rev
+
+Extra loss terms (:class:`ExtraLosses`) are stated the way a test rig reports a leak, in l/min at
+300 bar and 50 C; they are the physical effects of the gap diagnosis's library, so the simulator can
+carry what a diagnosis found and the gap bench can put an effect inside the dynamic simulator.
 """
 
 from __future__ import annotations
@@ -23,6 +27,10 @@ BAR = 1e5
 LPM = 1e-3 / 60.0  # m3/s per l/min
 CC = 1e-6  # m3 per cm3
 TWO_PI = 2.0 * math.pi
+# Reference point at which extra leakages are stated (l/min at 300 bar and 50 C oil).
+REF_DP_BAR = 300.0
+REF_TEMP_C = 50.0
+REF_SPEED_RPM = 3000.0  # ... and a filling loss at 3000 rpm
 
 
 @dataclass(frozen=True)
@@ -35,6 +43,51 @@ class UnitLosses:
 
     def off(self) -> UnitLosses:
         return UnitLosses()
+
+
+@dataclass(frozen=True)
+class ExtraLosses:
+    """Loss terms beyond the units' own laws, each off at 0 (the default)."""
+
+    laminar_lpm: float = 0.0  # Q = q * (dp / 300 bar) * (mu(50 C) / mu(T)): a gap flow
+    pressure_lpm: float = 0.0  # Q = q * (dp / 300 bar): a viscosity-free leak
+    turbulent_lpm: float = 0.0  # Q = q * sqrt(dp / 300 bar): an orifice
+    compress_factor: float = 0.0  # added to the pump's compressibility share
+    # Incomplete filling of the pump's chambers at speed: Q = q * (n_P / 3000 rpm)^2 (not in the gap
+    # library: the gap bench's effect from outside it).
+    filling_lpm: float = 0.0
+
+    @property
+    def any(self) -> bool:
+        return any(
+            v != 0.0
+            for v in (self.laminar_lpm, self.pressure_lpm, self.turbulent_lpm, self.compress_factor, self.filling_lpm)
+        )
+
+    def filling_c(self) -> float:
+        """The filling loss as Q = c * n^2 (SI flow, n in rpm)."""
+        return self.filling_lpm * LPM / REF_SPEED_RPM**2
+
+    def laminar_g(self, oil: Oil) -> float:
+        """The laminar term as a conductance g (Q = g * dp / mu, SI)."""
+        return self.laminar_lpm * LPM * float(oil.dynamic_viscosity_pa_s(REF_TEMP_C)) / (REF_DP_BAR * BAR)
+
+    def pressure_g(self) -> float:
+        """The viscosity-free term as a conductance (Q = g * dp, SI)."""
+        return self.pressure_lpm * LPM / (REF_DP_BAR * BAR)
+
+    def turbulent_h(self) -> float:
+        """The orifice term as Q = h * sqrt(dp) (SI)."""
+        return self.turbulent_lpm * LPM / math.sqrt(REF_DP_BAR * BAR)
+
+    def leak_m3s(self, oil: Oil, pump_speed_rpm: Any, dp_pa: Any, mu_pas: Any) -> Any:
+        """The extra terms' flow (compressibility is handled with the pump's own share)."""
+        return (
+            self.laminar_g(oil) * dp_pa / mu_pas
+            + self.pressure_g() * dp_pa
+            + self.turbulent_h() * np.sign(dp_pa) * np.sqrt(np.abs(dp_pa))
+            + self.filling_c() * np.square(pump_speed_rpm)
+        )
 
 
 @dataclass(frozen=True)
@@ -61,6 +114,7 @@ class DriveParams:
     heat_capacity_kj_per_k: float = 200.0
     cooler_w_per_k: float = 500.0
     hm_loss_fraction: float = 0.06
+    extra: ExtraLosses = field(default_factory=ExtraLosses)
 
     @property
     def motor_disp_cc(self) -> float:
@@ -97,7 +151,11 @@ def pump_loss_m3s(p: DriveParams, pump_speed_rpm: Any, pump_disp_cc: Any, dp_pa:
         laminar_leak_m3s(dp_pa, mu_pas, vmax / TWO_PI, p.pump.laminar_cs)
         + turbulent_leak_m3s(dp_pa, rho, vmax, p.pump.turbulent_ct)
         + compress_loss_m3s(
-            pump_speed_rpm / 60.0, pump_disp_cc * CC, dp_pa, p.bulk_modulus_bar * BAR, p.pump.compress_factor
+            pump_speed_rpm / 60.0,
+            pump_disp_cc * CC,
+            dp_pa,
+            p.bulk_modulus_bar * BAR,
+            p.pump.compress_factor + p.extra.compress_factor,
         )
     )
 
@@ -137,6 +195,8 @@ def steady_motor_speed_rpm(
     rho = p.oil.density_kg_m3(temp_c)
     q_pump = n_p / 60.0 * v_p * CC - pump_loss_m3s(p, n_p, v_p, dp, mu, rho)
     q_motor = q_pump - motor_leak_m3s(p, dp, mu, rho) - np.asarray(extra_leak_lpm, dtype=float) * LPM
+    if p.extra.any:
+        q_motor = q_motor - p.extra.leak_m3s(p.oil, n_p, dp, mu)
     per_rev = motor_flow_per_rev_m3(p, p.motor_disp_cc * CC * np.asarray(motor_disp_factor, dtype=float), dp)
     return np.maximum(q_motor, 0.0) / per_rev * 60.0
 

@@ -16,6 +16,8 @@ from cmcan.sim import degradation, duty
 from cmcan.sim.drive import DriveInputs, integrate, load_torque_for_dp, steady_state
 from cmcan.sim.physics import DriveParams
 from cmcan.sim.scenario import Scenario
+from cmcan.sim.scenario import sensor_errors as scenario_sensor_errors
+from cmcan.sim.sensors import SensorError
 
 # Columns of a run, in file order. Measured quantities first, then the ground truth (never on the bus).
 MEASURED = (
@@ -148,7 +150,8 @@ def simulate(s: Scenario, db: Database | None = None, mapping: dict[str, tuple[s
         "temp_c": true_temp,
         "motor_speed_rpm": np.abs(true_speed),
     }
-    measured = sense(truth, s.raw["sensors"]["noise"], db, mapping, t_s, bursts, rng_noise)
+    errors = scenario_sensor_errors(s.raw)
+    measured = sense(truth, s.raw["sensors"]["noise"], db, mapping, t_s, bursts, rng_noise, errors)
     measured["dp_bar"] = measured["high_pressure_bar"] - measured["low_pressure_bar"]
     cols: dict[str, NDArray[np.float64]] = {"time_s": t_s, "operating_h": t_h}
     for k in MEASURED:
@@ -181,12 +184,17 @@ def sense(
     t_s: NDArray[np.float64],
     bursts: list[tuple[int, int]],
     rng: np.random.Generator,
+    errors: dict[str, SensorError] | None = None,
 ) -> dict[str, NDArray[np.float64]]:
-    """Sensor readings as they reach the bus: noise, then the DBC's resolution and range, held between
-    sends of the message that carries them (a 100 ms message updates every 10th 10 ms sample)."""
+    """Sensor readings as they reach the bus: the sensor's own error (lag, gain, offset) where the
+    scenario states one, noise, then the DBC's resolution and range, held between sends of the message
+    that carries them (a 100 ms message updates every 10th 10 ms sample)."""
     out = {}
     dt = float(t_s[1] - t_s[0]) if len(t_s) > 1 else 0.01
+    errors = errors or {}
     for key, true in truth.items():
+        if key in errors:
+            true = errors[key].apply(true, dt, bursts)
         msg = db.get_message_by_name(mapping[key][0])
         noisy = true + rng.normal(0.0, noise[key], size=len(true)) if noise[key] > 0 else true.copy()
         q = quantize(msg, mapping[key][1], noisy)

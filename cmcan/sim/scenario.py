@@ -8,8 +8,10 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
+from cmcan.oil import Oil, oil_from_grade
 from cmcan.schema import Bool, Num, Obj, OneOf, SchemaError, Seq, Str, load_yaml
-from cmcan.sim.physics import DriveParams, UnitLosses
+from cmcan.sim.physics import DriveParams, ExtraLosses, UnitLosses
+from cmcan.sim.sensors import SensorError
 
 INF = math.inf
 
@@ -36,7 +38,7 @@ _DRIVE = Obj(
         "motor_disp_setting": Num(0.05, 1.0, "(fraction of max)", default=None),
         "charge_pressure_bar": Num(0, 60, "bar", default=None),
         "relief_dp_bar": Num(50, 650, "bar", default=None),
-        "relief_gain_lpm_per_bar": Num(0.1, 1000, "l/min/bar", default=None),
+        "relief_gain_lpm_per_bar": Num(0.001, 1000, "l/min/bar", default=None),
         "bulk_modulus_bar": Num(1000, 30000, "bar", default=None),
         "line_volume_l": Num(0.01, 100, "l", default=None),
         "motor_inertia_kgm2": Num(0.001, 1000, "kg m2", default=None),
@@ -47,6 +49,65 @@ _DRIVE = Obj(
         "hm_loss_fraction": Num(0, 0.5, default=None),
     },
     default={},
+)
+
+# Loss terms beyond the units' own laws, in l/min at 300 bar and 50 C (the gap library's physical effects).
+_EXTRA_LOSSES = Obj(
+    {
+        "laminar_lpm": Num(0, 1000, "l/min at 300 bar, 50 C", default=0.0),
+        "pressure_lpm": Num(0, 1000, "l/min at 300 bar", default=0.0),
+        "turbulent_lpm": Num(0, 1000, "l/min at 300 bar", default=0.0),
+        "compress_factor": Num(0, 10, "(share of n V dp / K)", default=0.0),
+        "filling_lpm": Num(0, 1000, "l/min at 3000 rpm", default=0.0),
+    },
+    default={},
+)
+
+
+def _fluid_rule(f: dict[str, Any]) -> tuple[str, str] | None:
+    if f["grade"] is not None:
+        for key in ("nu40_cst", "nu100_cst"):
+            if f[key] is not None:
+                return key, "give either grade or nu40_cst and nu100_cst, not both"
+        try:
+            oil_from_grade(f["grade"])
+        except ValueError as exc:
+            return "grade", str(exc)
+        return None
+    if (f["nu40_cst"] is None) != (f["nu100_cst"] is None):
+        return ("nu100_cst" if f["nu100_cst"] is None else "nu40_cst"), "nu40_cst and nu100_cst go together"
+    if f["nu40_cst"] is not None and f["nu100_cst"] >= f["nu40_cst"]:
+        return "nu100_cst", f"must be lower than nu40_cst ({f['nu40_cst']} cSt), got {f['nu100_cst']}"
+    return None
+
+
+# The hydraulic oil: an ISO grade (mineral HLP oil) or its two reference viscosities; default VG 46.
+_FLUID = Obj(
+    {
+        "grade": Str(default=None),
+        "nu40_cst": Num(2, 1000, "cSt at 40 C", default=None),
+        "nu100_cst": Num(1, 100, "cSt at 100 C", default=None),
+        "density15_kg_m3": Num(700, 1100, "kg/m3 at 15 C", default=None),
+    },
+    default={},
+    rule=_fluid_rule,
+)
+
+_SENSOR_ERROR = Obj(
+    {
+        "offset": Num(-1e4, 1e4, "(the channel's unit)", default=0.0),
+        "gain_pct": Num(-50, 50, "%", default=0.0),
+        "lag_s": Num(0, 10, "s", default=0.0),
+    },
+    default={},
+)
+SENSOR_CHANNELS = (
+    "pump_speed_rpm",
+    "pump_disp_cc",
+    "high_pressure_bar",
+    "low_pressure_bar",
+    "temp_c",
+    "motor_speed_rpm",
 )
 
 _PHASE_TABLE_POINT = Obj(
@@ -216,6 +277,8 @@ _SENSORS = Obj(
             default={},
         ),
         "jitter_ms": Num(0, 5, "ms", default=0.0),
+        # Miscalibrated or slow transducers: reading = (1 + gain_pct/100) * lagged(true) + offset.
+        "errors": Obj(dict.fromkeys(SENSOR_CHANNELS, _SENSOR_ERROR), default={}),
     },
     default={},
 )
@@ -226,6 +289,10 @@ def _sampling_rule(s: dict[str, Any]) -> tuple[str, str] | None:
         return "burst_s", f"must not exceed the burst interval ({s['every_min']} min)"
     return None
 
+
+_LOSSES = Obj({"pump": _unit_losses(), "motor": _unit_losses(), "extra": _EXTRA_LOSSES}, default={})
+# A drive file: the machine alone (its sizes, loss terms and oil), as the gap diagnosis takes it.
+_DRIVE_FILE = Obj({"drive": _DRIVE, "losses": _LOSSES, "fluid": _FLUID})
 
 _SCENARIO = Obj(
     {
@@ -245,7 +312,8 @@ _SCENARIO = Obj(
             rule=_sampling_rule,
         ),
         "drive": _DRIVE,
-        "losses": Obj({"pump": _unit_losses(), "motor": _unit_losses()}, default={}),
+        "losses": _LOSSES,
+        "fluid": _FLUID,
         "oil": _OIL,
         "duty": _DUTY,
         "events": Seq(_EVENT, default=[]),
@@ -296,7 +364,23 @@ def _params_from(raw: dict[str, Any]) -> DriveParams:
             turbulent_ct=_coeff(spec["turbulent"], "ct", base.turbulent_ct),
             compress_factor=_coeff(spec["compressibility"], "factor", base.compress_factor),
         )
-    return replace(p, **units)
+    return replace(p, **units, extra=ExtraLosses(**raw["losses"]["extra"]), oil=fluid_from(raw["fluid"]))
+
+
+def fluid_from(f: dict[str, Any]) -> Oil:
+    """The oil a validated ``fluid`` section names (VG 46 when it names none)."""
+    oil = oil_from_grade(f["grade"]) if f["grade"] is not None else Oil()
+    if f["nu40_cst"] is not None:
+        oil = replace(oil, nu40_cst=f["nu40_cst"], nu100_cst=f["nu100_cst"])
+    if f["density15_kg_m3"] is not None:
+        oil = replace(oil, density15_kg_m3=f["density15_kg_m3"])
+    return oil
+
+
+def sensor_errors(raw: dict[str, Any]) -> dict[str, SensorError]:
+    """The sensor errors a validated scenario states, by channel (only those that are not zero)."""
+    errs = {k: SensorError(**v) for k, v in raw["sensors"]["errors"].items()}
+    return {k: e for k, e in errs.items() if e.any}
 
 
 def _coeff(term: dict[str, Any], key: str, default: float) -> float:
@@ -347,3 +431,15 @@ def resolve(name_or_path: str | Path) -> Path:
         return shipped(str(name_or_path))
     except FileNotFoundError:
         return p
+
+
+def drive_from_dict(data: Any, source: str = "<drive>") -> DriveParams:
+    """A machine from the ``drive``, ``losses`` and ``fluid`` sections (each optional; the rest is the
+    reference drive)."""
+    if data is None:
+        data = {}
+    return _params_from(_DRIVE_FILE.check(data, source, ""))
+
+
+def load_drive(path: str | Path) -> DriveParams:
+    return drive_from_dict(load_yaml(path), source=str(path))

@@ -1,0 +1,150 @@
+"""The data as the diagnosis sees it: withheld part, judged points, noise level, gap floor."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cmcan.gap.data import GapData
+from cmcan.gap.effects import LIBRARY, Effect, Scale, simulate
+from cmcan.sim.physics import DriveParams
+
+REGION_VARS = ("dp_bar", "temp_c", "pump_speed_rpm", "pump_disp_cc")
+GAP_OVER_NOISE = 1.5  # a gap below this many noise levels is no gap
+MIN_GAP_SHARE = 0.0025  # ... nor is one below this share of the output
+CHUNKS = 20  # stretches of the data over which a candidate's advantage over a rival must hold
+RELIEF_MARGIN = 0.9  # points whose pressure reaches this share of the relief setting are not judged
+MIN_STEADY = 200  # fewer steady points than this: judge static effects on every followable point
+
+
+def rmse(e: NDArray[np.float64]) -> float:
+    return float(np.sqrt(np.mean(e**2))) if len(e) else float("nan")
+
+
+def holdout_mask(d: GapData, spec: str | None) -> tuple[NDArray[np.bool_], str]:
+    """Withheld points by operating region (default: the hottest quarter, or the highest-pressure
+    quarter where the oil temperature hardly varies) so an added effect must extrapolate."""
+    x = d.x
+    if spec is None:
+        spec = "temp_c:top25" if np.ptp(x.temp_c) >= 15.0 else "dp_bar:top25"
+        if np.ptp(getattr(x, spec.split(":")[0])) == 0.0:
+            spec = "time:last25"
+    if spec == "random25":
+        return np.random.default_rng(0).random(len(d.y)) < 0.25, spec
+    try:
+        var, side = spec.split(":")
+        share = float(side[-2:]) / 100.0
+        end = side[:-2]
+        values = x.t_s if var == "time" else getattr(x, var) if var in REGION_VARS else None
+        if values is None:
+            raise ValueError
+    except (ValueError, AttributeError):
+        raise ValueError(
+            f"--holdout {spec!r}: expected VAR:topNN or VAR:bottomNN with VAR one of "
+            f"{', '.join((*REGION_VARS, 'time'))}, or random25"
+        ) from None
+    if end not in ("top", "bottom", "last", "first") or not 0 < share < 1:
+        raise ValueError(f"--holdout {spec!r}: expected top/bottom/last/first and a share in 01..99")
+    if np.ptp(values) == 0.0:
+        raise ValueError(f"--holdout {spec!r}: {var} does not vary in these data; withhold by another variable")
+    q = np.quantile(values, 1 - share) if end in ("top", "last") else np.quantile(values, share)
+    mask = values >= q if end in ("top", "last") else values <= q
+    if mask.all():  # a variable with many equal values: take the share by rank
+        order = np.argsort(values, kind="stable")
+        k = max(1, round(share * len(values)))
+        mask = np.zeros(len(values), dtype=bool)
+        mask[order[-k:] if end in ("top", "last") else order[:k]] = True
+    return mask, spec
+
+
+def noise_level(g: NDArray[np.float64], steady: NDArray[np.bool_], segment: NDArray[np.int64]) -> float:
+    """Point-to-point noise of the gap from successive steady points (robust MAD estimate)."""
+    both = steady[1:] & steady[:-1] & (segment[1:] == segment[:-1])
+    d = np.diff(g)[both] if both.sum() > 20 else np.diff(g)
+    return float(np.median(np.abs(d - np.median(d))) / 0.6745 / np.sqrt(2)) if len(d) else 0.0
+
+
+def followable(d: GapData, p: DriveParams) -> NDArray[np.bool_]:
+    """Points where the simulator on measured inputs can follow the machine: not at the relief valve
+    (its flow changes by tens of l/min per bar, more than a pressure reading resolves) and not with
+    the loop's other side high (negative delta pressure, which a high-side sensor does not show)."""
+    return (d.dp_lo_bar > 0.0) & (d.dp_hi_bar < RELIEF_MARGIN * p.relief_dp_bar)
+
+
+def chunks(n: int, k: int = CHUNKS) -> NDArray[np.int64]:
+    """Contiguous stretches of the points in data order, of (nearly) equal size."""
+    return (np.arange(n) * k // max(n, 1)).astype(np.int64)
+
+
+@dataclass(frozen=True)
+class Context:
+    """Everything the search needs about the data, computed once."""
+
+    d: GapData
+    p: DriveParams
+    scale: Scale
+    candidates: dict[str, Effect]
+    hold: NDArray[np.bool_]
+    spec: str
+    static_pts: NDArray[np.bool_]  # where static effects are fitted and judged
+    dynamic_pts: NDArray[np.bool_]  # where a time constant is (every followable point)
+    y0: NDArray[np.float64]
+    sigma: float  # point-to-point noise of the gap at steady points
+    sigma_dynamic: float  # ... and over every followable point (transients scatter more)
+    floor: float
+    mean_y: float
+    chunk: NDArray[np.int64]
+
+    def judged(self, with_time: bool) -> NDArray[np.bool_]:
+        return self.dynamic_pts if with_time else self.static_pts
+
+    def noise(self, with_time: bool) -> float:
+        return max(self.sigma_dynamic if with_time else self.sigma, 1e-12)
+
+    def sim(self, effects: Sequence[tuple[Effect, NDArray[np.float64]]], x=None) -> NDArray[np.float64]:
+        return simulate(self.p, self.d.x if x is None else x, list(effects), self.d.quantity)
+
+
+def prepare(
+    d: GapData, p: DriveParams, holdout: str | None = None, candidates: dict[str, Effect] | None = None
+) -> Context:
+    hold, spec = holdout_mask(d, holdout)
+    lib = candidates or LIBRARY
+    cands = {
+        k: e
+        for k, e in lib.items()
+        if d.quantity in e.quantities and (d.has_time or not e.needs_time) and _varies_for(e, d)
+    }
+    fol = followable(d, p)
+    steady = d.steady & fol
+    static_pts = steady if steady.sum() >= MIN_STEADY or not d.has_time else fol
+    y0 = simulate(p, d.x, [], d.quantity)
+    sigma = noise_level(d.y - y0, static_pts, d.x.segment)
+    sigma_dyn = max(noise_level(d.y - y0, fol, d.x.segment), sigma)
+    mean_y = float(np.mean(np.abs(d.y))) or 1.0
+    # Below this a gap is within sensor noise or too small to matter.
+    floor = max(GAP_OVER_NOISE * sigma, MIN_GAP_SHARE * mean_y)
+    return Context(
+        d,
+        p,
+        Scale.of(p, d.x, d.y),
+        cands,
+        hold,
+        spec,
+        static_pts,
+        fol,
+        y0,
+        sigma,
+        sigma_dyn,
+        floor,
+        mean_y,
+        chunks(len(d.y)),
+    )
+
+
+def _varies_for(e: Effect, d: GapData) -> bool:
+    """A gain on an input that is zero throughout cannot show; everything else may."""
+    return not (e.name == "pressure_sensor_gain" and not np.any(d.x.dp_bar))
