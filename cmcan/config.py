@@ -12,6 +12,7 @@ from cmcan.dbc import DbcError, load_dbc
 from cmcan.monitor.gating import GateLimits
 from cmcan.schema import Num, Obj, SchemaError, Str, load_yaml
 from cmcan.signals import SignalRef
+from cmcan.uplink.config import UPLINK  # the uplink: section (issue 15)
 
 ROLES = (
     "pump_speed_rpm",
@@ -122,6 +123,7 @@ _CONFIG = Obj(
         "state": Obj(
             {"directory": Str(default="/var/lib/cmcan"), "save_every_s": Num(1, 86400, "s", default=60.0)}, default={}
         ),
+        "uplink": UPLINK,  # issue 15: validated by cmcan.uplink.config, disabled by default
     }
 )
 

@@ -18,7 +18,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import can
 
@@ -26,6 +26,9 @@ from cmcan.config import Config
 from cmcan.monitor.core import Monitor, OutputFrame
 from cmcan.sdnotify import Notifier
 from cmcan.statefile import StateStore
+
+if TYPE_CHECKING:  # issue 15 (uplink): only for the type hint; the feed imports this module
+    from cmcan.uplink.feed import UplinkFeed
 
 log = logging.getLogger("cmcan.daemon")
 
@@ -49,9 +52,12 @@ class DaemonOptions:
 class RateLimitedLog:
     """Logs the first occurrence of a problem, then at most one summary line per interval."""
 
-    def __init__(self, interval_s: float = 30.0, clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self, interval_s: float = 30.0, clock: Callable[[], float] = time.monotonic, logger: logging.Logger = log
+    ) -> None:
         self.interval = interval_s
         self.clock = clock
+        self.logger = logger  # issue 15: the uplink logs under its own name
         self.last: dict[str, float] = {}
         self.suppressed: dict[str, int] = {}
 
@@ -62,7 +68,7 @@ class RateLimitedLog:
             return
         n = self.suppressed.pop(key, 0)
         self.last[key] = now
-        log.log(level, msg + (f" (and {n} more since the last report)" if n else ""), *args, exc_info=exc_info)
+        self.logger.log(level, msg + (f" (and {n} more since the last report)" if n else ""), *args, exc_info=exc_info)
 
 
 def bus_kwargs(cfg: Config, input_ids: list[int]) -> dict[str, Any]:
@@ -106,6 +112,7 @@ class Daemon:
         notifier: Notifier | None = None,
         options: DaemonOptions | None = None,
         clock: Callable[[], float] = time.monotonic,
+        uplink: UplinkFeed | None = None,
     ) -> None:
         self.cfg = cfg
         self.monitor = monitor
@@ -119,6 +126,7 @@ class Daemon:
         self.stats = {"bus_opens": 0, "bus_errors": 0, "tx_frames": 0, "tx_dropped": 0, "internal_errors": 0}
         self.ratelog = RateLimitedLog(clock=clock)
         self.save_every_s = float(cfg.raw["state"]["save_every_s"])
+        self.uplink = uplink  # issue 15: queues events and summaries for the outbox; never blocks
 
     # -- the loop --------------------------------------------------------------------------------------
 
@@ -192,6 +200,8 @@ class Daemon:
                 self.stats["internal_errors"] += 1
                 self.ratelog(logging.ERROR, "internal", "internal error processing a frame", exc_info=True)
                 out = []
+            if self.uplink is not None:  # issue 15: after each step of the core (cheap unless a tick completed)
+                self.uplink.observe(self.monitor, self.stats)
             if out:
                 self._send(out)
         self._shutdown()
@@ -273,6 +283,8 @@ class Daemon:
         self.notifier.stopping()
         if self.store is not None:
             self._save()
+        if self.uplink is not None:  # issue 15: the period's last summary, then the queue written out
+            self.uplink.close(self.monitor, self.stats)
         self._close()
         c = self.monitor.counters
         log.info(

@@ -11,7 +11,7 @@ from collections.abc import Sequence
 from cmcan import __version__
 from cmcan.cli.errors import EX_SOFTWARE, CliError
 
-SUBCOMMANDS = ("simulate", "train", "evaluate", "replay", "run", "check", "demo", "gap")
+SUBCOMMANDS = ("simulate", "train", "evaluate", "replay", "run", "check", "demo", "gap", "uplink")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -6,13 +6,18 @@ import argparse
 import logging
 import signal
 import sys
+from pathlib import Path
 from types import FrameType
 
 import can
 
+from cmcan.config import Config
 from cmcan.daemon import Daemon, DaemonOptions, bus_kwargs, tune_socketcan
+from cmcan.monitor.core import Monitor
 from cmcan.preflight import check_channel, load_config, prepare
 from cmcan.sdnotify import Notifier
+from cmcan.uplink.config import UplinkSettings
+from cmcan.uplink.feed import UplinkFeed
 
 log = logging.getLogger("cmcan")
 
@@ -31,6 +36,14 @@ def add_subparser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+def open_uplink_feed(cfg: Config, monitor: Monitor) -> UplinkFeed | None:
+    """The daemon's side of the telematics uplink (issue 15): the outbox writer, when enabled."""
+    settings = UplinkSettings.from_raw(
+        cfg.raw["uplink"], cfg.raw["state"]["directory"], Path(cfg.source).resolve().parent, cfg.source
+    )
+    return UplinkFeed.open(settings, monitor) if settings.enabled else None
+
+
 def run(args: argparse.Namespace) -> int:
     if args.verbose == 0:
         logging.getLogger().setLevel(logging.INFO)
@@ -46,7 +59,8 @@ def run(args: argparse.Namespace) -> int:
             tune_socketcan(bus, rcvbuf)
         return bus
 
-    daemon = Daemon(cfg, prep.monitor, prep.store, open_bus, Notifier(), DaemonOptions())
+    uplink = open_uplink_feed(cfg, prep.monitor)  # issue 15: None unless uplink.enabled
+    daemon = Daemon(cfg, prep.monitor, prep.store, open_bus, Notifier(), DaemonOptions(), uplink=uplink)
 
     def on_signal(signum: int, _frame: FrameType | None) -> None:
         log.info("received %s, stopping", signal.Signals(signum).name)

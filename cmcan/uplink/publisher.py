@@ -1,0 +1,585 @@
+"""The uplink: publishes the outbox to the MQTT broker with QoS 1, deleting an entry only on its PUBACK.
+
+One paho-mqtt client per connection, driven by this loop in a single thread (``client.loop``), no
+paho background thread, no paho auto-reconnect. When a connection ends, for whatever reason (broker
+gone, link down, no PUBACK in time, a refusal), its client and everything it had in flight are
+discarded; the next connection publishes again from the oldest entry still in the outbox. This is
+the same path as a restart after a crash or SIGKILL, so there is one recovery path: entries are
+published in outbox order (order per topic kept), an entry leaves the outbox only after its PUBACK,
+and an entry may be published twice (with the same ``id``) only when its PUBACK was not seen.
+
+Connections are retried with exponential back-off and full jitter. On connect a retained ``online``
+status is published (the birth message); the broker publishes the retained ``offline`` last will
+when the uplink vanishes without a clean disconnect. Health (backlog, counters) is published every
+``health_every_s``. Under systemd: READY, WATCHDOG and STATUS.
+"""
+
+from __future__ import annotations
+
+import logging
+import random
+import socket
+import ssl
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import paho.mqtt.client as mqtt
+from paho.mqtt.enums import CallbackAPIVersion
+
+from cmcan import __version__
+from cmcan.daemon import RateLimitedLog
+from cmcan.sdnotify import Notifier
+from cmcan.uplink.config import MqttSettings, TlsSettings, UplinkSettings
+from cmcan.uplink.outbox import Outbox, OutboxError, describe, is_corruption, open_outbox, set_aside
+from cmcan.uplink.records import SCHEMA_VERSION, dumps, envelope, iso_utc
+
+log = logging.getLogger("cmcan.uplink")
+
+QOS = 1
+DELETE_EVERY_S = 0.05  # acknowledged entries are deleted in batches, at most this late
+IDLE_POLL_S = 0.25  # how often an idle uplink looks for new entries
+STOP_WAIT_S = 2.0  # at a clean stop: how long to wait for the offline status's PUBACK
+
+
+class SetupError(Exception):
+    """The uplink cannot start (or ``--check`` failed). ``kind`` says which sysexits code fits:
+    'config', 'noinput', 'data', 'unavailable', 'cantcreat', 'tempfail'."""
+
+    def __init__(self, message: str, kind: str) -> None:
+        super().__init__(message)
+        self.kind = kind
+
+
+# -- setup ----------------------------------------------------------------------------------------
+
+
+def tls_context(tls: TlsSettings, source: str = "config") -> ssl.SSLContext | None:
+    """The TLS context from the configuration, with every file checked now (not at the first connect)."""
+    if not tls.enabled:
+        return None
+    for name, p in (("ca_file", tls.ca_file), ("cert_file", tls.cert_file), ("key_file", tls.key_file)):
+        if p is not None and not p.is_file():
+            raise SetupError(f"{source}: uplink.mqtt.tls.{name}: {p}: file not found", "noinput")
+    try:
+        ctx = ssl.create_default_context(ssl.Purpose.SERVER_AUTH, cafile=str(tls.ca_file) if tls.ca_file else None)
+    except (ssl.SSLError, OSError) as exc:
+        raise SetupError(
+            f"{source}: uplink.mqtt.tls.ca_file: {tls.ca_file}: not a PEM CA certificate ({_ssl_reason(exc)})", "config"
+        ) from None
+    ctx.minimum_version = ssl.TLSVersion.TLSv1_2
+    ctx.check_hostname = tls.verify_hostname
+    if tls.cert_file is not None:
+        try:
+            ctx.load_cert_chain(str(tls.cert_file), str(tls.key_file) if tls.key_file else None, password=_no_password)
+        except (ssl.SSLError, OSError, _EncryptedKey) as exc:
+            raise SetupError(
+                f"{source}: uplink.mqtt.tls.cert_file: {tls.cert_file} with key {tls.key_file}: "
+                f"not a usable client certificate and key ({_ssl_reason(exc)})",
+                "config",
+            ) from None
+    return ctx
+
+
+class _EncryptedKey(Exception):
+    def __str__(self) -> str:
+        return "the key is encrypted; the uplink needs an unencrypted key (protect it with file permissions)"
+
+
+def _no_password() -> str:
+    raise _EncryptedKey()
+
+
+def _ssl_reason(exc: BaseException) -> str:
+    reason = getattr(exc, "reason", None)
+    return str(reason).replace("_", " ").lower() if reason else str(exc)
+
+
+def read_password(m: MqttSettings, source: str = "config") -> str | None:
+    if m.password_file is None:
+        return None
+    try:
+        text = m.password_file.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise SetupError(f"{source}: uplink.mqtt.password_file: {m.password_file}: file not found", "noinput") from None
+    except OSError as exc:
+        raise SetupError(f"{source}: uplink.mqtt.password_file: {m.password_file}: {exc.strerror}", "noinput") from None
+    pw = text.rstrip("\r\n")
+    if not pw:
+        raise SetupError(f"{source}: uplink.mqtt.password_file: {m.password_file}: empty", "config")
+    return pw
+
+
+def open_for_uplink(path: Path) -> Outbox:
+    """The outbox for publishing; a corrupt file is kept aside and reported (the next start, or the
+    daemon, begins a new one), a missing folder or a newer format is reported."""
+    if not path.parent.is_dir():
+        raise SetupError(f"{path.parent}: state directory does not exist (uplink.outbox.file)", "cantcreat")
+    try:
+        return open_outbox(path, durable=False, keep_aside=False)
+    except OutboxError as exc:
+        if exc.kind == "corrupt":
+            try:
+                aside = set_aside(path)
+            except OSError as err:
+                raise SetupError(f"{exc}; it could not be kept aside: {err}", "data") from None
+            raise SetupError(f"{exc}; kept as {aside.name}, the next start begins a new outbox", "data") from None
+        if exc.kind == "version":
+            raise SetupError(str(exc), "data") from None
+        raise SetupError(str(exc), "cantcreat") from None
+
+
+# -- the connection -------------------------------------------------------------------------------
+
+
+@dataclass
+class _Session:
+    client: mqtt.Client
+    started: float
+    connected: bool = False
+    connected_at: float = 0.0
+    birth_sent: bool = False
+    ended: str = ""  # why the connection ended ('' while it lives)
+    refused_auth: bool = False
+    inflight: OrderedDict[int, tuple[int, float]] = field(default_factory=OrderedDict)  # mid -> (seq, sent)
+    cursor: int = 0  # the highest seq published on this connection
+
+
+@dataclass
+class UplinkStats:
+    published: int = 0  # PUBLISH packets of outbox entries
+    acked: int = 0
+    republished: int = 0  # entries published again after a connection or the process ended
+    late: int = 0
+    connects: int = 0  # connections established (CONNACK accepted)
+    connect_failures: int = 0
+    connections_lost: int = 0
+    ack_timeouts: int = 0
+    refused: int = 0  # PUBACKs with an MQTT 5 failure reason
+    outbox_errors: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return dict(self.__dict__)
+
+
+ClientFactory = Callable[[], mqtt.Client]
+
+
+class Publisher:
+    def __init__(
+        self,
+        settings: UplinkSettings,
+        outbox: Outbox,
+        *,
+        password: str | None = None,
+        tls: ssl.SSLContext | None = None,
+        notifier: Notifier | None = None,
+        clock: Callable[[], float] = time.monotonic,
+        wall: Callable[[], float] = time.time,
+        rng: Callable[[], float] = random.random,
+    ) -> None:
+        self.s = settings
+        self.m = settings.mqtt
+        self.box = outbox
+        self.password = password
+        self.tls = tls
+        self.notifier = notifier or Notifier(env={})
+        self.clock = clock
+        self.wall = wall
+        self.rng = rng
+        self.stats = UplinkStats()
+        self.ratelog = RateLimitedLog(clock=clock, logger=log)
+        self.session: _Session | None = None
+        self.acked: list[int] = []
+        self.highest_published = 0
+        self.failures = 0  # consecutive failed connection attempts: the back-off's exponent
+        self.next_attempt = 0.0
+        self.last_problem = ""
+        self.started = clock()
+        self.stop_event = threading.Event()
+
+    # -- the client ----------------------------------------------------------------------------------
+
+    def _client(self) -> mqtt.Client:
+        m = self.m
+        v5 = m.protocol == "5"
+        kw: dict[str, Any] = {} if v5 else {"clean_session": True}
+        c = mqtt.Client(
+            CallbackAPIVersion.VERSION2,
+            client_id=m.client_id,
+            protocol=mqtt.MQTTv5 if v5 else mqtt.MQTTv311,
+            reconnect_on_failure=False,
+            **kw,
+        )
+        c.connect_timeout = m.connect_timeout_s
+        c.max_inflight_messages_set(m.max_inflight + 4)  # our window, plus status and health
+        c.max_queued_messages_set(0)
+        c.will_set(self.s.topic("status"), self._status_payload("offline", "connection lost"), qos=QOS, retain=True)
+        if m.username is not None:
+            c.username_pw_set(m.username, self.password)
+        if self.tls is not None:
+            c.tls_set_context(self.tls)
+        c.enable_logger(logging.getLogger("cmcan.uplink.mqtt"))
+        c.on_connect = self._on_connect
+        c.on_disconnect = self._on_disconnect
+        c.on_publish = self._on_publish
+        return c
+
+    def _on_connect(self, client: mqtt.Client, _ud: Any, _flags: Any, reason: Any, _props: Any) -> None:
+        s = self.session
+        if s is None or s.client is not client:
+            return
+        if getattr(reason, "is_failure", False):
+            s.ended = f"broker refused the connection: {reason}"
+            s.refused_auth = _is_auth_refusal(reason)
+            return
+        s.connected = True
+        s.connected_at = self.clock()
+
+    def _on_disconnect(self, client: mqtt.Client, _ud: Any, _flags: Any, reason: Any, _props: Any) -> None:
+        s = self.session
+        if s is not None and s.client is client and not s.ended:
+            lost = getattr(reason, "is_failure", True)
+            s.ended = "connection lost" if lost else f"disconnected by the broker ({reason})"
+
+    def _on_publish(self, client: mqtt.Client, _ud: Any, mid: int, reason: Any, _props: Any) -> None:
+        s = self.session
+        if s is None or s.client is not client:
+            return
+        item = s.inflight.pop(mid, None)
+        if item is None:
+            return  # status or health
+        if getattr(reason, "is_failure", False):
+            self.stats.refused += 1
+            s.ended = f"broker refused entry {item[0]}: {reason}"
+            return
+        self.acked.append(item[0])
+        self.stats.acked += 1
+
+    # -- payloads ------------------------------------------------------------------------------------
+
+    def _status_payload(self, state: str, reason: str) -> str:
+        body: dict[str, Any] = {
+            "schema": SCHEMA_VERSION,
+            "kind": "status",
+            "machine_id": self.s.machine_id,
+            "state": state,
+            "reason": reason,
+            "client_id": self.m.client_id,
+            "version": __version__,
+        }
+        if state == "online":
+            body["uplink_time_utc"] = iso_utc(self.wall())  # the gateway's clock, not frame time
+        return dumps(body)
+
+    def health(self) -> dict[str, Any]:
+        now = self.clock()
+        s = self.session
+        try:
+            backlog: dict[str, Any] | None = describe(self.box.usage(), self.wall())
+        except Exception as exc:  # health must not fail because the outbox does
+            backlog = {"error": str(exc)}
+        return {
+            "schema": SCHEMA_VERSION,
+            "kind": "health",
+            "machine_id": self.s.machine_id,
+            "uplink_time_utc": iso_utc(self.wall()),
+            "uptime_s": round(now - self.started, 1),
+            "connected_s": round(now - s.connected_at, 1) if s is not None and s.connected else None,
+            "inflight": len(s.inflight) if s is not None else 0,
+            "outbox": backlog,
+            "stream_id": self.box.stream_id,
+            "counters": self.stats.as_dict(),
+            "version": __version__,
+        }
+
+    # -- the loop ------------------------------------------------------------------------------------
+
+    def stop(self) -> None:
+        self.stop_event.set()
+
+    def run(self, drain: bool = False, timeout_s: float | None = None) -> bool:
+        """Publish until stopped (True), or with ``drain`` until the outbox is empty (True) or
+        ``timeout_s`` has passed (False)."""
+        next_wd = next_status = next_health = next_delete = self.clock()
+        deadline = None if timeout_s is None else self.clock() + timeout_s
+        self.notifier.ready(self._status_text())
+        log.info("uplink for %s to %s:%d (outbox %s)", self.s.machine_id, self.m.host, self.m.port, self.box.path)
+        drained = False
+        while not self.stop_event.is_set():
+            now = self.clock()
+            if self.notifier.watchdog_interval_s is not None and now >= next_wd:
+                self.notifier.watchdog()
+                next_wd = now + self.notifier.watchdog_interval_s
+            if now >= next_status:
+                self.notifier.status(self._status_text())
+                next_status = now + 2.0
+            if deadline is not None and now >= deadline:
+                break
+            self._check_outbox_file()
+            s = self.session
+            if s is None:
+                if now < self.next_attempt:
+                    self.stop_event.wait(min(self.next_attempt - now, 0.5))
+                    continue
+                self._connect()
+                continue
+            busy = self._step(s, now)
+            if s.ended:
+                self._end_session(s)
+                continue
+            if s.connected:
+                if self.acked and now >= next_delete:
+                    self._delete_acked()
+                    next_delete = now + DELETE_EVERY_S
+                if now >= next_health:
+                    self._publish_health(s)
+                    next_health = now + self.m.health_every_s
+                if drain and not s.inflight and not self.acked and self._empty():
+                    drained = True
+                    break
+            if not busy:
+                s.client.loop(timeout=IDLE_POLL_S)
+        self._shutdown()
+        return drained or deadline is None
+
+    def _step(self, s: _Session, now: float) -> bool:
+        """One pass over a live connection: network I/O, then fill the window. True when more work
+        is waiting right now (so the loop should not sleep)."""
+        if s.ended:  # ended inside the previous loop() call
+            return True
+        rc = s.client.loop(timeout=0.0)
+        if rc != mqtt.MQTT_ERR_SUCCESS and not s.ended:
+            s.ended = f"connection lost ({mqtt.error_string(rc)})"
+        if s.ended:
+            return True
+        if not s.connected:
+            if now - s.started > self.m.connect_timeout_s:
+                s.ended = f"no CONNACK within {self.m.connect_timeout_s:g} s"
+            return False
+        if not s.birth_sent:
+            s.client.publish(self.s.topic("status"), self._status_payload("online", "connected"), qos=QOS, retain=True)
+            s.birth_sent = True
+        if s.inflight:
+            oldest = next(iter(s.inflight.values()))[1]
+            if now - oldest > self.m.ack_timeout_s:
+                self.stats.ack_timeouts += 1
+                s.ended = f"no PUBACK within {self.m.ack_timeout_s:g} s"
+                return True
+        room = self.m.max_inflight - len(s.inflight)
+        if room <= 0:
+            return False
+        try:
+            rows = self.box.fetch_after(s.cursor, room)
+        except Exception as exc:
+            self._outbox_failed(exc)
+            return False
+        wall = self.wall()
+        for r in rows:
+            late = wall - r.created_s > self.m.late_after_s
+            payload = envelope(self.s.machine_id, self.box.stream_id, r.seq, r.kind, r.t_s, late, r.body)
+            info = s.client.publish(self.s.topic(r.kind), payload, qos=QOS)
+            if info.rc != mqtt.MQTT_ERR_SUCCESS:
+                s.ended = f"publish failed ({mqtt.error_string(info.rc)})"
+                return True
+            s.inflight[info.mid] = (r.seq, now)
+            s.cursor = r.seq
+            self.stats.published += 1
+            self.stats.late += late
+            if r.seq <= self.highest_published:
+                self.stats.republished += 1
+            else:
+                self.highest_published = r.seq
+        return len(rows) == room
+
+    def _connect(self) -> None:
+        m = self.m
+        client = self._client()
+        self.session = s = _Session(client, self.clock())
+        try:
+            client.connect(m.host, m.port, keepalive=m.keepalive_s)
+        except (OSError, ValueError) as exc:  # DNS, refused, unreachable, timeout, TLS
+            s.ended = describe_connect_error(exc, m)
+            self._end_session(s)
+
+    def _end_session(self, s: _Session) -> None:
+        was_connected = s.connected
+        _close_client(s.client, polite=s.connected and not s.ended.startswith("connection lost"))
+        self.session = None
+        if self.acked:
+            self._delete_acked()
+        if was_connected:
+            self.stats.connections_lost += 1
+            self.failures = 0
+            level = logging.WARNING
+        else:
+            self.stats.connect_failures += 1
+            self.failures += 1
+            level = logging.ERROR if s.refused_auth else logging.WARNING
+        # Full jitter: a fleet coming back after a site-wide outage does not reconnect in lockstep.
+        cap = min(self.m.reconnect_max_s, self.m.reconnect_min_s * 2 ** min(self.failures, 30))
+        delay = self.m.reconnect_min_s + self.rng() * max(0.0, cap - self.m.reconnect_min_s)
+        self.next_attempt = self.clock() + delay
+        self.last_problem = s.ended
+        self.ratelog(
+            level,
+            "uplink-conn",
+            "uplink: %s (broker %s:%d); retrying in %.1f s",
+            s.ended,
+            self.m.host,
+            self.m.port,
+            delay,
+        )
+
+    def _publish_health(self, s: _Session) -> None:
+        s.client.publish(self.s.topic("health"), dumps(self.health()), qos=QOS)
+
+    def _delete_acked(self) -> None:
+        try:
+            self.box.delete(self.acked)
+            self.acked = []
+        except Exception as exc:
+            self._outbox_failed(exc)
+
+    def _empty(self) -> bool:
+        try:
+            return not self.box.fetch_after(0, 1)
+        except Exception as exc:
+            self._outbox_failed(exc)
+            return False
+
+    def _check_outbox_file(self) -> None:
+        if self.box.replaced():
+            log.warning("%s was replaced (a corrupt outbox kept aside?); opening the new one", self.box.path)
+            self._reopen_outbox()
+
+    def _reopen_outbox(self) -> None:
+        if self.session is not None:  # in-flight sequence numbers belonged to the old file
+            self.session.ended = "outbox replaced"
+            self._end_session(self.session)
+            self.next_attempt = 0.0
+        self.acked = []
+        self.highest_published = 0
+        self.box.close()
+        try:
+            self.box = open_outbox(self.box.path, durable=False)
+        except OutboxError as exc:
+            self.stats.outbox_errors += 1
+            self.ratelog(logging.ERROR, "uplink-outbox", "uplink: %s", exc)
+            time.sleep(0.5)
+
+    def _outbox_failed(self, exc: BaseException) -> None:
+        self.stats.outbox_errors += 1
+        self.ratelog(logging.ERROR, "uplink-outbox", "uplink: outbox %s: %s", self.box.path, exc)
+        if is_corruption(exc):
+            try:
+                aside = set_aside(self.box.path)
+                log.error("%s: corrupt outbox kept as %s; starting a new one", self.box.path, aside)
+            except OSError as err:
+                log.error("%s: cannot keep the corrupt outbox aside: %s", self.box.path, err)
+            self._reopen_outbox()
+
+    def _shutdown(self) -> None:
+        self.notifier.stopping()
+        s = self.session
+        if s is not None and s.connected and not s.ended:
+            # A clean stop: say so on the status topic (the will is only for a vanished client).
+            status = self._status_payload("offline", "shutdown")
+            info = s.client.publish(self.s.topic("status"), status, qos=QOS, retain=True)
+            end = self.clock() + STOP_WAIT_S
+            while self.clock() < end and not info.is_published() and not s.ended:
+                if s.client.loop(timeout=0.05) != mqtt.MQTT_ERR_SUCCESS:
+                    break
+        if self.acked:
+            self._delete_acked()
+        if s is not None:
+            _close_client(s.client, polite=s.connected and not s.ended)
+        self.session = None
+        log.info(
+            "uplink stopped: %d published (%d again after a lost connection), %d acknowledged",
+            self.stats.published,
+            self.stats.republished,
+            self.stats.acked,
+        )
+
+    def _status_text(self) -> str:
+        s = self.session
+        try:
+            u = self.box.usage()
+            backlog = f"backlog {u.entries} entries"
+        except Exception:
+            backlog = "outbox unreadable"
+        if s is not None and s.connected:
+            conn = f"connected to {self.m.host}:{self.m.port}"
+        else:
+            conn = f"not connected ({self.last_problem or 'connecting'})"
+        return f"{conn}; {backlog}; published {self.stats.published}, acknowledged {self.stats.acked}"
+
+    # -- a one-off check -------------------------------------------------------------------------------
+
+    def check_connection(self) -> str:
+        """Connect once and wait for the CONNACK; raises SetupError saying what failed."""
+        m = self.m
+        client = self._client()
+        self.session = s = _Session(client, self.clock())
+        try:
+            client.connect(m.host, m.port, keepalive=m.keepalive_s)
+        except (OSError, ValueError) as exc:
+            self.session = None
+            kind = "config" if isinstance(exc, ssl.SSLCertVerificationError) else "unavailable"
+            raise SetupError(describe_connect_error(exc, m), kind) from None
+        end = self.clock() + m.connect_timeout_s
+        while not s.connected and not s.ended and self.clock() < end:
+            rc = client.loop(timeout=0.1)
+            if rc != mqtt.MQTT_ERR_SUCCESS and not s.ended:
+                s.ended = f"connection closed before the CONNACK ({mqtt.error_string(rc)})"
+        self.session = None
+        _close_client(client, polite=s.connected)
+        if s.connected:
+            return f"connected to {m.host}:{m.port} as {m.client_id}"
+        if s.refused_auth:
+            raise SetupError(f"{m.host}:{m.port}: {s.ended}", "config")
+        raise SetupError(f"{m.host}:{m.port}: {s.ended or 'no CONNACK'}", "unavailable")
+
+
+def _close_client(client: mqtt.Client, polite: bool) -> None:
+    """End a client for good: DISCONNECT when the connection still works (so the broker does not
+    publish the will), then close its socket and its wake-up socket pair (paho keeps both open until
+    garbage collection otherwise; ``_reset_sockets`` is paho 2.x's own way to close them)."""
+    try:
+        if polite and client.socket() is not None:
+            client.disconnect()  # written at once; paho closes the socket after it
+            if client.socket() is not None:
+                client.loop(timeout=0.0)
+    except Exception as exc:  # the socket may already be gone
+        log.debug("disconnect: %s", exc)
+    try:
+        client._reset_sockets()
+    except Exception as exc:
+        log.debug("closing the client's sockets: %s", exc)
+
+
+def _is_auth_refusal(reason: Any) -> bool:
+    # MQTT 3.1.1 CONNACK 4 and 5, MQTT 5 0x86 and 0x87: bad credentials, not authorized.
+    return getattr(reason, "value", None) in (4, 5, 0x86, 0x87)
+
+
+def describe_connect_error(exc: BaseException, m: MqttSettings) -> str:
+    where = f"{m.host}:{m.port}"
+    if isinstance(exc, socket.gaierror):
+        return f"cannot resolve {m.host} ({exc.strerror})"
+    if isinstance(exc, ssl.SSLCertVerificationError):
+        return f"{where}: the broker's certificate is not trusted ({exc.verify_message}; see uplink.mqtt.tls.ca_file)"
+    if isinstance(exc, ssl.SSLError):
+        return f"{where}: TLS handshake failed ({_ssl_reason(exc)})"
+    if isinstance(exc, ConnectionRefusedError):
+        return f"{where}: connection refused (is the broker running?)"
+    if isinstance(exc, TimeoutError | socket.timeout):
+        return f"{where}: no answer within {m.connect_timeout_s:g} s"
+    if isinstance(exc, OSError):
+        return f"{where}: {exc.strerror or exc}"
+    return f"{where}: {exc}"
