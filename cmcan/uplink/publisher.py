@@ -166,9 +166,6 @@ class UplinkStats:
         return dict(self.__dict__)
 
 
-ClientFactory = Callable[[], mqtt.Client]
-
-
 class Publisher:
     def __init__(
         self,
@@ -181,6 +178,8 @@ class Publisher:
         clock: Callable[[], float] = time.monotonic,
         wall: Callable[[], float] = time.time,
         rng: Callable[[], float] = random.random,
+        client_factory: Callable[[], mqtt.Client] | None = None,
+        sleep: Callable[[float], object] | None = None,
     ) -> None:
         self.s = settings
         self.m = settings.mqtt
@@ -201,6 +200,9 @@ class Publisher:
         self.last_problem = ""
         self.started = clock()
         self.stop_event = threading.Event()
+        self.sleep = sleep or self.stop_event.wait
+        self.client_factory = client_factory or self._client
+        self.next_watchdog = self.next_status = self.next_health = self.next_delete = self.started
 
     # -- the client ----------------------------------------------------------------------------------
 
@@ -224,6 +226,10 @@ class Publisher:
         if self.tls is not None:
             c.tls_set_context(self.tls)
         c.enable_logger(logging.getLogger("cmcan.uplink.mqtt"))
+        return c
+
+    def _new_client(self) -> mqtt.Client:
+        c = self.client_factory()
         c.on_connect = self._on_connect
         c.on_disconnect = self._on_disconnect
         c.on_publish = self._on_publish
@@ -239,6 +245,7 @@ class Publisher:
             return
         s.connected = True
         s.connected_at = self.clock()
+        self.stats.connects += 1
 
     def _on_disconnect(self, client: mqtt.Client, _ud: Any, _flags: Any, reason: Any, _props: Any) -> None:
         s = self.session
@@ -305,47 +312,52 @@ class Publisher:
     def run(self, drain: bool = False, timeout_s: float | None = None) -> bool:
         """Publish until stopped (True), or with ``drain`` until the outbox is empty (True) or
         ``timeout_s`` has passed (False)."""
-        next_wd = next_status = next_health = next_delete = self.clock()
         deadline = None if timeout_s is None else self.clock() + timeout_s
         self.notifier.ready(self._status_text())
         log.info("uplink for %s to %s:%d (outbox %s)", self.s.machine_id, self.m.host, self.m.port, self.box.path)
         drained = False
         while not self.stop_event.is_set():
-            now = self.clock()
-            if self.notifier.watchdog_interval_s is not None and now >= next_wd:
-                self.notifier.watchdog()
-                next_wd = now + self.notifier.watchdog_interval_s
-            if now >= next_status:
-                self.notifier.status(self._status_text())
-                next_status = now + 2.0
-            if deadline is not None and now >= deadline:
+            if deadline is not None and self.clock() >= deadline:
                 break
-            self._check_outbox_file()
-            s = self.session
-            if s is None:
-                if now < self.next_attempt:
-                    self.stop_event.wait(min(self.next_attempt - now, 0.5))
-                    continue
-                self._connect()
-                continue
-            busy = self._step(s, now)
-            if s.ended:
-                self._end_session(s)
-                continue
-            if s.connected:
-                if self.acked and now >= next_delete:
-                    self._delete_acked()
-                    next_delete = now + DELETE_EVERY_S
-                if now >= next_health:
-                    self._publish_health(s)
-                    next_health = now + self.m.health_every_s
-                if drain and not s.inflight and not self.acked and self._empty():
-                    drained = True
-                    break
-            if not busy:
-                s.client.loop(timeout=IDLE_POLL_S)
+            if self.iterate(drain):
+                drained = True
+                break
         self._shutdown()
         return drained or deadline is None
+
+    def iterate(self, drain: bool = False) -> bool:
+        """One pass of the loop; True when ``drain`` is set and the outbox is empty and acknowledged."""
+        now = self.clock()
+        if self.notifier.watchdog_interval_s is not None and now >= self.next_watchdog:
+            self.notifier.watchdog()
+            self.next_watchdog = now + self.notifier.watchdog_interval_s
+        if now >= self.next_status:
+            self.notifier.status(self._status_text())
+            self.next_status = now + 2.0
+        self._check_outbox_file()
+        s = self.session
+        if s is None:
+            if now < self.next_attempt:
+                self.sleep(min(self.next_attempt - now, 0.5))
+            else:
+                self._connect()
+            return False
+        busy = self._step(s, now)
+        if s.ended:
+            self._end_session(s)
+            return False
+        if s.connected:
+            if self.acked and now >= self.next_delete:
+                self._delete_acked()
+                self.next_delete = now + DELETE_EVERY_S
+            if now >= self.next_health:
+                self._publish_health(s)
+                self.next_health = now + self.m.health_every_s
+            if drain and not s.inflight and not self.acked and self._empty():
+                return True
+        if not busy:
+            s.client.loop(timeout=IDLE_POLL_S)  # wait for network traffic (PUBACKs) or new entries
+        return False
 
     def _step(self, s: _Session, now: float) -> bool:
         """One pass over a live connection: network I/O, then fill the window. True when more work
@@ -398,7 +410,7 @@ class Publisher:
 
     def _connect(self) -> None:
         m = self.m
-        client = self._client()
+        client = self._new_client()
         self.session = s = _Session(client, self.clock())
         try:
             client.connect(m.host, m.port, keepalive=m.keepalive_s)
@@ -424,16 +436,9 @@ class Publisher:
         cap = min(self.m.reconnect_max_s, self.m.reconnect_min_s * 2 ** min(self.failures, 30))
         delay = self.m.reconnect_min_s + self.rng() * max(0.0, cap - self.m.reconnect_min_s)
         self.next_attempt = self.clock() + delay
-        self.last_problem = s.ended
-        self.ratelog(
-            level,
-            "uplink-conn",
-            "uplink: %s (broker %s:%d); retrying in %.1f s",
-            s.ended,
-            self.m.host,
-            self.m.port,
-            delay,
-        )
+        where = f"{self.m.host}:{self.m.port}"
+        self.last_problem = s.ended if s.ended.startswith(where) else f"{where}: {s.ended}"
+        self.ratelog(level, "uplink-conn", "uplink: %s; retrying in %.1f s", self.last_problem, delay)
 
     def _publish_health(self, s: _Session) -> None:
         s.client.publish(self.s.topic("health"), dumps(self.health()), qos=QOS)
@@ -470,7 +475,7 @@ class Publisher:
         except OutboxError as exc:
             self.stats.outbox_errors += 1
             self.ratelog(logging.ERROR, "uplink-outbox", "uplink: %s", exc)
-            time.sleep(0.5)
+            self.sleep(0.5)
 
     def _outbox_failed(self, exc: BaseException) -> None:
         self.stats.outbox_errors += 1
@@ -524,7 +529,7 @@ class Publisher:
     def check_connection(self) -> str:
         """Connect once and wait for the CONNACK; raises SetupError saying what failed."""
         m = self.m
-        client = self._client()
+        client = self._new_client()
         self.session = s = _Session(client, self.clock())
         try:
             client.connect(m.host, m.port, keepalive=m.keepalive_s)
