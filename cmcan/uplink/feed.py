@@ -67,7 +67,7 @@ class UplinkFeed:
         """At shutdown: the current period's summary so far, then write out the queue."""
         try:
             self.observe(monitor, stats)  # a tick completed by the very last step, if any
-            for e in self.summaries.close():
+            for e in self.summaries.close(self._cumulative(monitor, stats)):
                 self.writer.submit(e)
         except Exception:
             log.exception("uplink: cannot write the last summary")

@@ -96,6 +96,7 @@ class Outbox:
         self.con: sqlite3.Connection | None = None
         self.inode: int | None = None
         self.stream_id = ""
+        self.kept_aside: Path | None = None  # set by open_outbox when a corrupt file was kept aside
         self._open(check)
 
     # -- opening -------------------------------------------------------------------------------------
@@ -310,7 +311,16 @@ def open_outbox(path: str | Path, *, durable: bool, check: bool = True, keep_asi
             raise
         aside = set_aside(Path(path))
         log.error("%s; kept as %s, starting a new outbox", exc, aside)
-        return Outbox(path, durable=durable, check=check)
+        box = Outbox(path, durable=durable, check=check)
+        box.kept_aside = aside
+        return box
+
+
+def record_corrupt(box: Outbox, aside: Path, t_s: float, now_s: float) -> None:
+    """Note in a new outbox that the previous one was corrupt and kept aside (entries it held are not
+    sent; how many is unknown), so the loss is published too."""
+    d = Dropped("corrupt_outbox", kept_as=aside.name)
+    box.append([(DROPPED, t_s, now_s, d.to_json())])
 
 
 def describe(usage: Usage, now_s: float) -> dict[str, Any]:

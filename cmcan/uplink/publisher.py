@@ -19,6 +19,7 @@ from __future__ import annotations
 import logging
 import random
 import socket
+import sqlite3
 import ssl
 import threading
 import time
@@ -35,7 +36,7 @@ from cmcan import __version__
 from cmcan.daemon import RateLimitedLog
 from cmcan.sdnotify import Notifier
 from cmcan.uplink.config import MqttSettings, TlsSettings, UplinkSettings
-from cmcan.uplink.outbox import Outbox, OutboxError, describe, is_corruption, open_outbox, set_aside
+from cmcan.uplink.outbox import Outbox, OutboxError, describe, is_corruption, open_outbox, record_corrupt, set_aside
 from cmcan.uplink.records import SCHEMA_VERSION, dumps, envelope, iso_utc
 
 log = logging.getLogger("cmcan.uplink")
@@ -125,9 +126,14 @@ def open_for_uplink(path: Path) -> Outbox:
         if exc.kind == "corrupt":
             try:
                 aside = set_aside(path)
-            except OSError as err:
+                box = open_outbox(path, durable=False)
+                record_corrupt(box, aside, time.time(), time.time())
+                box.close()
+            except (OSError, OutboxError, sqlite3.Error) as err:
                 raise SetupError(f"{exc}; it could not be kept aside: {err}", "data") from None
-            raise SetupError(f"{exc}; kept as {aside.name}, the next start begins a new outbox", "data") from None
+            raise SetupError(
+                f"{exc}; kept as {aside.name}, a new outbox is started (the next start publishes from it)", "data"
+            ) from None
         if exc.kind == "version":
             raise SetupError(str(exc), "data") from None
         raise SetupError(str(exc), "cantcreat") from None
@@ -195,6 +201,7 @@ class Publisher:
         self.session: _Session | None = None
         self.acked: list[int] = []
         self.highest_published = 0
+        self.last_t_s = 0.0  # frame time of the newest entry published (stamps a corrupt-outbox note)
         self.failures = 0  # consecutive failed connection attempts: the back-off's exponent
         self.next_attempt = 0.0
         self.last_problem = ""
@@ -400,6 +407,7 @@ class Publisher:
                 return True
             s.inflight[info.mid] = (r.seq, now)
             s.cursor = r.seq
+            self.last_t_s = r.t_s
             self.stats.published += 1
             self.stats.late += late
             if r.seq <= self.highest_published:
@@ -486,7 +494,12 @@ class Publisher:
                 log.error("%s: corrupt outbox kept as %s; starting a new one", self.box.path, aside)
             except OSError as err:
                 log.error("%s: cannot keep the corrupt outbox aside: %s", self.box.path, err)
+                return
             self._reopen_outbox()
+            try:
+                record_corrupt(self.box, aside, self.last_t_s or self.wall(), self.wall())
+            except Exception as err:
+                log.error("%s: cannot note the corrupt outbox in the new one: %s", self.box.path, err)
 
     def _shutdown(self) -> None:
         self.notifier.stopping()

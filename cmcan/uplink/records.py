@@ -204,8 +204,11 @@ class SummaryBuilder:
         self.cum = cum
         return out
 
-    def close(self) -> list[Entry]:
-        """The current window as a summary now (at shutdown); nothing when no tick was seen."""
+    def close(self, cum: Cumulative | None = None) -> list[Entry]:
+        """The current window as a summary now (at shutdown), with the totals ``cum`` of this moment;
+        nothing when no tick was seen."""
+        if cum is not None:
+            self.cum = cum
         if self.window is None:
             return []
         w, self.window = self.window, None
@@ -256,7 +259,8 @@ class SummaryBuilder:
 @dataclass
 class Dropped:
     """Entries dropped for one reason: 'size' or 'age' (the outbox's bounds), 'queue_full' (the
-    daemon's queue), 'write_failed' (the file could not take them)."""
+    daemon's queue), 'corrupt_outbox' (the file was corrupt: what it held, unknown in number, is kept
+    aside on the gateway as ``kept_as``)."""
 
     reason: str
     entries: int = 0
@@ -266,6 +270,7 @@ class Dropped:
     last_t_s: float | None = None
     first_seq: int | None = None
     last_seq: int | None = None
+    kept_as: str | None = None  # 'corrupt_outbox': the file the unsent entries are kept in
 
     def add(self, kind: str, t_s: float, nbytes: int = 0, seq: int | None = None) -> None:
         self.entries += 1
@@ -288,6 +293,7 @@ class Dropped:
             "last_t_s": self.last_t_s,
             "first_seq": self.first_seq,
             "last_seq": self.last_seq,
+            **({"kept_as": self.kept_as} if self.kept_as is not None else {}),
         }
 
     def to_json(self) -> str:

@@ -26,6 +26,7 @@ from cmcan.uplink.records import DROPPED, Dropped, Entry
 log = logging.getLogger("cmcan.uplink.writer")
 
 BATCH_MAX = 512
+SHUTDOWN_ATTEMPTS = 3  # at close: a failed write is tried this often before the entries are given up
 PRUNE_EVERY_S = 60.0  # age bound checked this often (the size bound after every batch, it is cheap)
 
 
@@ -134,6 +135,11 @@ class OutboxWriter:
         backoff = self.backoff_min_s
         next_prune = 0.0
         stopping = False
+        last_tries = 0
+        try:  # open at once, so the file exists and a problem is logged at start, not at the first event
+            self._open()
+        except (sqlite3.Error, OSError, OutboxError) as exc:
+            self._failed(exc)
         while True:
             if not pending and not stopping:
                 item = self.q.get()
@@ -162,12 +168,16 @@ class OutboxWriter:
                     next_prune = now + PRUNE_EVERY_S
             except (sqlite3.Error, OSError, OutboxError) as exc:
                 self._failed(exc)
-                if stopping or self._stop.is_set():  # closing: one last attempt was made
-                    n = len(pending) + self.q.qsize()
-                    self.stats.lost += n
-                    log.error("outbox: %d entries could not be written before shutdown: %s", n, exc)
-                    break
-                self._stop.wait(backoff)  # close() cuts the wait short for one last attempt
+                if stopping or self._stop.is_set():  # closing: a few quick attempts, then give up
+                    last_tries += 1
+                    if last_tries >= SHUTDOWN_ATTEMPTS:
+                        n = len(pending) + self.q.qsize()
+                        self.stats.lost += n
+                        log.error("outbox: %d entries could not be written before shutdown: %s", n, exc)
+                        break
+                    time.sleep(0.05)
+                    continue
+                self._stop.wait(backoff)  # close() cuts the wait short
                 backoff = min(backoff * 2, self.backoff_max_s)
         if self._box is not None:
             self._box.close()
@@ -181,6 +191,8 @@ class OutboxWriter:
         if self._box is None:
             self._box = open_outbox(self.path, durable=True)
             self.stats.reopened += 1
+            if self._box.kept_aside is not None:
+                self._note_corrupt(self._box.kept_aside)
         return self._box
 
     def _write(self, entries: list[Entry]) -> None:
@@ -204,6 +216,10 @@ class OutboxWriter:
             raise
         self.stats.written += len(entries)
         self.stats.commits += 1
+
+    def _note_corrupt(self, aside: Path) -> None:
+        with self._lost_lock:  # written with the next batch, like the other losses
+            self._lost.by_reason["corrupt_outbox"] = Dropped("corrupt_outbox", kept_as=aside.name)
 
     def _over_size(self) -> bool:
         box = self._box
@@ -233,12 +249,13 @@ class OutboxWriter:
             try:
                 aside = set_aside(Path(self.path))
                 log.error("%s: corrupt outbox kept as %s; starting a new one", self.path, aside)
+                self._note_corrupt(aside)
             except OSError as err:
                 self._ratelog(logging.ERROR, "outbox-aside", "cannot keep the corrupt outbox aside: %s", err)
 
 
 def _merge(a: Dropped, b: Dropped) -> Dropped:
-    out = Dropped(a.reason, a.entries + b.entries, a.bytes + b.bytes, dict(a.by_kind))
+    out = Dropped(a.reason, a.entries + b.entries, a.bytes + b.bytes, dict(a.by_kind), kept_as=b.kept_as or a.kept_as)
     for k, n in b.by_kind.items():
         out.by_kind[k] = out.by_kind.get(k, 0) + n
     ts = [t for t in (a.first_t_s, b.first_t_s) if t is not None]
