@@ -82,14 +82,28 @@ class UplinkFeed:
         return Cumulative(dict(tot.time_in_level_s), tot.evaluated_s, tot.warning_count, tot.fault_count, counters)
 
 
+# Enum member -> lower-case name, one table per enum: Enum.name is slow on a 10 Hz path, and IntEnum
+# members of different enums with the same value are equal (Gate.NO_INPUT == Level.LOW == 1).
+_GATES: dict[Any, str] = {}
+_LEVELS: dict[Any, str] = {}
+_REASONS: dict[Any, str] = {}
+
+
+def _name(table: dict[Any, str], member: Any) -> str:
+    name = table.get(member)
+    if name is None:
+        name = table[member] = member.name.lower()
+    return name
+
+
 def _sample(tick: Any) -> TickSample:
-    evaluated = tick.gate.name == "EVALUATING"
+    gate = _name(_GATES, tick.gate)
     return TickSample(
         t_s=tick.t_s,
-        gate=tick.gate.name.lower(),
-        level=tick.level.name.lower(),
-        reason=tick.reason.name.lower(),
-        ratio_raw_pct=tick.ratio_raw_pct if evaluated else None,
+        gate=gate,
+        level=_name(_LEVELS, tick.level),
+        reason=_name(_REASONS, tick.reason),
+        ratio_raw_pct=tick.ratio_raw_pct if gate == "evaluating" else None,
         ratio_filt_pct=tick.ratio_filt_pct if tick.filt_valid else None,
         extra_leak_lpm=tick.extra_leak_lpm if tick.filt_valid else None,
         motor_speed_meas_rpm=tick.motor_speed_meas_rpm,

@@ -40,6 +40,7 @@ from cmcan.uplink.outbox import Outbox, OutboxError, describe, is_corruption, op
 from cmcan.uplink.records import SCHEMA_VERSION, dumps, envelope, iso_utc
 
 log = logging.getLogger("cmcan.uplink")
+mqtt_log = logging.getLogger("cmcan.uplink.mqtt")
 
 QOS = 1
 DELETE_EVERY_S = 0.05  # acknowledged entries are deleted in batches, at most this late
@@ -232,7 +233,8 @@ class Publisher:
             c.username_pw_set(m.username, self.password)
         if self.tls is not None:
             c.tls_set_context(self.tls)
-        c.enable_logger(logging.getLogger("cmcan.uplink.mqtt"))
+        # paho's own messages at debug level: what matters is logged by this loop, with a rate limit.
+        c.on_log = lambda _c, _u, _level, buf: mqtt_log.debug("%s", buf)
         return c
 
     def _new_client(self) -> mqtt.Client:
@@ -561,7 +563,18 @@ class Publisher:
             return f"connected to {m.host}:{m.port} as {m.client_id}"
         if s.refused_auth:
             raise SetupError(f"{m.host}:{m.port}: {s.ended}", "config")
-        raise SetupError(f"{m.host}:{m.port}: {s.ended or 'no CONNACK'}", "unavailable")
+        if not s.ended:
+            raise SetupError(f"{m.host}:{m.port}: no CONNACK within {m.connect_timeout_s:g} s", "unavailable")
+        if s.ended.startswith("connection lost"):
+            hint = ""
+            if m.tls.enabled and m.tls.cert_file is None:
+                hint = " (does it require a client certificate? see uplink.mqtt.tls.cert_file)"
+            elif m.tls.enabled:
+                hint = " (does it accept this client certificate?)"
+            raise SetupError(
+                f"{m.host}:{m.port}: the broker closed the connection before accepting it{hint}", "unavailable"
+            )
+        raise SetupError(f"{m.host}:{m.port}: {s.ended}", "unavailable")
 
 
 def _close_client(client: mqtt.Client, polite: bool) -> None:
