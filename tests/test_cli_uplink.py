@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -18,7 +19,6 @@ from cmcan.uplink.records import Entry
 from cmcan.uplink.writer import OutboxWriter
 from tests.conftest import run_cli
 from tests.uplink_support import (
-    MOSQUITTO,
     Broker,
     Subscriber,
     free_port,
@@ -49,22 +49,33 @@ def state(tmp_path):
 
 
 def test_configuration_errors_name_the_field(tmp_path, state):
+    from cmcan import config as cfgmod
+    from cmcan.schema import SchemaError
+
     cases = [
         ({"machine_id": None}, "uplink.machine_id: missing"),
         ({"machine_id": "wl/42"}, "uplink.machine_id: expected 1-64 letters"),
         ({"mqtt": {"hots": "x"}}, "uplink.mqtt.hots: unknown field (did you mean 'host'?)"),
         ({"mqtt": {"port": 70000}}, "uplink.mqtt.port: expected an integer in [1, 65535]"),
+        ({"mqtt": {"topic_prefix": "a/#"}}, "uplink.mqtt.topic_prefix: expected segments"),
+        ({"mqtt": {"reconnect_min_s": 9, "reconnect_max_s": 2}}, "uplink.mqtt.reconnect_min_s: must not exceed"),
         ({"mqtt": {"tls": {"cert_file": "c.pem"}}}, "uplink.mqtt.tls.cert_file: cert_file and key_file go together"),
         ({"mqtt": {"tls": {"ca_file": "ca.pem"}}}, "uplink.mqtt.tls.enabled: certificate files are given"),
         ({"mqtt": {"password_file": "pw"}}, "uplink.mqtt.password_file: needs mqtt.username"),
+        ({"mqtt": {"protocol": "4"}}, "uplink.mqtt.protocol: expected one of '3.1.1', '5'"),
         ({"outbox": {"max_mb": 0}}, "uplink.outbox.max_mb: expected a number in [0.1, 1000000] MiB"),
     ]
     for over, expected in cases:
         cfg = uplink_config(tmp_path / "c.yaml", state, 1883, **over)
-        r = run_cli("uplink", "--config", str(cfg), "--check")
-        assert r.returncode == 78, (over, r.stderr)
-        assert expected in r.stderr and str(tmp_path / "c.yaml") in r.stderr, r.stderr
-        assert len(r.stderr.strip().splitlines()) == 1
+        with pytest.raises(SchemaError) as err:
+            cfgmod.load(cfg)
+        assert str(err.value) == f"{cfg}: {expected}" or str(err.value).startswith(f"{cfg}: {expected}"), err.value
+    # The command line says it in one line with the configuration's exit code.
+    cfg = uplink_config(tmp_path / "c.yaml", state, 1883, machine_id=None)
+    r = run_cli("uplink", "--config", str(cfg), "--check")
+    assert r.returncode == 78 and r.stderr.strip() == f"cmcan uplink: {cfg}: uplink.machine_id: missing; every " + (
+        "machine needs its own id in the topics and payloads when enabled"
+    )
 
 
 def test_disabled_missing_files_and_usage(tmp_path, state):
@@ -96,6 +107,7 @@ def test_a_corrupt_outbox_is_kept_aside_reported_and_noted_in_the_new_one(tmp_pa
     assert note["reason"] == "corrupt_outbox" and note["kept_as"] == "outbox.sqlite.corrupt-1"
 
 
+@pytest.mark.slow
 def test_unreachable_broker_fails_the_check_and_drain_times_out_keeping_entries(tmp_path, state):
     fill(state, 7)
     port = free_port()  # nothing listens there
@@ -163,6 +175,7 @@ def test_sigterm_says_offline_and_stops(tmp_path, state):
         broker.kill()
 
 
+@pytest.mark.slow
 @needs_mosquitto
 @needs_openssl
 def test_tls_with_client_certificates(tmp_path, state):
@@ -219,8 +232,10 @@ def test_tls_with_client_certificates(tmp_path, state):
 def test_username_and_password(tmp_path, state):
     pwfile = tmp_path / "passwd"
     pwfile.write_text("")
-    subprocess.run([str(Path(MOSQUITTO).parent.parent / "bin" / "mosquitto_passwd"), "-b", str(pwfile), "gw", "s3cret"],
-                   check=True)  # fmt: skip
+    passwd = shutil.which("mosquitto_passwd")
+    if passwd is None:
+        pytest.skip("mosquitto_passwd is not installed (it comes with Debian's mosquitto package)")
+    subprocess.run([passwd, "-b", str(pwfile), "gw", "s3cret"], check=True)
     if os.geteuid() == 0:
         os.chmod(pwfile, 0o644)
     broker = Broker(tmp_path, conf=["allow_anonymous false", f"password_file {pwfile}"]).start()
@@ -233,3 +248,61 @@ def test_username_and_password(tmp_path, state):
             assert r.returncode == code and text in (r.stdout + r.stderr), r.stderr
     finally:
         broker.kill()
+
+
+# -- the systemd unit --------------------------------------------------------------------------------
+
+
+def test_uplink_unit_verifies_and_keeps_the_bus_and_the_network_apart():
+    import tempfile
+
+    if shutil.which("systemd-analyze") is None:
+        pytest.fail("systemd-analyze is not installed (the CI installs the systemd package)")
+    root = Path(__file__).resolve().parents[1] / "systemd"
+    beside = Path(sys.executable).with_name("cmcan")
+    exe = shutil.which("cmcan") or (str(beside) if beside.exists() else None)
+    assert exe, "the cmcan entry point must be installed"
+    daemon = (root / "cmcan.service").read_text()
+    uplink = (root / "cmcan-uplink.service").read_text()
+    assert "IPAddressDeny=any" in daemon and "AF_INET" not in daemon  # the CAN daemon: no IP at all
+    families = next(x for x in uplink.splitlines() if x.startswith("RestrictAddressFamilies="))
+    assert "AF_INET" in families and "AF_CAN" not in families and "AF_NETLINK" not in families
+    for key in ("Type=notify", "WatchdogSec=", "DynamicUser=yes", "User=cmcan", "StateDirectory=cmcan",
+                "MemoryDenyWriteExecute=yes", "CapabilityBoundingSet=\n", "RestrictNamespaces=yes"):  # fmt: skip
+        assert key in uplink, key
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "cmcan-uplink.service"
+        p.write_text(uplink.replace("/usr/local/bin/cmcan", exe))
+        res = subprocess.run(["systemd-analyze", "verify", str(p)], capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0, res.stderr
+    assert "Unknown" not in res.stderr and "ignoring" not in res.stderr.lower(), res.stderr
+
+
+@needs_mosquitto
+def test_the_uplink_runs_with_memory_deny_write_execute(tmp_path, state):
+    """The unit sets MemoryDenyWriteExecute=yes; the kernel's own switch for it (PR_SET_MDWE, Linux
+    6.3+) shows the uplink, TLS library and all, needs no writable executable memory."""
+    import ctypes
+
+    libc = ctypes.CDLL(None, use_errno=True)
+    if libc.prctl(66, 0, 0, 0, 0) < 0:  # PR_GET_MDWE
+        pytest.skip("this kernel has no PR_SET_MDWE (Linux < 6.3)")
+    fill(state, 10)
+    broker = Broker(tmp_path).start()
+    cfg = uplink_config(tmp_path / "c.yaml", state, broker.port)
+    launcher = (
+        "import ctypes, os, sys\n"
+        "assert ctypes.CDLL(None).prctl(65, 1, 0, 0, 0) == 0  # PR_SET_MDWE, PR_MDWE_REFUSE_EXEC_GAIN\n"
+        "os.execv(sys.executable, [sys.executable, '-m', 'cmcan', 'uplink', *sys.argv[1:]])\n"
+    )
+    try:
+        r = subprocess.run(
+            [sys.executable, "-c", launcher, "--config", str(cfg), "--drain", "--timeout", "30"],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+    finally:
+        broker.kill()
+    assert r.returncode == 0, r.stderr
+    assert Outbox(state / "outbox.sqlite").usage().entries == 0
