@@ -83,10 +83,18 @@ def test_prune_by_size_drops_summaries_first_and_records_it(tmp_path):
 
 def test_prune_by_age(tmp_path):
     box = Outbox(tmp_path / "o.sqlite")
-    box.append([("summary", T0 + i, 100.0 + i, "{}") for i in range(10)])
-    dropped = box.prune(max_bytes=10**9, max_age_s=50.0, now_s=155.5, t_now_s=T0 + 10)
+    box.append([("summary", T0 + i, T0 + 100.0 + i, "{}") for i in range(10)])
+    dropped = box.prune(max_bytes=10**9, max_age_s=50.0, now_s=T0 + 155.5, t_now_s=T0 + 10)
     assert [(d.reason, d.entries, d.first_seq, d.last_seq) for d in dropped] == [("age", 6, 1, 6)]
     assert [s for s, k, _ in rows(box) if k == "summary"] == [7, 8, 9, 10]
+    assert box.count() == 5  # four summaries and the note
+
+
+def test_entries_written_before_the_clock_was_set_are_not_old(tmp_path):
+    box = Outbox(tmp_path / "o.sqlite")
+    box.append([("summary", T0, 12.0, "{}"), ("summary", T0 + 1, T0 - 86400 * 200, "{}")])  # 1970, 200 d ago
+    dropped = box.prune(max_bytes=10**9, max_age_s=86400 * 90, now_s=T0, t_now_s=T0)
+    assert [(d.reason, d.first_seq, d.last_seq) for d in dropped] == [("age", 2, 2)]
 
 
 def test_corrupt_outbox_is_kept_aside_never_deleted(tmp_path):

@@ -29,6 +29,9 @@ log = logging.getLogger("cmcan.uplink.outbox")
 FORMAT_VERSION = 1
 ROW_OVERHEAD_BYTES = 48  # what SQLite stores besides the body, roughly: counted against the size bound
 PRUNE_TO = 0.9  # a full outbox is pruned to this share of its bound, so pruning is rare and batched
+# A gateway without a battery-backed clock may write entries before its clock is set (1970) and then
+# jump years ahead: such entries are not "old". The size bound still holds for them.
+PLAUSIBLE_WALL_S = 1_577_836_800.0  # 2020-01-01
 
 _SCHEMA = f"""
 CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -193,8 +196,9 @@ class Outbox:
         try:
             out: list[Dropped] = []
             old = con.execute(
-                "SELECT seq, kind, t_s, nbytes FROM entries WHERE kind != ? AND created_s < ? ORDER BY seq",
-                (DROPPED, now_s - max_age_s),
+                "SELECT seq, kind, t_s, nbytes FROM entries WHERE kind != ? AND created_s < ? AND created_s > ?"
+                " ORDER BY seq",
+                (DROPPED, now_s - max_age_s, PLAUSIBLE_WALL_S),
             ).fetchall()
             if old:
                 out.append(self._delete(con, "age", old))
@@ -253,6 +257,10 @@ class Outbox:
             with contextlib.suppress(sqlite3.Error):
                 con.execute("ROLLBACK")
             raise
+
+    def count(self) -> int:
+        """Entries held (cheap: a counter kept by triggers)."""
+        return int(self._con().execute("SELECT entries FROM usage").fetchone()[0])
 
     def usage(self) -> Usage:
         con = self._con()

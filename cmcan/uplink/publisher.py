@@ -529,8 +529,7 @@ class Publisher:
     def _status_text(self) -> str:
         s = self.session
         try:
-            u = self.box.usage()
-            backlog = f"backlog {u.entries} entries"
+            backlog = f"backlog {self.box.count()} entries"
         except Exception:
             backlog = "outbox unreadable"
         if s is not None and s.connected:
