@@ -306,3 +306,29 @@ def test_the_uplink_runs_with_memory_deny_write_execute(tmp_path, state):
         broker.kill()
     assert r.returncode == 0, r.stderr
     assert Outbox(state / "outbox.sqlite").usage().entries == 0
+
+
+def test_ready_watchdog_and_status_while_the_broker_is_missing(tmp_path, state):
+    from tests.test_daemon import notify_socket, read_notifications
+
+    fill(state, 3)
+    sock, path = notify_socket(tmp_path)
+    cfg = uplink_config(tmp_path / "c.yaml", state, free_port())
+    env = {**os.environ, "NOTIFY_SOCKET": path, "WATCHDOG_USEC": "400000"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cmcan", "uplink", "--config", str(cfg)], env=env, stderr=subprocess.PIPE, text=True
+    )
+    try:
+
+        def refused(g: list[str]) -> bool:
+            return any("STATUS=not connected" in x and "connection refused" in x for x in g)
+
+        got = read_notifications(sock, lambda g: sum("WATCHDOG=1" in x for x in g) >= 3 and refused(g), 30)
+        assert any("READY=1" in g for g in got), got
+        assert sum("WATCHDOG=1" in g for g in got) >= 3  # the loop lives on while it retries
+        assert any("STATUS=not connected" in g and "connection refused" in g and "backlog 3 entries" in g for g in got)
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(10) == 0
+    finally:
+        proc.kill()
+        sock.close()
