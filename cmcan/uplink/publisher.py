@@ -255,6 +255,11 @@ class Publisher:
         s.connected = True
         s.connected_at = self.clock()
         self.stats.connects += 1
+        try:
+            backlog = f"{self.box.count()} entries to publish"
+        except Exception:  # a callback must not raise into paho
+            backlog = "outbox unreadable"
+        log.info("uplink connected to %s:%d; %s", self.m.host, self.m.port, backlog)
 
     def _on_disconnect(self, client: mqtt.Client, _ud: Any, _flags: Any, reason: Any, _props: Any) -> None:
         s = self.session
@@ -442,7 +447,7 @@ class Publisher:
             self.stats.connect_failures += 1
             self.failures += 1
             level = logging.ERROR if s.refused_auth else logging.WARNING
-        # Full jitter: a fleet coming back after a site-wide outage does not reconnect in lockstep.
+        # Jitter: a fleet that lost its broker at the same moment does not come back in lockstep.
         cap = min(self.m.reconnect_max_s, self.m.reconnect_min_s * 2 ** min(self.failures, 30))
         delay = self.m.reconnect_min_s + self.rng() * max(0.0, cap - self.m.reconnect_min_s)
         self.next_attempt = self.clock() + delay
