@@ -42,7 +42,6 @@ class WriterStats:
     lost: int = 0  # entries given up at shutdown because the file could not take them
     pruned: int = 0  # entries dropped by the size or age bound
     reopened: int = 0
-    last_error: str = ""
 
     def as_counters(self) -> dict[str, int]:
         return {
@@ -117,10 +116,11 @@ class OutboxWriter:
 
     def close(self, timeout_s: float = 3.0) -> None:
         """Write what is queued (within ``timeout_s``), then stop the thread."""
+        end = time.monotonic() + timeout_s
         self._stop.set()
         with contextlib.suppress(queue.Full):
             self.q.put(None, timeout=timeout_s)  # wakes the thread; it drains the queue first
-        self._thread.join(timeout_s)
+        self._thread.join(max(0.0, end - time.monotonic()))
         if self._thread.is_alive():
             log.error("outbox writer did not finish within %.1f s; %d entries not written", timeout_s, self.q.qsize())
 
@@ -240,7 +240,6 @@ class OutboxWriter:
 
     def _failed(self, exc: BaseException) -> None:
         self.stats.write_failures += 1
-        self.stats.last_error = str(exc)
         self._ratelog(logging.ERROR, "outbox-write", "cannot write the outbox %s: %s; retrying", self.path, exc)
         box, self._box = self._box, None
         if box is not None:
