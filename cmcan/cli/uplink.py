@@ -61,7 +61,8 @@ def add_subparser(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from cmcan.uplink.config import UplinkSettings
     from cmcan.uplink.outbox import describe
-    from cmcan.uplink.publisher import Publisher, SetupError, open_for_uplink, read_password, tls_context
+    from cmcan.uplink.publisher import Publisher
+    from cmcan.uplink.setup import SetupError, open_for_uplink, read_password, tls_context
 
     if args.verbose == 0:
         logging.getLogger().setLevel(logging.INFO)

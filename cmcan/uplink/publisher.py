@@ -18,15 +18,12 @@ from __future__ import annotations
 
 import logging
 import random
-import socket
-import sqlite3
 import ssl
 import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import paho.mqtt.client as mqtt
@@ -35,9 +32,10 @@ from paho.mqtt.enums import CallbackAPIVersion
 from cmcan import __version__
 from cmcan.daemon import RateLimitedLog
 from cmcan.sdnotify import Notifier
-from cmcan.uplink.config import MqttSettings, TlsSettings, UplinkSettings
+from cmcan.uplink.config import UplinkSettings
 from cmcan.uplink.outbox import Outbox, OutboxError, describe, is_corruption, open_outbox, record_corrupt, set_aside
 from cmcan.uplink.records import SCHEMA_VERSION, dumps, envelope, iso_utc
+from cmcan.uplink.setup import SetupError, describe_connect_error
 
 log = logging.getLogger("cmcan.uplink")
 mqtt_log = logging.getLogger("cmcan.uplink.mqtt")
@@ -46,98 +44,6 @@ QOS = 1
 DELETE_EVERY_S = 0.05  # acknowledged entries are deleted in batches, at most this late
 IDLE_POLL_S = 0.25  # how often an idle uplink looks for new entries
 STOP_WAIT_S = 2.0  # at a clean stop: how long to wait for the offline status's PUBACK
-
-
-class SetupError(Exception):
-    """The uplink cannot start (or ``--check`` failed). ``kind`` says which sysexits code fits:
-    'config', 'noinput', 'data', 'unavailable', 'cantcreat', 'tempfail'."""
-
-    def __init__(self, message: str, kind: str) -> None:
-        super().__init__(message)
-        self.kind = kind
-
-
-# -- setup ----------------------------------------------------------------------------------------
-
-
-def tls_context(tls: TlsSettings, source: str = "config") -> ssl.SSLContext | None:
-    """The TLS context from the configuration, with every file checked now (not at the first connect)."""
-    if not tls.enabled:
-        return None
-    for name, p in (("ca_file", tls.ca_file), ("cert_file", tls.cert_file), ("key_file", tls.key_file)):
-        if p is not None and not p.is_file():
-            raise SetupError(f"{source}: uplink.mqtt.tls.{name}: {p}: file not found", "noinput")
-    try:
-        ctx = ssl.create_default_context(ssl.Purpose.SERVER_AUTH, cafile=str(tls.ca_file) if tls.ca_file else None)
-    except (ssl.SSLError, OSError) as exc:
-        raise SetupError(
-            f"{source}: uplink.mqtt.tls.ca_file: {tls.ca_file}: not a PEM CA certificate ({_ssl_reason(exc)})", "config"
-        ) from None
-    ctx.minimum_version = ssl.TLSVersion.TLSv1_2
-    ctx.check_hostname = tls.verify_hostname
-    if tls.cert_file is not None:
-        try:
-            ctx.load_cert_chain(str(tls.cert_file), str(tls.key_file) if tls.key_file else None, password=_no_password)
-        except (ssl.SSLError, OSError, _EncryptedKey) as exc:
-            raise SetupError(
-                f"{source}: uplink.mqtt.tls.cert_file: {tls.cert_file} with key {tls.key_file}: "
-                f"not a usable client certificate and key ({_ssl_reason(exc)})",
-                "config",
-            ) from None
-    return ctx
-
-
-class _EncryptedKey(Exception):
-    def __str__(self) -> str:
-        return "the key is encrypted; the uplink needs an unencrypted key (protect it with file permissions)"
-
-
-def _no_password() -> str:
-    raise _EncryptedKey()
-
-
-def _ssl_reason(exc: BaseException) -> str:
-    reason = getattr(exc, "reason", None)
-    return str(reason).replace("_", " ").lower() if reason else str(exc)
-
-
-def read_password(m: MqttSettings, source: str = "config") -> str | None:
-    if m.password_file is None:
-        return None
-    try:
-        text = m.password_file.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise SetupError(f"{source}: uplink.mqtt.password_file: {m.password_file}: file not found", "noinput") from None
-    except OSError as exc:
-        raise SetupError(f"{source}: uplink.mqtt.password_file: {m.password_file}: {exc.strerror}", "noinput") from None
-    pw = text.rstrip("\r\n")
-    if not pw:
-        raise SetupError(f"{source}: uplink.mqtt.password_file: {m.password_file}: empty", "config")
-    return pw
-
-
-def open_for_uplink(path: Path) -> Outbox:
-    """The outbox for publishing; a corrupt file is kept aside and reported (the next start, or the
-    daemon, begins a new one), a missing folder or a newer format is reported."""
-    if not path.parent.is_dir():
-        raise SetupError(f"{path.parent}: state directory does not exist (uplink.outbox.file)", "cantcreat")
-    try:
-        return open_outbox(path, durable=False, keep_aside=False)
-    except OutboxError as exc:
-        if exc.kind == "corrupt":
-            try:
-                aside = set_aside(path)
-                box = open_outbox(path, durable=False)
-                record_corrupt(box, aside, time.time(), time.time())
-                box.close()
-            except (OSError, OutboxError, sqlite3.Error) as err:
-                raise SetupError(f"{exc}; it could not be kept aside: {err}", "data") from None
-            raise SetupError(
-                f"{exc}; kept as {aside.name}, a new outbox is started (the next start publishes from it)", "data"
-            ) from None
-        if exc.kind == "version":
-            raise SetupError(str(exc), "data") from None
-        raise SetupError(str(exc), "cantcreat") from None
 
 
 # -- the connection -------------------------------------------------------------------------------
@@ -601,20 +507,3 @@ def _close_client(client: mqtt.Client, polite: bool) -> None:
 def _is_auth_refusal(reason: Any) -> bool:
     # MQTT 3.1.1 CONNACK 4 and 5, MQTT 5 0x86 and 0x87: bad credentials, not authorized.
     return getattr(reason, "value", None) in (4, 5, 0x86, 0x87)
-
-
-def describe_connect_error(exc: BaseException, m: MqttSettings) -> str:
-    where = f"{m.host}:{m.port}"
-    if isinstance(exc, socket.gaierror):
-        return f"cannot resolve {m.host} ({exc.strerror})"
-    if isinstance(exc, ssl.SSLCertVerificationError):
-        return f"{where}: the broker's certificate is not trusted ({exc.verify_message}; see uplink.mqtt.tls.ca_file)"
-    if isinstance(exc, ssl.SSLError):
-        return f"{where}: TLS handshake failed ({_ssl_reason(exc)})"
-    if isinstance(exc, ConnectionRefusedError):
-        return f"{where}: connection refused (is the broker running?)"
-    if isinstance(exc, TimeoutError | socket.timeout):
-        return f"{where}: no answer within {m.connect_timeout_s:g} s"
-    if isinstance(exc, OSError):
-        return f"{where}: {exc.strerror or exc}"
-    return f"{where}: {exc}"
