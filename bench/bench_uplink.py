@@ -189,7 +189,7 @@ def bench_uplink(d: Path, port: int, n: int, inflight: int) -> float:
         d,
         d,
     )
-    path = d / f"up-{inflight}.sqlite"
+    path = d / f"up-{inflight}-{time.monotonic_ns()}.sqlite"
     box = Outbox(path)
     body = sample_summary().to_json()
     box.append([("summary", 1.7e9 + i, time.time(), body) for i in range(n)])
@@ -258,10 +258,13 @@ def main() -> None:
         ratio = core_feed / core
         print(f"  core + uplink feed                         {core_feed * 1e6:9.2f} us/frame  ({ratio:5.2f} x)")
         print(f"  the feed per completed tick                {per_tick * 1e6:9.2f} us/tick   (target < 200 us)")
-        off = bench_daemon(d, args.frames, None)
-        on = bench_daemon(d, args.frames, 900.0)
-        busy = bench_daemon(d, args.frames, 10.0)
-        print(f"daemon loop ({args.frames} frames, wall time per received frame)")
+        # Wall time on a shared machine is noisy: the best of three runs, interleaved.
+        runs: dict[float | None, list[float]] = {None: [], 900.0: [], 10.0: []}
+        for _ in range(3):
+            for every in runs:
+                runs[every].append(bench_daemon(d, args.frames, every))
+        off, on, busy = (min(runs[k]) for k in (None, 900.0, 10.0))
+        print(f"daemon loop ({args.frames} frames, wall time per received frame, best of 3)")
         print(f"  uplink off                                 {off * 1e6:9.2f} us/frame")
         print(f"  uplink on, summaries every 900 s           {on * 1e6:9.2f} us/frame  ({on / off:5.2f} x)")
         print(f"  uplink on, summaries every 10 s            {busy * 1e6:9.2f} us/frame  ({busy / off:5.2f} x)")
@@ -272,10 +275,10 @@ def main() -> None:
             return
         proc, port = broker
         try:
-            print(f"uplink throughput against mosquitto on 127.0.0.1 ({args.messages} messages, QoS 1)")
+            print(f"uplink throughput against mosquitto on 127.0.0.1 ({args.messages} messages, QoS 1, best of 3)")
             for inflight in (20, 100):
-                ours = bench_uplink(d, port, args.messages, inflight)
-                base = bench_paho(port, args.messages, inflight)
+                ours = max(bench_uplink(d, port, args.messages, inflight) for _ in range(3))
+                base = max(bench_paho(port, args.messages, inflight) for _ in range(3))
                 print(
                     f"  window {inflight:3d}: cmcan uplink {ours:8.0f} msg/s (PUBACK'd, deleted)   "
                     f"bare paho {base:8.0f} msg/s   ratio {ours / base:5.2f} x"
