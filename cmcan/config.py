@@ -16,6 +16,7 @@ from cmcan.monitor.gating import GateLimits
 from cmcan.monitor.warnings import Thresholds
 from cmcan.roles import GATED, MAPPABLE, SignalRef
 from cmcan.schema import Num, Obj, SchemaError, Str, load_yaml
+from cmcan.uplink.config import UPLINK, UplinkSettings
 
 _SIGNAL = Obj(
     {"message": Str(), "signal": Str(), "scale": Num(-1e6, 1e6, default=1.0), "offset": Num(-1e9, 1e9, default=0.0)},
@@ -117,6 +118,7 @@ _CONFIG = Obj(
         "state": Obj(
             {"directory": Str(default="/var/lib/cmcan"), "save_every_s": Num(1, 86400, "s", default=60.0)}, default={}
         ),
+        "uplink": UPLINK,  # issue 15: validated by cmcan.uplink.config, disabled by default
     }
 )
 
@@ -199,6 +201,7 @@ class Config:
     thresholds: Thresholds
     outputs: OutputsConfig
     state: StateConfig
+    uplink: UplinkSettings  # the telematics uplink (disabled by default); its outbox in the state directory
 
     @property
     def motor_disp_cc(self) -> float:
@@ -260,6 +263,7 @@ def from_dict(data: Any, source: str, base_dir: Path) -> Config:
         ),
         outputs=OutputsConfig(**{k: OutputMessageConfig(**v) for k, v in out.items()}),
         state=StateConfig(Path(raw["state"]["directory"]), float(raw["state"]["save_every_s"])),
+        uplink=UplinkSettings.from_raw(raw["uplink"], raw["state"]["directory"], base_dir, source),
     )
 
 
@@ -274,8 +278,14 @@ def with_overrides(
 ) -> Config:
     """The command line's overrides of bus and state directory."""
     bus = replace(cfg.bus, **{k: v for k, v in (("interface", interface), ("channel", channel)) if v})
-    state = replace(cfg.state, directory=Path(state_dir)) if state_dir else cfg.state
-    return replace(cfg, bus=bus, state=state)
+    if not state_dir:
+        return replace(cfg, bus=bus)
+    state = replace(cfg.state, directory=Path(state_dir))
+    uplink = cfg.uplink
+    if uplink.outbox.path.parent == cfg.state.directory:  # the outbox lives in the state directory
+        outbox = replace(uplink.outbox, path=Path(state_dir) / uplink.outbox.path.name)
+        uplink = replace(uplink, outbox=outbox)
+    return replace(cfg, bus=bus, state=state, uplink=uplink)
 
 
 __all__ = ["Config", "SchemaError", "SignalRef", "default_config_path", "from_dict", "load", "with_overrides"]

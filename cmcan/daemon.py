@@ -18,15 +18,19 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import can
 
 from cmcan.config import BusConfig, Config
 from cmcan.frame import Frame, from_message, to_message_kwargs
 from cmcan.monitor.core import Monitor
+from cmcan.ratelog import RateLimitedLog
 from cmcan.sdnotify import Notifier
 from cmcan.statefile import StateStore
+
+if TYPE_CHECKING:  # issue 15 (uplink): only for the type hint; the feed imports this module
+    from cmcan.uplink.feed import UplinkFeed
 
 log = logging.getLogger("cmcan.daemon")
 
@@ -45,25 +49,6 @@ class DaemonOptions:
     backoff_max_s: float = 10.0
     status_every_s: float = 2.0
     send_timeout_s: float = 0.005
-
-
-class RateLimitedLog:
-    """Logs the first occurrence of a problem, then at most one summary line per interval."""
-
-    def __init__(self, interval_s: float = 30.0, clock: Callable[[], float] = time.monotonic) -> None:
-        self.interval = interval_s
-        self.clock = clock
-        self.last: dict[str, float] = {}
-        self.suppressed: dict[str, int] = {}
-
-    def __call__(self, level: int, key: str, msg: str, *args: Any, exc_info: bool = False) -> None:
-        now = self.clock()
-        if key in self.last and now - self.last[key] < self.interval:
-            self.suppressed[key] = self.suppressed.get(key, 0) + 1
-            return
-        n = self.suppressed.pop(key, 0)
-        self.last[key] = now
-        log.log(level, msg + (f" (and {n} more since the last report)" if n else ""), *args, exc_info=exc_info)
 
 
 def bus_kwargs(b: BusConfig, input_ids: list[int]) -> dict[str, Any]:
@@ -106,6 +91,7 @@ class Daemon:
         notifier: Notifier | None = None,
         options: DaemonOptions | None = None,
         clock: Callable[[], float] = time.monotonic,
+        uplink: UplinkFeed | None = None,
     ) -> None:
         self.cfg = cfg
         self.monitor = monitor
@@ -119,6 +105,7 @@ class Daemon:
         self.stats = {"bus_opens": 0, "bus_errors": 0, "tx_frames": 0, "tx_dropped": 0, "internal_errors": 0}
         self.ratelog = RateLimitedLog(clock=clock)
         self.save_every_s = cfg.state.save_every_s
+        self.uplink = uplink  # queues events and summaries for the outbox; never blocks
 
     # -- the loop --------------------------------------------------------------------------------------
 
@@ -185,6 +172,8 @@ class Daemon:
                 self.stats["internal_errors"] += 1
                 self.ratelog(logging.ERROR, "internal", "internal error processing a frame", exc_info=True)
                 out = []
+            if self.uplink is not None:  # issue 15: after each step of the core (cheap unless a tick completed)
+                self.uplink.observe(self.monitor, self.stats)
             if out:
                 self._send(out)
         self._shutdown()
@@ -266,6 +255,8 @@ class Daemon:
         self.notifier.stopping()
         if self.store is not None:
             self._save()
+        if self.uplink is not None:  # issue 15: the period's last summary, then the queue written out
+            self.uplink.close(self.monitor, self.stats)
         self._close()
         c = self.monitor.counters
         log.info(

@@ -17,10 +17,24 @@ PKG = Path(__file__).resolve().parents[1] / "cmcan"
 LAYERS: list[tuple[str, ...]] = [
     ("cmcan", "cmcan.roles", "cmcan.frame", "cmcan.errors", "cmcan.oil", "cmcan.schema", "cmcan.codec"),
     ("cmcan.monitor",),  # the pure core
-    ("cmcan.model", "cmcan.sim", "cmcan.io", "cmcan.dbc", "cmcan.statefile", "cmcan.sdnotify", "cmcan.plots"),
+    (
+        "cmcan.model",
+        "cmcan.sim",
+        "cmcan.io",
+        "cmcan.dbc",
+        "cmcan.statefile",
+        "cmcan.sdnotify",
+        "cmcan.ratelog",
+        "cmcan.plots",
+        # the uplink's settings, records and outbox file, used by the configuration and the daemon
+        "cmcan.uplink.config",
+        "cmcan.uplink.records",
+        "cmcan.uplink.outbox",
+        "cmcan.uplink.setup",
+    ),
     ("cmcan.gap", "cmcan.config"),
     ("cmcan.assemble", "cmcan.preflight"),
-    ("cmcan.daemon", "cmcan.replay", "cmcan.columnar", "cmcan.demo", "cmcan.rebuild_default"),
+    ("cmcan.daemon", "cmcan.replay", "cmcan.columnar", "cmcan.demo", "cmcan.rebuild_default", "cmcan.uplink"),
     ("cmcan.cli", "cmcan.__main__"),
 ]
 

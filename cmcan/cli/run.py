@@ -13,6 +13,7 @@ import can
 from cmcan.daemon import Daemon, DaemonOptions, bus_kwargs, tune_socketcan
 from cmcan.preflight import check_channel, load_config, prepare
 from cmcan.sdnotify import Notifier
+from cmcan.uplink.feed import UplinkFeed
 
 log = logging.getLogger("cmcan")
 
@@ -45,7 +46,8 @@ def run(args: argparse.Namespace) -> int:
             tune_socketcan(bus, cfg.bus.receive_buffer_bytes)
         return bus
 
-    daemon = Daemon(cfg, prep.parts.monitor, prep.store, open_bus, Notifier(), DaemonOptions())
+    uplink = UplinkFeed.open(cfg.uplink, prep.parts.monitor) if cfg.uplink.enabled else None
+    daemon = Daemon(cfg, prep.parts.monitor, prep.store, open_bus, Notifier(), DaemonOptions(), uplink=uplink)
 
     def on_signal(signum: int, _frame: FrameType | None) -> None:
         log.info("received %s, stopping", signal.Signals(signum).name)

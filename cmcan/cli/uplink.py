@@ -1,0 +1,95 @@
+"""``cmcan uplink``: publishes the daemon's outbox to the site's MQTT broker (a process of its own)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import signal
+import sys
+import time
+from types import FrameType
+
+from cmcan.errors import CmcanError, Kind
+from cmcan.preflight import load_config
+from cmcan.sdnotify import Notifier
+
+log = logging.getLogger("cmcan")
+
+
+def add_subparser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "uplink",
+        help="publish the daemon's outbox to the MQTT broker",
+        description="Publish warning events, periodic summaries and drop notices from the daemon's outbox "
+        "(state directory) to the configured MQTT broker with QoS 1; an entry is deleted only after the "
+        "broker's PUBACK. Retries an unreachable broker with back-off. Under systemd it reports READY, "
+        "WATCHDOG and STATUS; SIGTERM or SIGINT stop it.",
+    )
+    p.add_argument("--config", help="configuration (default: the shipped config/cmcan.yaml)")
+    p.add_argument("--state-dir", help="state directory holding the outbox (overrides state.directory)")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--check", action="store_true", help="connect once to the broker and exit (0: it works)")
+    mode.add_argument("--status", action="store_true", help="print the outbox's backlog as JSON and exit")
+    mode.add_argument("--drain", action="store_true", help="exit 0 once the outbox is empty and acknowledged")
+    p.add_argument(
+        "--timeout", type=float, metavar="S", help="with --drain: give up after S seconds (exit 75, entries kept)"
+    )
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from cmcan.uplink.outbox import describe
+    from cmcan.uplink.publisher import Publisher
+    from cmcan.uplink.setup import SetupError, open_for_uplink, read_password, tls_context
+
+    if args.verbose == 0:
+        logging.getLogger().setLevel(logging.INFO)
+    if args.timeout is not None and not args.drain:
+        raise CmcanError("--timeout goes with --drain", Kind.USAGE)
+    if args.timeout is not None and not args.timeout > 0:
+        raise CmcanError(f"--timeout: expected a positive number of seconds, got {args.timeout}", Kind.USAGE)
+    cfg = load_config(args.config, state_dir=args.state_dir)
+    settings = cfg.uplink
+    try:
+        if args.status:
+            box = open_for_uplink(settings.outbox.path)
+            out = {"outbox": str(box.path), "stream_id": box.stream_id, **describe(box.usage(), time.time())}
+            box.close()
+            json.dump(out, sys.stdout, indent=2)
+            sys.stdout.write("\n")
+            return 0
+        if not settings.enabled:
+            raise CmcanError(
+                f"{cfg.source}: uplink.enabled: the uplink is disabled; set it to true (and uplink.machine_id)",
+                Kind.CONFIG,
+            )
+        tls = tls_context(settings.mqtt.tls, cfg.source)
+        password = read_password(settings.mqtt, cfg.source)
+        box = open_for_uplink(settings.outbox.path)
+        notifier = Notifier() if not args.check else Notifier(env={})
+        pub = Publisher(settings, box, password=password, tls=tls, notifier=notifier)
+        if args.check:
+            print(f"ok: {pub.check_connection()}; outbox {box.path} holds {box.usage().entries} entries")
+            box.close()
+            return 0
+    except SetupError:  # a CmcanError with its kind: the command line's table gives the exit code
+        raise
+
+    def on_signal(signum: int, _frame: FrameType | None) -> None:
+        log.info("received %s, stopping", signal.Signals(signum).name)
+        pub.stop()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    sys.stdout.flush()
+    try:
+        done = pub.run(drain=args.drain, timeout_s=args.timeout)
+    finally:
+        pub.box.close()
+    if args.drain and not done:
+        raise CmcanError(
+            f"outbox not empty after {args.timeout:g} s ({pub.last_problem or 'still publishing'}); entries kept",
+            Kind.TEMPFAIL,
+        )
+    return 0

@@ -1,0 +1,112 @@
+"""The daemon's hook into the uplink: after each step of the core, queue what should leave the machine.
+
+``UplinkFeed.observe`` is called by the daemon's receive loop after every frame or idle step; it costs
+an integer comparison unless the monitor completed a tick. On a tick it turns new warning transitions
+(``monitor.totals.history``) and the tick itself (``monitor.last_tick``, into the summary of its
+period) into entries and hands them to the writer's queue. It never blocks and never raises: a
+failure is counted and logged with a rate limit. This module is the only place that knows the
+monitor's attribute names, so a change of the core touches only ``_sample`` and ``_cumulative``.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from cmcan.ratelog import RateLimitedLog
+from cmcan.uplink.config import UplinkSettings
+from cmcan.uplink.records import Cumulative, SummaryBuilder, TickSample, new_history, transition_entry
+from cmcan.uplink.writer import OutboxWriter
+
+log = logging.getLogger("cmcan.uplink.feed")
+
+
+class UplinkFeed:
+    def __init__(self, monitor: Any, writer: OutboxWriter, summary_every_s: float) -> None:
+        self.writer = writer
+        self.errors = 0
+        self.ratelog = RateLimitedLog(logger=log)
+        self._ticks = monitor.counters["ticks"]
+        history = monitor.totals.history
+        self._last_seen = history[-1] if history else None  # transitions before this start are old news
+        self.summaries = SummaryBuilder(summary_every_s, self._cumulative(monitor, {}))
+
+    @classmethod
+    def open(cls, settings: UplinkSettings, monitor: Any) -> UplinkFeed:
+        o = settings.outbox
+        writer = OutboxWriter(str(o.path), o.max_bytes, o.max_age_s, o.queue_size).start()
+        log.info("uplink outbox %s (summaries every %g s of frame time)", o.path, settings.summary_every_s)
+        return cls(monitor, writer, settings.summary_every_s)
+
+    def observe(self, monitor: Any, stats: dict[str, int]) -> None:
+        """After a step of the core: queue new transitions and fold a new tick into its summary."""
+        ticks = monitor.counters["ticks"]
+        if ticks == self._ticks:
+            return
+        self._ticks = ticks
+        try:
+            tick = monitor.last_tick
+            if tick is None:
+                return
+            sample = _sample(tick)
+            entries = self.summaries.add(sample, self._cumulative(monitor, stats))
+            new = new_history(monitor.totals.history, self._last_seen)
+            if new:
+                self._last_seen = new[-1]
+                tot = monitor.totals
+                for h in new:
+                    leak = sample.extra_leak_lpm if h["t_s"] == sample.t_s else None
+                    entries.append(transition_entry(h, tot.warning_count, tot.fault_count, leak))
+            for e in entries:
+                self.writer.submit(e)
+        except Exception:  # the uplink must never take the daemon down
+            self.errors += 1
+            self.ratelog(logging.ERROR, "uplink-feed", "uplink: cannot build an outbox entry", exc_info=True)
+
+    def close(self, monitor: Any, stats: dict[str, int]) -> None:
+        """At shutdown: the current period's summary so far, then write out the queue."""
+        try:
+            self.observe(monitor, stats)  # a tick completed by the very last step, if any
+            for e in self.summaries.close(self._cumulative(monitor, stats)):
+                self.writer.submit(e)
+        except Exception:
+            log.exception("uplink: cannot write the last summary")
+        self.writer.close()
+
+    def _cumulative(self, monitor: Any, stats: dict[str, int]) -> Cumulative:
+        tot = monitor.totals
+        counters = dict(monitor.counters)
+        counters.update(stats)
+        counters.update(self.writer.stats.as_counters())
+        counters["uplink_feed_errors"] = self.errors
+        return Cumulative(dict(tot.time_in_level_s), tot.evaluated_s, tot.warning_count, tot.fault_count, counters)
+
+
+# Enum member -> lower-case name, one table per enum: Enum.name is slow on a 10 Hz path, and IntEnum
+# members of different enums with the same value are equal (Gate.NO_INPUT == Level.LOW == 1).
+_GATES: dict[Any, str] = {}
+_LEVELS: dict[Any, str] = {}
+_REASONS: dict[Any, str] = {}
+
+
+def _name(table: dict[Any, str], member: Any) -> str:
+    name = table.get(member)
+    if name is None:
+        name = table[member] = member.name.lower()
+    return name
+
+
+def _sample(tick: Any) -> TickSample:
+    gate = _name(_GATES, tick.gate)
+    return TickSample(
+        t_s=tick.t_s,
+        gate=gate,
+        level=_name(_LEVELS, tick.level),
+        reason=_name(_REASONS, tick.reason),
+        ratio_raw_pct=tick.ratio_raw_pct if gate == "evaluating" else None,
+        ratio_filt_pct=tick.ratio_filt_pct if tick.filt_valid else None,
+        extra_leak_lpm=tick.extra_leak_lpm if tick.filt_valid else None,
+        motor_speed_meas_rpm=tick.motor_speed_meas_rpm,
+        motor_speed_pred_rpm=tick.motor_speed_pred_rpm,
+        motor_speed_whitebox_rpm=tick.motor_speed_whitebox_rpm,
+    )
