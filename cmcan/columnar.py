@@ -30,6 +30,7 @@ from numpy.typing import NDArray
 from cmcan import codec
 from cmcan.frame import Frame, FrameColumns
 from cmcan.monitor.core import _HIGH, _LOW, _WINDOW, Monitor
+from cmcan.monitor.clock import STEP_BACK_S
 from cmcan.monitor.gating import Gate, gate_columns
 from cmcan.monitor.payloads import OutputMessage
 from cmcan.monitor.tick import LEVEL_NAMES, Tick
@@ -272,15 +273,15 @@ class _Engine:
         late_t = (k_prev - 1) * P - eps
         due_t = k_prev * P + eps
         late = t < late_t
-        reset = t < late_t - 60.0
         advances = t > due_t
         accepted = ok & ~late
         lf = np.maximum.accumulate(np.concatenate([[lf0], np.where(accepted, t, -np.inf)]))
         lf_prev = lf[:-1]
         gap = advances & (t - lf_prev > clock.max_gap_s)
+        step_back = late & (t < lf_prev - STEP_BACK_S)  # the wall clock stepped back: the core re-bases
         # a frame in step must not move the clock (ulp edge cases of t - eps against k P + eps)
         odd_step = ~late & ~advances & (g > k_prev)
-        irregular = ~finite | reset | gap | odd_step
+        irregular = ~finite | step_back | gap | odd_step
         stop = int(np.argmax(irregular)) if irregular.any() else n
         if stop == 0:
             return pos

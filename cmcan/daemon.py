@@ -41,6 +41,13 @@ CAN_RAW_ERR_FILTER = 2
 CAN_ERR_MASK = 0x04 | 0x40 | 0x100
 
 
+WALL_STEP_S = 1.0  # a jump of frame time against boot time beyond this is a wall-clock step
+
+
+def _boot_time() -> float:
+    return time.clock_gettime(time.CLOCK_BOOTTIME)
+
+
 @dataclass
 class DaemonOptions:
     recv_timeout_s: float = 0.1
@@ -92,6 +99,7 @@ class Daemon:
         options: DaemonOptions | None = None,
         clock: Callable[[], float] = time.monotonic,
         uplink: UplinkFeed | None = None,
+        boot_clock: Callable[[], float] | None = None,
     ) -> None:
         self.cfg = cfg
         self.monitor = monitor
@@ -106,6 +114,10 @@ class Daemon:
         self.ratelog = RateLimitedLog(clock=clock)
         self.save_every_s = cfg.state.save_every_s
         self.uplink = uplink  # queues events and summaries for the outbox; never blocks
+        # Frame time against a clock that neither steps nor stops in suspend: a jump of their
+        # difference is the wall clock stepping (the kernel stamps frames with the wall clock).
+        self.boot_clock = boot_clock or _boot_time
+        self._wall_minus_boot: float | None = None
 
     # -- the loop --------------------------------------------------------------------------------------
 
@@ -161,6 +173,7 @@ class Daemon:
                             msg.arbitration_id,
                             bytes(msg.data).hex(),
                         )
+                    self._watch_wall_clock(msg.timestamp)
                     out = self.monitor.feed(from_message(msg))
                     last_rx_wall = now
                     last_frame_t = msg.timestamp
@@ -177,6 +190,18 @@ class Daemon:
             if out:
                 self._send(out)
         self._shutdown()
+
+    def _watch_wall_clock(self, frame_t: float) -> None:
+        """A step of the wall clock forward moves the monitor onto the new time base (a step back the
+        core finds by itself); otherwise it would look like the machine had been off that long."""
+        diff = frame_t - self.boot_clock()
+        prev = self._wall_minus_boot
+        self._wall_minus_boot = diff
+        if prev is not None and diff - prev > WALL_STEP_S and math.isfinite(diff):
+            log.warning(
+                "the wall clock stepped forward by %.3f s; monitoring goes on on the new time base", diff - prev
+            )
+            self.monitor.shift_time(diff - prev)
 
     def stop(self) -> None:
         self.stop_event.set()

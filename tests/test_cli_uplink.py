@@ -131,7 +131,8 @@ def test_unreachable_broker_fails_the_check_and_drain_times_out_keeping_entries(
 def test_a_missing_broker_is_retried_until_it_comes(tmp_path, state):
     fill(state, 30)
     port = free_port()
-    cfg = uplink_config(tmp_path / "c.yaml", state, port)
+    # Retries 4 s apart: the subscriber is surely subscribed before the uplink's retry that succeeds.
+    cfg = uplink_config(tmp_path / "c.yaml", state, port, mqtt={"reconnect_min_s": 4.0, "reconnect_max_s": 4.0})
     proc = subprocess.Popen(
         [sys.executable, "-m", "cmcan", "uplink", "--config", str(cfg), "--drain", "--timeout", "60"],
         stdout=subprocess.PIPE,
@@ -144,7 +145,7 @@ def test_a_missing_broker_is_retried_until_it_comes(tmp_path, state):
         broker = Broker(tmp_path, port=port).start()
         sub = Subscriber(port, "cmcan/#").start()
         assert proc.wait(60) == 0, proc.stderr.read()
-        sub.wait_for(lambda m: len([x for x in m if x.payload.get("kind") in ("event", "summary")]) >= 30, 10, "all")
+        sub.wait_for(lambda m: len([x for x in m if x.payload.get("kind") in ("event", "summary")]) >= 30, 30, "all")
         err = proc.stderr.read()
         assert "connection refused" in err and "retrying in" in err
     finally:

@@ -216,3 +216,37 @@ def test_writers_leave_nothing_behind_when_the_replay_fails(tmp_path):
     with pytest.raises(ValueError, match="line 2"):
         replay_file(bad, assemble(cfgmod.load()).monitor, [TimelineWriter(tl), EmitWriter(em)])
     assert list(tmp_path.iterdir()) == [bad]
+
+
+# -- wall-clock steps --------------------------------------------------------------------------------
+
+
+def stepped(frames: list[Frame], at: float, step_s: float) -> list[Frame]:
+    """The log as it comes when the wall clock steps by ``step_s`` after ``at`` of it."""
+    cut = frames[0].timestamp_s + at * (frames[-1].timestamp_s - frames[0].timestamp_s)
+    return [f._replace(timestamp_s=f.timestamp_s + step_s) if f.timestamp_s >= cut else f for f in frames]
+
+
+@pytest.mark.parametrize("step_s", [-1.0, -30.0, -59.0, -600.0, 3600.0])
+def test_a_wall_clock_step_keeps_the_tick_count_within_one(base, step_s):
+    plain = both(base, 4096)[0]
+    a, b = both(stepped(base, 0.4, step_s), 4096)
+    assert_same(a, b)
+    assert abs(len(a[0]) - len(plain[0])) <= 1
+    # the evaluation goes on through the step: no pause of the ratio
+    assert abs(a[2].counters["evaluated"] - plain[2].counters["evaluated"]) <= 20
+    assert a[2].counters["clock_steps"] == (1 if step_s < 0 else 0)
+    assert a[2].counters["late"] == 0
+
+
+def test_all_four_steps_in_one_log(base):
+    frames = base
+    for at, step in ((0.2, -1.0), (0.4, -30.0), (0.6, -59.0), (0.8, 3600.0)):
+        frames = stepped(frames, at, step)
+    plain = both(base, 4096)[0]
+    a, b = both(frames, 997)
+    assert_same(a, b)
+    assert abs(len(a[0]) - len(plain[0])) <= 1
+    assert a[2].counters["clock_steps"] == 3 and [w["to"] for w in a[2].warnings] == [
+        w["to"] for w in plain[2].warnings
+    ]

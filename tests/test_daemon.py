@@ -20,7 +20,7 @@ from cmcan.demo import stream
 from cmcan.monitor.totals import Totals
 from cmcan.replay import FrameCollector, replay
 from cmcan.statefile import StateStore
-from tests.helpers import as_frames, messages, monitor, sim_frames
+from tests.helpers import as_frames, feed_all, messages, monitor, sim_frames
 
 
 @pytest.fixture(scope="module")
@@ -211,3 +211,40 @@ def test_corrupt_state_is_kept_aside_not_lost(tmp_path):
     totals = StateStore(tmp_path).load()
     assert totals == Totals()
     assert (tmp_path / "state.json.corrupt-1").read_text() == "{ half a docu"
+
+
+@pytest.mark.parametrize("step_s", [3600.0, -30.0])
+def test_a_wall_clock_step_does_not_pause_the_daemon(frames, step_s):
+    """Frames go on arriving while the wall clock steps: the daemon moves onto the new time base
+    (forward: seen against the boot clock; back: seen by the core) and evaluates on without a pause."""
+    msgs = messages(frames)
+    half = len(msgs) // 2
+    for m in msgs[half:]:
+        m.timestamp += step_s
+    first = msgs[0].timestamp
+    after_step = {id(m) for m in msgs[half:]}
+
+    def boot_clock():  # the frames' own pace: the bus played in real time, the boot clock never steps
+        m = served[0]
+        return m.timestamp - first - (step_s if id(m) in after_step else 0.0)
+
+    plain = monitor()
+    feed_all(plain, frames)
+    mon = monitor()
+    bus = ScriptedBus(list(msgs))
+    served = [msgs[0]]
+    orig = bus._recv_internal
+
+    def recv(timeout):
+        m, f = orig(timeout)
+        if m is not None:
+            served[0] = m
+        return m, f
+
+    bus._recv_internal = recv
+    d = Daemon(cfgmod.load(), mon, None, lambda: bus, options=DaemonOptions(idle_after_s=3600), boot_clock=boot_clock)
+    run_daemon_until(d, lambda: mon.counters["frames_total"] == len(msgs))
+    mon.flush()
+    assert mon.counters["clock_steps"] == 1 and mon.counters["late"] == 0
+    assert abs(mon.counters["ticks"] - plain.counters["ticks"]) <= 1
+    assert abs(mon.counters["evaluated"] - plain.counters["evaluated"]) <= 20

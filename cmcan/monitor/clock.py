@@ -3,8 +3,14 @@
 Ticks fall on multiples of the evaluation period in the frames' own time. A tick is evaluated when
 the first frame after it arrives (so a replayed log gives exactly what the daemon sent); a frame
 older than a tick already evaluated is late and unused. After a gap in the data longer than
-``max_gap_s`` (the machine was off, or a burst-sampled log) the ticks inside the gap are skipped;
-time going back by more than ``RESET_BACK_S`` is a new log or a reset clock: start afresh.
+``max_gap_s`` (the machine was off, or a burst-sampled log) the ticks inside the gap are skipped.
+
+Frame time comes from the wall clock (SocketCAN stamps frames with it), and the wall clock steps:
+NTP or a GPS fix sets it back or forward. A frame more than ``STEP_BACK_S`` older than the newest
+one cannot be a late delivery (a bus delivers in order; a logger merging buses is off by
+milliseconds): the clock stepped back, and the monitor moves its state onto the new time base
+instead of waiting, silent, until time catches up. A step forward looks like a gap here; the daemon,
+which can compare frame time with the boot-time clock, tells the monitor of it (``Monitor.shift_time``).
 """
 
 from __future__ import annotations
@@ -14,16 +20,17 @@ from dataclasses import dataclass, field
 
 from cmcan.monitor.windows import TIME_EPS_S
 
-RESET_BACK_S = 60.0
+STEP_BACK_S = 0.5
 
 
 @dataclass
 class Step:
-    """What a frame time means for the clock: ticks to evaluate first (in order), whether the windows
-    must be cleared first (time reset), and whether the frame is late (not to be used)."""
+    """What a frame time means for the clock: ticks to evaluate first (in order), whether the clock
+    stepped back (the state is to be moved onto the frame's time base first: ``back_by_s``), and
+    whether the frame is late (not to be used)."""
 
     ticks: list[int] = field(default_factory=list)
-    reset: bool = False
+    back_by_s: float = 0.0
     late: bool = False
 
 
@@ -55,9 +62,8 @@ class TickClock:
         if self.next_k is None:
             return Step()
         if t < self._late_t:
-            if t < self._late_t - RESET_BACK_S:
-                self.reset()
-                return Step(reset=True)
+            if t < self.last_frame_t - STEP_BACK_S:
+                return Step(back_by_s=self.last_frame_t - t)
             return Step(late=True)
         return Step(self._ticks_before(t))
 
@@ -67,6 +73,18 @@ class TickClock:
             self._set_next(math.floor(t / self.period) + 1)
         if t > self.last_frame_t:
             self.last_frame_t = t
+
+    def whole_ticks(self, delta_s: float) -> int:
+        """A step of ``delta_s`` in whole evaluation periods (the state moves by these)."""
+        return round(delta_s / self.period)
+
+    def shift(self, ticks: int) -> None:
+        """Move onto a time base ``ticks`` periods later (negative: earlier): the newest frame's time
+        and the next tick move with it, so not a tick is lost or evaluated twice."""
+        if self.next_k is None:
+            return
+        self.last_frame_t += ticks * self.period
+        self._set_next(self.next_k + ticks)
 
     def resume(self, next_k: int, last_frame_t: float) -> None:
         """Continue from a state computed elsewhere (the columnar replay's write-back)."""

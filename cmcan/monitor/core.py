@@ -104,7 +104,7 @@ class Monitor:
         self._plans = {fid: tuple(self._plan(r) for r in spec.roles) for fid, spec in self.inputs.items()}
         self._low: int | None = None
         self.counters = dict.fromkeys(COUNTERS, 0)
-        self.counters.update(ticks=0, evaluated=0, model_errors=0, time_resets=0)
+        self.counters.update(ticks=0, evaluated=0, model_errors=0, clock_steps=0)
         self.machine = WarningMachine(p.thresholds)
         self.machine.condition = {"ok": Level.OK, "low": Level.LOW, "high": Level.HIGH}[self.totals.condition]
         self.machine.condition_reason = {
@@ -155,8 +155,8 @@ class Monitor:
             if step.late:
                 c["late"] += 1
                 return []
-            if step.reset:
-                self._reset_windows()
+            if step.back_by_s:
+                self.shift_time(-step.back_by_s)
             for k in step.ticks:
                 out += self._evaluate(k)
         raws = spec.decode(data)
@@ -193,11 +193,16 @@ class Monitor:
             out += self._evaluate(k)
         return out
 
-    def _reset_windows(self) -> None:
-        self.counters["time_resets"] += 1
+    def shift_time(self, delta_s: float) -> None:
+        """The wall clock stepped by ``delta_s``: move the windows and the tick clock onto the new
+        time base (by whole evaluation periods, so the tick grid stays and no tick is lost or doubled),
+        so the drive's samples keep their ages and the ratio goes on without a pause. The core finds
+        steps back itself; the daemon tells it of steps forward."""
+        self.counters["clock_steps"] += 1
+        ticks = self.clock.whole_ticks(delta_s)
         for w in self.windows.values():
-            w.clear()
-        self._low = None
+            w.shift(ticks * self.period)
+        self.clock.shift(ticks)
 
     # -- evaluation --------------------------------------------------------------------------------
 

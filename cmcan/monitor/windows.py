@@ -65,6 +65,11 @@ class RoleWindow:
         if t > self.last_t:
             self.last_t = t
 
+    def shift(self, delta_s: float) -> None:
+        """The samples moved onto a time base ``delta_s`` later (a wall-clock step)."""
+        self.ts = deque(t + delta_s for t in self.ts)
+        self.last_t += delta_s
+
     def clear(self) -> None:
         self.ts.clear()
         self.rs.clear()
