@@ -29,8 +29,8 @@ from numpy.typing import NDArray
 
 from cmcan import codec
 from cmcan.frame import Frame, FrameColumns
-from cmcan.monitor.core import _HIGH, _LOW, _WINDOW, Monitor
 from cmcan.monitor.clock import STEP_BACK_S
+from cmcan.monitor.core import _HIGH, _LOW, _WINDOW, Monitor
 from cmcan.monitor.gating import Gate, gate_columns
 from cmcan.monitor.payloads import OutputMessage
 from cmcan.monitor.tick import LEVEL_NAMES, Tick
