@@ -30,9 +30,9 @@ import can
 
 from cmcan import config as cfgmod
 from cmcan.assemble import assemble, dbc_for
-from cmcan.columnar import column_chunks
 from cmcan.daemon import Daemon, DaemonOptions
 from cmcan.io.candump import write_candump
+from cmcan.io.columns import column_chunks
 from cmcan.replay import EmitWriter, TimelineWriter, replay_file
 from cmcan.sim import scenario as scn
 from cmcan.sim.frames import frames_from_run

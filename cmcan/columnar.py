@@ -21,8 +21,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Callable, Iterable, Iterator, Sequence
-from pathlib import Path
+from collections.abc import Iterable, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -39,46 +38,7 @@ from cmcan.monitor.windows import TIME_EPS_S, Affine, RoleWindow, mean_std
 from cmcan.replay import ReplaySummary, Sink, TickColumns, summarize
 from cmcan.roles import DP, MODEL_INPUTS, MOTOR_SPEED
 
-CHUNK_FRAMES = 1 << 18
 _I64_SAFE = 1 << 20  # raw values below this: window sums and n*S2 - S1^2 stay exact in int64
-
-
-# -- reading ------------------------------------------------------------------------------------------
-
-
-def column_chunks(
-    path: str | Path,
-    chunk_frames: int = CHUNK_FRAMES,
-    chunk_bytes: int | None = None,
-    progress: Callable[[int, int], None] | None = None,
-) -> Iterator[FrameColumns]:
-    """A log as chunks of columns: candump logs by the array reader, other formats through
-    python-can's readers a chunk at a time. ``progress(bytes_read, frames)`` after each chunk."""
-    from cmcan.io.candump import iter_frames
-    from cmcan.io.candump_columns import CHUNK_BYTES, iter_candump_columns
-
-    p = Path(path)
-    frames = 0
-    if p.name.endswith((".log", ".log.gz")):
-        done = [0]
-        for cols in iter_candump_columns(p, chunk_bytes or CHUNK_BYTES, lambda b: done.__setitem__(0, b)):
-            frames += len(cols)
-            yield cols
-            if progress is not None:
-                progress(done[0], frames)
-        return
-    batch: list[Frame] = []
-    for f in iter_frames(p):
-        batch.append(f)
-        if len(batch) >= chunk_frames:
-            frames += len(batch)
-            yield FrameColumns.from_frames(batch)
-            batch = []
-            if progress is not None:
-                progress(-1, frames)  # python-can's readers do not say how far into the file they are
-    if batch:
-        frames += len(batch)
-        yield FrameColumns.from_frames(batch)
 
 
 # -- the engine ---------------------------------------------------------------------------------------

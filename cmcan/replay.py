@@ -336,6 +336,7 @@ def replay_file(
     if engine == "streaming":
         return replay(monitor, iter_frames(path), sinks)
     # progress(bytes of the file read, frames): after each chunk (-1 bytes: unknown)
-    from cmcan.columnar import column_chunks, replay_columns
+    from cmcan.columnar import replay_columns
+    from cmcan.io.columns import column_chunks
 
     return replay_columns(monitor, column_chunks(path, progress=progress), sinks)

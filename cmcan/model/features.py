@@ -18,7 +18,6 @@ from numpy.typing import NDArray
 
 from cmcan import codec
 from cmcan.errors import CmcanError, Kind
-from cmcan.io.candump import iter_frames
 from cmcan.io.runcsv import read_run_csv
 from cmcan.monitor.gating import Gate, GateLimits, WindowStats, eval_times, gate, window_stats
 from cmcan.monitor.windows import dp_affine, dp_raw, role_affine
@@ -108,16 +107,21 @@ def _affine(db: Database, ref: SignalRef) -> Any:
 def series_from_log(path: str | Path, db: Database, mapping: Mapping[str, Any] | None = None) -> Series:
     """Decode a CAN log into per-role series (vectorized per message), in each role's unit; dp from
     high and low pressure is formed as the monitor forms it."""
+    from cmcan.io.columns import column_chunks
+
     refs = as_refs(mapping)
     wanted = {db.get_message_by_name(r.message).frame_id: db.get_message_by_name(r.message) for r in refs.values()}
-    stamps: dict[int, list[float]] = {i: [] for i in wanted}
-    payloads: dict[int, list[bytes]] = {i: [] for i in wanted}
+    stamps: dict[int, list[NDArray[np.float64]]] = {i: [] for i in wanted}
+    payloads: dict[int, list[NDArray[np.uint8]]] = {i: [] for i in wanted}
     try:
-        for f in iter_frames(path):
-            fid = f.arbitration_id
-            if fid in wanted and not (f.extended or f.remote or f.error) and len(f.data) >= wanted[fid].length:
-                stamps[fid].append(f.timestamp_s)
-                payloads[fid].append(f.data[:8].ljust(8, b"\0"))
+        # the replay's columnar reader: chunks of arrays, one mask per message
+        for cols in column_chunks(path):
+            plain = ~(cols.extended | cols.remote | cols.error)
+            for fid, msg in wanted.items():
+                sel = plain & (cols.arbitration_id == fid) & (cols.dlc >= msg.length)
+                if sel.any():
+                    stamps[fid].append(cols.timestamp_s[sel])
+                    payloads[fid].append(cols.data[sel])
     except FileNotFoundError as exc:
         raise DataError(str(exc), Kind.NO_INPUT) from None
     except (ValueError, OSError) as exc:
@@ -126,10 +130,10 @@ def series_from_log(path: str | Path, db: Database, mapping: Mapping[str, Any] |
     series: Series = {}
     for role, ref in refs.items():
         m = db.get_message_by_name(ref.message)
-        ts = np.asarray(stamps[m.frame_id], dtype=float)
-        if len(ts) == 0:
+        if not stamps[m.frame_id]:
             continue
-        data = np.frombuffer(b"".join(payloads[m.frame_id]), dtype=np.uint8).reshape(-1, 8)
+        ts = np.concatenate(stamps[m.frame_id])
+        data = np.concatenate(payloads[m.frame_id])
         order = np.argsort(ts, kind="stable")
         raw = codec.decode_raw(m, data[order], [ref.signal])[ref.signal]
         raws[role] = (ts[order], raw)

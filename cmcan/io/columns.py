@@ -1,0 +1,46 @@
+"""Any CAN log as chunks of columns (:class:`cmcan.frame.FrameColumns`): the columnar replay's and
+training's reader."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+from cmcan.frame import Frame, FrameColumns
+
+CHUNK_FRAMES = 1 << 18
+
+
+def column_chunks(
+    path: str | Path,
+    chunk_frames: int = CHUNK_FRAMES,
+    chunk_bytes: int | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> Iterator[FrameColumns]:
+    """A log as chunks of columns: candump logs by the array reader, other formats through
+    python-can's readers a chunk at a time. ``progress(bytes_read, frames)`` after each chunk."""
+    from cmcan.io.candump import iter_frames
+    from cmcan.io.candump_columns import CHUNK_BYTES, iter_candump_columns
+
+    p = Path(path)
+    frames = 0
+    if p.name.endswith((".log", ".log.gz")):
+        done = [0]
+        for cols in iter_candump_columns(p, chunk_bytes or CHUNK_BYTES, lambda b: done.__setitem__(0, b)):
+            frames += len(cols)
+            yield cols
+            if progress is not None:
+                progress(done[0], frames)
+        return
+    batch: list[Frame] = []
+    for f in iter_frames(p):
+        batch.append(f)
+        if len(batch) >= chunk_frames:
+            frames += len(batch)
+            yield FrameColumns.from_frames(batch)
+            batch = []
+            if progress is not None:
+                progress(-1, frames)  # python-can's readers do not say how far into the file they are
+    if batch:
+        frames += len(batch)
+        yield FrameColumns.from_frames(batch)
