@@ -11,14 +11,15 @@ from typing import Any
 from cmcan.frame import Frame
 from cmcan.monitor.core import Monitor
 from cmcan.monitor.tick import LEVEL_NAMES, Tick
+from cmcan.roles import MOTOR_SPEED, QUANTITY_SIGNALS
 
-TIMELINE_COLUMNS = (
-    "time_s",
-    "operating_h",
-    "gate",
-    "motor_speed_meas_rpm",
-    "motor_speed_pred_rpm",
-    "motor_speed_whitebox_rpm",
+
+def timeline_columns(quantity: str = MOTOR_SPEED) -> tuple[str, ...]:
+    """The timeline CSV's columns; the output quantity's three named as in its CM frame."""
+    return ("time_s", "operating_h", "gate", *QUANTITY_SIGNALS[quantity][:3], *_TAIL)
+
+
+_TAIL = (
     "cm_ratio_raw_pct",
     "cm_ratio_filt_pct",
     "cm_filt_valid",
@@ -27,6 +28,7 @@ TIMELINE_COLUMNS = (
     "warning_reason",
     "time_below_threshold_s",
 )
+TIMELINE_COLUMNS = timeline_columns(MOTOR_SPEED)
 
 
 @dataclass
@@ -58,21 +60,22 @@ def replay(monitor: Monitor, frames_in: Iterable[Frame], emit: bool = True) -> R
     return res
 
 
-def write_timeline(path: str | Path, ticks: list[Tick], t0: float) -> None:
+def write_timeline(path: str | Path, ticks: list[Tick], t0: float, quantity: str = MOTOR_SPEED) -> None:
     p = Path(path)
     tmp = p.with_name(p.name + ".tmp")
     with open(tmp, "w", newline="", encoding="ascii") as f:
         w = csv.writer(f)
-        w.writerow(TIMELINE_COLUMNS)
+        w.writerow(timeline_columns(quantity))
+        decimals = 2 if quantity == MOTOR_SPEED else 4  # 0.01 rpm; flows of small machines need more
         for k in ticks:
             w.writerow(
                 [
                     f"{k.t_s:.3f}",
                     f"{(k.t_s - t0) / 3600.0:.6f}",
                     k.gate.name.lower(),
-                    f"{k.motor_speed_meas_rpm:.2f}",
-                    f"{k.motor_speed_pred_rpm:.2f}",
-                    f"{k.motor_speed_whitebox_rpm:.2f}",
+                    f"{k.measured:.{decimals}f}",
+                    f"{k.predicted:.{decimals}f}",
+                    f"{k.whitebox:.{decimals}f}",
                     f"{k.ratio_raw_pct:.3f}",
                     f"{k.ratio_filt_pct:.3f}",
                     int(k.filt_valid),

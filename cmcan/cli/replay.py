@@ -49,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
         raise CmcanError(f"{args.log}: no frames in the log", Kind.DATA)
     t0 = res.first_t
     if "out" in outs:
-        write_timeline(outs["out"], mon.timeline, t0)
+        write_timeline(outs["out"], mon.timeline, t0, cfg.quantity)
     if "emit" in outs:
         write_emitted(outs["emit"], res.frames_out)
     if "plot" in outs:

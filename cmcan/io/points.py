@@ -142,6 +142,9 @@ class Points:
     rows: NDArray[np.int64]  # 1-based data row numbers (the header is row 0) of the kept rows
     total_rows: int
     spec: PointSpec
+    # The file's column names and the kept rows' cells as written, for outputs that carry them on.
+    header: tuple[str, ...] = ()
+    cells: tuple[tuple[str, ...], ...] = ()
 
     def __len__(self) -> int:
         return len(self.rows)
@@ -201,7 +204,8 @@ def read_points(path: str | Path, spec: PointSpec, roles: Iterable[str], min_row
         cond = " and ".join(str(c) for c in spec.where) or "no filter"
         raise PointsError(f"{p}: {len(kept)} of {len(body)} rows kept ({cond}); need at least {min_rows}", "data")
     measured = frozenset(r for r in roles if r in spec.columns)
-    return Points(str(p), values, measured, rows, len(body), spec)
+    cells = tuple((*(c.strip() for c in row[: len(names)]), *("",) * (len(names) - len(row))) for row in kept)
+    return Points(str(p), values, measured, rows, len(body), spec, tuple(names), cells)
 
 
 def _delimiter(sample: str) -> str:
