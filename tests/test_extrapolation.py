@@ -120,3 +120,43 @@ def test_a_leak_outside_the_envelope_is_warned_about_and_cleared_inside_it():
             d = flow_msg.decode(f.data)
             assert d["flow_meas_lpm"] == pytest.approx(k.measured, abs=6e-4)
             assert d["flow_pred_lpm"] == pytest.approx(k.predicted, abs=6e-4) and d["cm_flow_valid"] == 1
+
+
+def test_replay_of_a_flow_machine_names_its_flows(tmp_path):
+    """cmcan replay with the rig's configuration: the timeline carries flows in l/min, the emitted
+    frames are CM_RATIO, CM_FLOW and CM_WARNING."""
+    from cmcan.io.candump import write_candump
+
+    with open(RIG / "data" / "cycles.csv", newline="") as f:
+        rows = [r for r in csv.DictReader(f) if r["cooler_pct"] == "100"][:30]
+    parts = assemble(cfgmod.load(RIG / "cmcan.yaml"))
+    frames = [fr for _, _, fr in rig_frames(parts.db, rows)]
+    log = tmp_path / "rig.log"
+    data = np.array([list(fr.data) for fr in frames], dtype=np.uint8)
+    write_candump(
+        log,
+        np.array([fr.timestamp_s for fr in frames]),
+        np.array([fr.arbitration_id for fr in frames]),
+        np.full(len(frames), 8),
+        data,
+    )
+    r = run_cli(
+        "replay",
+        str(log),
+        "--config",
+        str(RIG / "cmcan.yaml"),
+        "--out",
+        str(tmp_path / "tl.csv"),
+        "--emit",
+        str(tmp_path / "out.log"),
+        "--json",
+    )
+    assert r.returncode == 0, r.stderr
+    with open(tmp_path / "tl.csv", newline="") as f:
+        tl = list(csv.DictReader(f))
+    assert list(tl[0])[3:6] == ["flow_meas_lpm", "flow_pred_lpm", "flow_whitebox_lpm"]
+    rated = [t for t in tl if t["gate"] in ("evaluating", "extrapolated")]
+    assert len(rated) > 0.9 * len(tl)
+    assert all(6.0 < float(t["flow_meas_lpm"]) < 7.5 and 98.0 < float(t["cm_ratio_raw_pct"]) < 102.0 for t in rated)
+    ids = {line.split()[2].split("#")[0] for line in (tmp_path / "out.log").read_text().splitlines()}
+    assert ids == {"3A0", "3A3", "3A2"}
