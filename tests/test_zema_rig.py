@@ -257,3 +257,20 @@ def test_score_plot_colours_by_the_label(tmp_path):
     )
     assert r.returncode == 0, r.stderr
     assert png.stat().st_size > 20_000
+
+
+def test_a_row_with_a_missing_value_is_gated_not_fatal(tmp_path):
+    rows = read_csv(DATA)[:100]
+    rows[3]["ts1_c"] = ""
+    rows[4]["fs1_lpm"] = "n/a"
+    with open(tmp_path / "t.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    trained = train(tmp_path / "m.onnx", data=tmp_path / "t.csv")
+    assert trained["gates"]["refused"]["implausible_input"]["points"] == 2
+    score(tmp_path / "m.onnx", tmp_path / "s.csv", data=tmp_path / "t.csv")
+    out = read_csv(tmp_path / "s.csv")
+    assert [r["status"] for r in out[3:5]] == ["gated:implausible_input"] * 2
+    assert out[3]["ts1_c"] == "" and out[4]["fs1_lpm"] == "n/a" and out[3]["cm_ratio_pct"] == ""
+    assert sum(r["status"] in ("evaluated", "extrapolated") for r in out) == 98

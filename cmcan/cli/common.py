@@ -117,7 +117,8 @@ def load_data(
             raise CmcanError(f"--column/--constant {role}: not a role of this machine ({', '.join(roles)})", Kind.USAGE)
     spec = cfg.points.merged(PointSpec(cols, consts, conds, "the command line"))
     try:
-        pts = read_points(args.data, spec, roles)
+        # A row with a missing value is judged on its own: the gates refuse it (implausible input).
+        pts = read_points(args.data, spec, roles, missing_as_nan=True)
     except PointsError as exc:
         raise CmcanError(str(exc), _POINTS_KINDS.get(exc.kind, Kind.DATA)) from None
     op = table_points(pts, cfg.gate_limits, envelope)

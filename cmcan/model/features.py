@@ -354,7 +354,7 @@ def gate_report(op: OperatingPoints, limits: GateLimits, mask: NDArray[np.bool_]
         Gate.NO_INPUT: "no input at all (machine off, bus idle)",
         Gate.STALE_INPUT: "some input older than its max_signal_age_s",
         Gate.WARMING_UP: f"fewer than {limits.min_samples} samples of some input in the window",
-        Gate.IMPLAUSIBLE_INPUT: "some input outside its plausible range: " + _implausible(op, limits, sel),
+        Gate.IMPLAUSIBLE_INPUT: "some input missing or outside its plausible range: " + _implausible(op, limits, sel),
         Gate.LOW_SPEED: f"pump speed below {limits.min_pump_speed_rpm:.4g} rpm (gating.min_pump_speed_rpm)",
         Gate.LOW_DISPLACEMENT: f"|pump displacement| below {limits.min_pump_disp_cc:.4g} cm3/rev "
         "(gating.min_pump_disp_cc)",
