@@ -89,7 +89,7 @@ def main() -> None:
     t_train = time.perf_counter() - t0
     t0 = time.perf_counter()
     trn = op.steady & (op.hours < args.hours * 0.75)
-    fit_eta_vol(op.x[trn], op.motor_speed_rpm[trn] * cfg.motor_disp_cc / 1000.0)
+    fit_eta_vol(op.x[trn], op.measured[trn] * cfg.motor_disp_cc / 1000.0)
     t_wb = time.perf_counter() - t0
     print(f"training   {args.hours:g} h of 100 Hz data ({len(run)} samples, {int(trn.sum())} steady points in D_trn)")
     print(f"           gray-box (features+fit+export) {t_train:8.2f} s (target < 60 s)")

@@ -20,7 +20,16 @@ from cmcan.monitor.core import DpFromHighLow, InputMessage, Monitor, MonitorPara
 from cmcan.monitor.payloads import OutputMessage, Outputs
 from cmcan.monitor.totals import Totals
 from cmcan.monitor.windows import Affine, dp_affine, role_affine
-from cmcan.roles import DP, GATED, HIGH_PRESSURE, LOW_PRESSURE, OUTPUT_SIGNALS, SignalRef
+from cmcan.roles import (
+    DP,
+    HIGH_PRESSURE,
+    LOW_PRESSURE,
+    OUTPUT_SIGNALS,
+    QUANTITY_OUTPUT,
+    QUANTITY_SIGNALS,
+    SignalRef,
+    gated_roles,
+)
 from cmcan.schema import SchemaError
 
 
@@ -37,11 +46,13 @@ def model_file(cfg: Config) -> Path:
 
 
 def load_model_for(cfg: Config, path: str | Path | None = None) -> GrayBoxModel:
-    """The configuration's model (or ``path``), checked against its motor displacement."""
+    """The configuration's model (or ``path``), checked against its output quantity, motor
+    displacement and oil."""
+    expect = {"motor_disp_cc": cfg.motor_disp_cc, "quantity": cfg.quantity, "oil": cfg.oil}
     if path is not None:
-        return load_model(path, motor_disp_cc=cfg.motor_disp_cc)
+        return load_model(path, **expect)
     try:
-        return load_model(model_file(cfg), motor_disp_cc=cfg.motor_disp_cc)
+        return load_model(model_file(cfg), **expect)
     except ModelError as exc:  # the configuration named it: a configuration problem
         raise ModelError(f"{exc} (model: in {cfg.source})", Kind.CONFIG) from None
 
@@ -72,7 +83,7 @@ def check_against_dbc(cfg: Config, db: Database) -> None:
                 cfg.source, f"signals.{role}", f"{problem} in {cfg.dbc_path}: cmcan reads integer signals"
             )
     inputs = {ref.message for ref in cfg.signals.values()}
-    for key, out in cfg.outputs.items():
+    for key, out in cfg.outputs.items(cfg.quantity):
         msg = _message(cfg, db, out.message, f"outputs.{key}.message")
         if out.message in inputs:
             raise SchemaError(cfg.source, f"outputs.{key}.message", f"{out.message} is also an input message")
@@ -120,7 +131,7 @@ def input_messages(cfg: Config, db: Database) -> dict[int, InputMessage]:
 
 def role_affines(cfg: Config, db: Database) -> tuple[dict[str, Affine], DpFromHighLow | None]:
     """Each gated role's raw-to-unit map, and how dp is formed when high and low pressure are mapped."""
-    affine = {r: _affine(db, ref) for r, ref in cfg.signals.items() if r in GATED}
+    affine = {r: _affine(db, ref) for r, ref in cfg.signals.items() if r in gated_roles(cfg.quantity)}
     if DP in affine:
         return affine, None
     dp = dp_affine(_affine(db, cfg.signals[HIGH_PRESSURE]), _affine(db, cfg.signals[LOW_PRESSURE]))
@@ -134,7 +145,7 @@ def outputs(cfg: Config, db: Database) -> Outputs:
     period_ms = 1000.0 / cfg.rate_hz
 
     def message(key: str) -> OutputMessage:
-        out = dict(cfg.outputs.items())[key]
+        out = dict(cfg.outputs.items(cfg.quantity))[key]
         msg = _message(cfg, db, out.message, f"outputs.{key}.message")
         return OutputMessage(
             frame_id=msg.frame_id,
@@ -145,26 +156,37 @@ def outputs(cfg: Config, db: Database) -> Outputs:
             every_ticks=max(1, round(out.period_ms / period_ms)),
         )
 
-    return Outputs(ratio=message("cm_ratio"), speed=message("cm_speed"), warning=message("warning"))
+    q = cfg.quantity
+    return Outputs(
+        ratio=message("cm_ratio"),
+        quantity=message(QUANTITY_OUTPUT[q]),
+        warning=message("warning"),
+        quantity_signals=QUANTITY_SIGNALS[q],
+    )
+
+
+def envelope_for(cfg: Config, envelope: dict[str, tuple[float, float]]) -> dict[str, tuple[float, float]]:
+    """The model's training envelope widened (or narrowed) by the configuration's margin: beyond it a
+    point is evaluated as ``EXTRAPOLATED``."""
+    margin = cfg.gating.envelope_margin_pct / 100.0
+    return {k: (lo - margin * (hi - lo), hi + margin * (hi - lo)) for k, (lo, hi) in envelope.items()}
 
 
 def monitor_params(cfg: Config, db: Database, envelope: dict[str, tuple[float, float]] | None) -> MonitorParams:
-    margin = cfg.gating.envelope_margin_pct / 100.0
-    env = None
-    if envelope is not None:
-        env = {k: (lo - margin * (hi - lo), hi + margin * (hi - lo)) for k, (lo, hi) in envelope.items()}
+    env = None if envelope is None else envelope_for(cfg, envelope)
     affine, dp = role_affines(cfg, db)
     return MonitorParams(
         rate_hz=cfg.rate_hz,
         limits=cfg.gate_limits,
-        max_age_s={r: cfg.max_age_s(r) for r in GATED},
+        max_age_s={r: cfg.max_age_s(r) for r in gated_roles(cfg.quantity)},
         envelope=env,
         filter_samples=cfg.filter.samples,
         filter_min_samples=cfg.filter.min_samples,
         thresholds=cfg.thresholds,
-        motor_disp_cc=cfg.motor_disp_cc,
+        lpm_per_unit=cfg.lpm_per_unit,
         affine=affine,
         dp_from_high_low=dp,
+        constants=dict(cfg.drive.fixed),
     )
 
 

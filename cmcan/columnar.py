@@ -30,13 +30,15 @@ from cmcan import codec
 from cmcan.frame import Frame, FrameColumns
 from cmcan.monitor.clock import STEP_BACK_S
 from cmcan.monitor.core import _HIGH, _LOW, _WINDOW, Monitor
-from cmcan.monitor.gating import Gate, gate_columns
+from cmcan.monitor.gating import EVALUATED, Gate, gate_columns
 from cmcan.monitor.payloads import OutputMessage
 from cmcan.monitor.tick import LEVEL_NAMES, Tick
 from cmcan.monitor.warnings import Level, Reason
 from cmcan.monitor.windows import TIME_EPS_S, Affine, RoleWindow, mean_std
 from cmcan.replay import ReplaySummary, Sink, TickColumns, summarize
-from cmcan.roles import DP, MODEL_INPUTS, MOTOR_SPEED
+from cmcan.roles import DP, MODEL_INPUTS
+
+_EVALUATED = np.array(sorted(int(g) for g in EVALUATED), dtype=np.int8)
 
 _I64_SAFE = 1 << 20  # raw values below this: window sums and n*S2 - S1^2 stay exact in int64
 
@@ -339,11 +341,16 @@ class _Engine:
         mean, std, count, age = {}, {}, {}, {}
         for role, smp in samples.items():
             mean[role], std[role], count[role], age[role] = smp.stats(trig, cut, t_k, p.affine[role])
+        n = len(ks)
+        for role, value in m._constants:  # a role the machine holds constant: fresh, steady
+            mean[role], std[role] = np.full(n, value), np.zeros(n)
+            count[role], age[role] = np.full(n, p.limits.min_samples, dtype=np.int64), np.zeros(n)
         gates = gate_columns(mean, std, count, age, p.limits, p.max_age_s, p.envelope)
-        meas = np.where(count[MOTOR_SPEED] > 0, mean[MOTOR_SPEED], 0.0)
-        pred = np.zeros(len(ks))
-        wb = np.zeros(len(ks))
-        ev = np.flatnonzero(gates == Gate.EVALUATING)
+        out = p.output_role
+        meas = np.where(count[out] > 0, mean[out], 0.0)
+        pred = np.zeros(n)
+        wb = np.zeros(n)
+        ev = np.flatnonzero(np.isin(gates, _EVALUATED))
         if len(ev):
             x = np.column_stack([mean[r][ev] for r in MODEL_INPUTS])
             try:
@@ -356,13 +363,14 @@ class _Engine:
             gates[ev[bad]] = Gate.IMPLAUSIBLE_INPUT
             pred[ev] = np.where(bad, 0.0, pe)
             wb[ev] = np.where(bad, 0.0, we)
-        evaluated = gates == Gate.EVALUATING
+        evaluated = np.isin(gates, _EVALUATED)
         e_idx = np.flatnonzero(evaluated)
-        raw = np.zeros(len(ks))
+        raw = np.zeros(n)
         raw[e_idx] = meas[e_idx] / pred[e_idx] * 100.0
-        leak = (pred[e_idx] - meas[e_idx]) * p.motor_disp_cc / 1000.0
-        filt, filt_leak, filt_n = _filter(m, raw[e_idx], leak, e_idx, len(ks))
+        leak = (pred[e_idx] - meas[e_idx]) * p.lpm_per_unit
+        filt, filt_leak, filt_n = _filter(m, raw[e_idx], leak, e_idx, n)
         m.counters["evaluated"] += len(e_idx)
+        m.counters["extrapolated"] += int((gates[e_idx] == Gate.EXTRAPOLATED).sum())
         self._warnings(ks, t_k, gates, meas, pred, wb, raw, filt, filt_leak, filt_n, evaluated)
 
     def _warnings(
@@ -425,9 +433,9 @@ class _Engine:
         cols = TickColumns(
             t_s=t_k,
             gate=gates.astype(np.int8),
-            motor_speed_meas_rpm=meas,
-            motor_speed_pred_rpm=pred,
-            motor_speed_whitebox_rpm=wb,
+            measured=meas,
+            predicted=pred,
+            whitebox=wb,
             ratio_raw_pct=ratio_raw,
             ratio_filt_pct=filt,
             extra_leak_lpm=filt_leak,
@@ -440,9 +448,9 @@ class _Engine:
         m.last_tick = Tick(
             t_s=float(t_k[last]),
             gate=Gate(int(gates[last])),
-            motor_speed_meas_rpm=float(meas[last]),
-            motor_speed_pred_rpm=float(pred[last]),
-            motor_speed_whitebox_rpm=float(wb[last]),
+            measured=float(meas[last]),
+            predicted=float(pred[last]),
+            whitebox=float(wb[last]),
             ratio_raw_pct=float(ratio_raw[last]),
             ratio_filt_pct=float(filt[last]),
             extra_leak_lpm=float(filt_leak[last]),
@@ -464,9 +472,9 @@ class _Engine:
         pl = self.m.payloads
         o = pl.outputs
         n = len(ks)
-        evaluated = (c.gate == Gate.EVALUATING).astype(np.float64)
+        evaluated = np.isin(c.gate, _EVALUATED).astype(np.float64)
         is_ratio = ks % o.ratio.every_ticks == 0
-        is_speed = ks % o.speed.every_ticks == 0
+        is_speed = ks % o.quantity.every_ticks == 0
         # the alive counter a tick's frames carry: its value before this tick's ratio frame counts it
         counted = np.cumsum(is_ratio) - is_ratio
         alive = (pl.alive + counted) % 16
@@ -478,7 +486,8 @@ class _Engine:
         is_warn = (state != prev) | (ks % o.warning.every_ticks == 0)
         pl.last_warning = (int(c.level[-1]), int(c.reason[-1]))
         valid = c.filt_valid
-        meas = np.where(np.isfinite(c.motor_speed_meas_rpm), c.motor_speed_meas_rpm, 0.0)
+        meas = np.where(np.isfinite(c.measured), c.measured, 0.0)
+        name_meas, name_pred, name_wb, name_valid = o.quantity_signals
         enc = {}
         enc["ratio"] = _encode(
             o.ratio,
@@ -494,13 +503,13 @@ class _Engine:
             },
         )
         enc["speed"] = _encode(
-            o.speed,
+            o.quantity,
             np.flatnonzero(is_speed),
             {
-                "motor_speed_meas_rpm": meas,
-                "motor_speed_pred_rpm": c.motor_speed_pred_rpm,
-                "motor_speed_whitebox_rpm": c.motor_speed_whitebox_rpm,
-                "cm_speed_valid": evaluated,
+                name_meas: meas,
+                name_pred: c.predicted,
+                name_wb: c.whitebox,
+                name_valid: evaluated,
                 "cm_alive_counter": alive.astype(np.float64),
             },
         )
@@ -524,7 +533,7 @@ class _Engine:
         kind_of = np.concatenate(order_kind)
         row_of = np.concatenate(order_row)
         order = np.lexsort((kind_of, tick_of))
-        msgs = (o.ratio, o.speed, o.warning)
+        msgs = (o.ratio, o.quantity, o.warning)
         payloads = [enc["ratio"][1], enc["speed"][1], enc["warning"][1]]
         ch = o.channel
         t_list = c.t_s.tolist()

@@ -12,10 +12,22 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from cmcan.monitor.gating import GateLimits
+from cmcan.io.points import Condition, PointsError, PointSpec
+from cmcan.monitor.gating import REFERENCE_PUMP_DISP_CC, REFERENCE_PUMP_SPEED_RPM, GateLimits, scaled
 from cmcan.monitor.warnings import Thresholds
-from cmcan.roles import GATED, MAPPABLE, SignalRef
-from cmcan.schema import Num, Obj, SchemaError, Str, load_yaml
+from cmcan.oil import Oil, oil_from_grade
+from cmcan.roles import (
+    FIXABLE,
+    FLOW,
+    GATEABLE,
+    MAPPABLE,
+    MODEL_INPUTS,
+    MOTOR_SPEED,
+    QUANTITIES,
+    QUANTITY_OUTPUT,
+    SignalRef,
+)
+from cmcan.schema import Num, Obj, SchemaError, Seq, Str, load_yaml
 from cmcan.uplink.config import UPLINK, UplinkSettings
 
 _SIGNAL = Obj(
@@ -24,17 +36,58 @@ _SIGNAL = Obj(
 )
 
 
-def _signals_rule(s: dict[str, Any]) -> tuple[str, str] | None:
-    for role in ("pump_speed_rpm", "pump_disp_cc", "temp_c", "motor_speed_rpm"):
-        if s.get(role) is None:
-            return role, "missing; every machine must map this role to a DBC message and signal"
+def _signals_rule(c: dict[str, Any]) -> tuple[str, str] | None:
+    """Every model input and the output quantity come from a signal, or (pump speed and
+    displacement) from a constant in drive.fixed; never from both."""
+    s, drive = c["signals"], c["drive"]
+    fixed = {r for r, v in drive["fixed"].items() if v is not None}
+    for role in ("pump_speed_rpm", "pump_disp_cc", "temp_c", drive["quantity"]):
+        if role in fixed:
+            if s.get(role) is not None:
+                return f"signals.{role}", f"also given as a constant in drive.fixed.{role}; keep one"
+        elif s.get(role) is None:
+            alt = " (or give its constant value in drive.fixed)" if role in FIXABLE else ""
+            return f"signals.{role}", f"missing; every machine must map this role to a DBC message and signal{alt}"
     has_dp = s.get("dp_bar") is not None
     has_hl = s.get("high_pressure_bar") is not None and s.get("low_pressure_bar") is not None
     if not (has_dp or has_hl):
-        return "dp_bar", "map either dp_bar, or both high_pressure_bar and low_pressure_bar"
+        return "signals.dp_bar", "map either dp_bar, or both high_pressure_bar and low_pressure_bar"
     if has_dp and (s.get("high_pressure_bar") is not None or s.get("low_pressure_bar") is not None):
-        return "dp_bar", "map dp_bar or high/low pressure, not both"
+        return "signals.dp_bar", "map dp_bar or high/low pressure, not both"
     return None
+
+
+def _drive_rule(d: dict[str, Any]) -> tuple[str, str] | None:
+    if d["quantity"] == MOTOR_SPEED and d["motor_disp_cc"] is None:
+        return "motor_disp_cc", "missing; a motor-speed machine needs V_M, its motor displacement in cm3/rev"
+    if d["quantity"] == FLOW and d["motor_disp_cc"] is not None:
+        return "motor_disp_cc", "only for quantity motor_speed_rpm: a flow machine's output needs no V_M"
+    return None
+
+
+def _oil_rule(o: dict[str, Any]) -> tuple[str, str] | None:
+    if (o["nu40_cst"] is None) != (o["nu100_cst"] is None):
+        return "nu100_cst" if o["nu100_cst"] is None else "nu40_cst", "give both nu40_cst and nu100_cst, or neither"
+    if o["nu40_cst"] is not None and o["nu100_cst"] >= o["nu40_cst"]:
+        return "nu100_cst", f"must be below nu40_cst ({o['nu40_cst']:g} cSt): oil thins as it warms"
+    if o["nu40_cst"] is None:
+        try:
+            oil_from_grade(o["grade"])
+        except ValueError as exc:
+            return "grade", str(exc)
+    return None
+
+
+def _gating_rule(c: dict[str, Any]) -> tuple[str, str] | None:
+    if c["drive"]["quantity"] != MOTOR_SPEED and c["gating"]["min_motor_speed_rpm"] is not None:
+        return "gating.min_motor_speed_rpm", "only for quantity motor_speed_rpm; use min_flow_lpm"
+    if c["gating"]["min_motor_speed_rpm"] is not None and c["gating"]["min_flow_lpm"] is not None:
+        return "gating.min_flow_lpm", "give min_motor_speed_rpm or min_flow_lpm, not both"
+    return None
+
+
+def _config_rule(c: dict[str, Any]) -> tuple[str, str] | None:
+    return _signals_rule(c) or _gating_rule(c)
 
 
 def _threshold_rule(t: dict[str, Any]) -> tuple[str, str] | None:
@@ -65,21 +118,58 @@ _CONFIG = Obj(
         ),
         "dbc": Str(),
         "model": Str(default="default"),
-        "drive": Obj({"motor_disp_cc": Num(1, 2000, "cm3/rev")}),
-        "signals": Obj({r: _SIGNAL for r in MAPPABLE}, rule=_signals_rule),
+        "drive": Obj(
+            {
+                "quantity": Str(default=MOTOR_SPEED, choices=QUANTITIES),
+                "motor_disp_cc": Num(1, 2000, "cm3/rev", default=None),
+                "pump_speed_nominal_rpm": Num(1, 20000, "rpm", default=REFERENCE_PUMP_SPEED_RPM),
+                "pump_disp_max_cc": Num(0.01, 5000, "cm3/rev", default=REFERENCE_PUMP_DISP_CC),
+                "fixed": Obj(
+                    {
+                        "pump_speed_rpm": Num(0, 20000, "rpm", default=None),
+                        "pump_disp_cc": Num(-5000, 5000, "cm3/rev", default=None),
+                    },
+                    default={},
+                ),
+            },
+            rule=_drive_rule,
+        ),
+        "oil": Obj(
+            {
+                "grade": Str(default="VG46"),
+                "nu40_cst": Num(1, 5000, "cSt", default=None),
+                "nu100_cst": Num(0.5, 500, "cSt", default=None),
+            },
+            default={},
+            rule=_oil_rule,
+        ),
+        "signals": Obj({r: _SIGNAL for r in MAPPABLE}),
+        "points": Obj(
+            {
+                "columns": Obj({r: Str(default=None) for r in (*MODEL_INPUTS, *QUANTITIES)}, default={}),
+                "constants": Obj({r: Num(-1e9, 1e9, default=None) for r in MODEL_INPUTS}, default={}),
+                "where": Seq(Str(), default=[]),
+            },
+            default={},
+        ),
         "evaluation": Obj({"rate_hz": Num(0.5, 100, "Hz", default=10.0)}, default={}),
         "max_signal_age_s": Obj(
-            {"default": Num(0.01, 60, "s", default=0.5), **{r: Num(0.01, 60, "s", default=None) for r in GATED}},
+            {
+                "default": Num(0.01, 3600, "s", default=0.5),
+                **{r: Num(0.01, 3600, "s", default=None) for r in GATEABLE},
+            },
             default={},
         ),
         "gating": Obj(
             {
-                "window_s": Num(0.1, 60, "s", default=1.0),
+                "window_s": Num(0.1, 3600, "s", default=1.0),
                 "min_samples": Num(1, 10000, default=5, integer=True),
-                "min_pump_speed_rpm": Num(0, 10000, "rpm", default=700.0),
-                "min_pump_disp_cc": Num(0, 2000, "cm3/rev", default=20.0),
-                "min_motor_speed_rpm": Num(0, 20000, "rpm", default=300.0),
-                "max_std": Obj({r: Num(0, 1e4, default=None) for r in GATED}, default={}),
+                # Absolute minimums; unset, the reference drive's scaled to drive: (gating.scaled).
+                "min_pump_speed_rpm": Num(0, 20000, "rpm", default=None),
+                "min_pump_disp_cc": Num(0, 5000, "cm3/rev", default=None),
+                "min_motor_speed_rpm": Num(0, 20000, "rpm", default=None),
+                "min_flow_lpm": Num(0, 100000, "l/min", default=None),
+                "max_std": Obj({r: Num(0, 1e4, default=None) for r in GATEABLE}, default={}),
                 "envelope_margin_pct": Num(-50, 100, "%", default=0.0),
             },
             default={},
@@ -111,6 +201,7 @@ _CONFIG = Obj(
             {
                 "cm_ratio": _output("CM_RATIO", 100),
                 "cm_speed": _output("CM_SPEED", 100),
+                "cm_flow": _output("CM_FLOW", 100),
                 "warning": _output("CM_WARNING", 1000),
             },
             default={},
@@ -118,8 +209,9 @@ _CONFIG = Obj(
         "state": Obj(
             {"directory": Str(default="/var/lib/cmcan"), "save_every_s": Num(1, 86400, "s", default=60.0)}, default={}
         ),
-        "uplink": UPLINK,  # issue 15: validated by cmcan.uplink.config, disabled by default
-    }
+        "uplink": UPLINK,  # validated by cmcan.uplink.config, disabled by default
+    },
+    rule=_config_rule,
 )
 
 
@@ -133,7 +225,23 @@ class BusConfig:
 
 @dataclass(frozen=True)
 class DriveConfig:
-    motor_disp_cc: float  # V_M at the motor's fixed displacement setting
+    quantity: str  # what the model predicts: motor_speed_rpm (closed circuit) or flow_lpm (open circuit)
+    motor_disp_cc: float | None  # V_M at the motor's fixed displacement setting; None for flow
+    pump_speed_nominal_rpm: float  # sizes the gates (gating.scaled)
+    pump_disp_max_cc: float
+    fixed: dict[str, float] = field(default_factory=dict)  # model inputs held constant, no sensor
+
+    @property
+    def lpm_per_unit(self) -> float:
+        """Flow in l/min per unit of the quantity: V_M / 1000 for motor speed, 1 for flow."""
+        if self.quantity == MOTOR_SPEED:
+            assert self.motor_disp_cc is not None
+            return self.motor_disp_cc / 1000.0
+        return 1.0
+
+    @property
+    def nominal_flow_lpm(self) -> float:
+        return self.pump_speed_nominal_rpm * self.pump_disp_max_cc / 1000.0
 
 
 @dataclass(frozen=True)
@@ -175,9 +283,12 @@ class OutputsConfig:
     cm_ratio: OutputMessageConfig
     cm_speed: OutputMessageConfig
     warning: OutputMessageConfig
+    cm_flow: OutputMessageConfig = OutputMessageConfig("CM_FLOW", 100)
 
-    def items(self) -> list[tuple[str, OutputMessageConfig]]:
-        return [("cm_ratio", self.cm_ratio), ("cm_speed", self.cm_speed), ("warning", self.warning)]
+    def items(self, quantity: str = MOTOR_SPEED) -> list[tuple[str, OutputMessageConfig]]:
+        """The messages a machine of this output quantity sends (CM_SPEED or CM_FLOW in the middle)."""
+        key = QUANTITY_OUTPUT[quantity]
+        return [("cm_ratio", self.cm_ratio), (key, getattr(self, key)), ("warning", self.warning)]
 
 
 @dataclass(frozen=True)
@@ -193,6 +304,7 @@ class Config:
     dbc_path: Path
     model_path: Path | None  # None: the model shipped with cmcan
     drive: DriveConfig
+    oil: Oil  # the oil's viscosity law, for the model's laminar leakage term
     signals: dict[str, SignalRef]  # role -> where it is on the bus
     evaluation: EvaluationConfig
     max_signal_age: SignalAges
@@ -202,10 +314,20 @@ class Config:
     outputs: OutputsConfig
     state: StateConfig
     uplink: UplinkSettings  # the telematics uplink (disabled by default); its outbox in the state directory
+    # How an operating-point table's columns map onto roles (cmcan train/score --points).
+    points: PointSpec = field(default_factory=PointSpec)
 
     @property
-    def motor_disp_cc(self) -> float:
+    def motor_disp_cc(self) -> float | None:
         return self.drive.motor_disp_cc
+
+    @property
+    def quantity(self) -> str:
+        return self.drive.quantity
+
+    @property
+    def lpm_per_unit(self) -> float:
+        return self.drive.lpm_per_unit
 
     @property
     def gate_limits(self) -> GateLimits:
@@ -231,18 +353,57 @@ def _path(base_dir: Path, p: str) -> Path:
     return Path(p) if Path(p).is_absolute() else (base_dir / p).resolve()
 
 
+def _gate_limits(raw: dict[str, Any], drive: DriveConfig) -> GateLimits:
+    """The reference drive's gates scaled to this machine, then the values the file sets."""
+    g = raw["gating"]
+    base = scaled(drive.quantity, drive.lpm_per_unit, drive.pump_speed_nominal_rpm, drive.pump_disp_max_cc)
+    over: dict[str, Any] = {"window_s": g["window_s"], "min_samples": g["min_samples"]}
+    if g["min_pump_speed_rpm"] is not None:
+        over["min_pump_speed_rpm"] = g["min_pump_speed_rpm"]
+    if g["min_pump_disp_cc"] is not None:
+        over["min_pump_disp_cc"] = g["min_pump_disp_cc"]
+    if g["min_motor_speed_rpm"] is not None:
+        over["min_output"] = g["min_motor_speed_rpm"]
+    if g["min_flow_lpm"] is not None:
+        over["min_output"] = g["min_flow_lpm"] / drive.lpm_per_unit
+    over["max_std"] = {**base.max_std, **{k: v for k, v in g["max_std"].items() if v is not None}}
+    return replace(base, **over)
+
+
+def _oil(o: dict[str, Any]) -> Oil:
+    if o["nu40_cst"] is not None:
+        return Oil(nu40_cst=float(o["nu40_cst"]), nu100_cst=float(o["nu100_cst"]))
+    return oil_from_grade(o["grade"])
+
+
+def _points(raw: dict[str, Any], drive: DriveConfig, source: str) -> PointSpec:
+    """The points section as a spec; roles it does not name are read from a column of the role's
+    name, the drive's fixed inputs are constants."""
+    pts = raw["points"]
+    consts = {**drive.fixed, **{r: float(v) for r, v in pts["constants"].items() if v is not None}}
+    named = {r: c for r, c in pts["columns"].items() if c is not None}
+    both = sorted(set(named) & set(consts))
+    if both:
+        raise SchemaError(source, f"points.columns.{both[0]}", "also a constant (points.constants or drive.fixed)")
+    roles = (*MODEL_INPUTS, drive.quantity)
+    cols = {r: named.get(r, r) for r in roles if r not in consts}
+    try:
+        where = tuple(Condition.parse(w, f"points.where[{i}]") for i, w in enumerate(pts["where"]))
+    except PointsError as exc:
+        raise SchemaError(source, "", str(exc)) from None
+    return PointSpec(cols, consts, where, f"{source} (points:)")
+
+
 def from_dict(data: Any, source: str, base_dir: Path) -> Config:
     """Validate a parsed YAML document and build the typed configuration (SchemaError names the field)."""
     raw = _CONFIG.check(data, source, "")
-    g = raw["gating"]
-    base = GateLimits()
-    limits = GateLimits(
-        window_s=g["window_s"],
-        min_samples=g["min_samples"],
-        min_pump_speed_rpm=g["min_pump_speed_rpm"],
-        min_pump_disp_cc=g["min_pump_disp_cc"],
-        min_motor_speed_rpm=g["min_motor_speed_rpm"],
-        max_std={**base.max_std, **{k: v for k, v in g["max_std"].items() if v is not None}},
+    d = raw["drive"]
+    drive = DriveConfig(
+        quantity=d["quantity"],
+        motor_disp_cc=None if d["motor_disp_cc"] is None else float(d["motor_disp_cc"]),
+        pump_speed_nominal_rpm=float(d["pump_speed_nominal_rpm"]),
+        pump_disp_max_cc=float(d["pump_disp_max_cc"]),
+        fixed={r: float(v) for r, v in d["fixed"].items() if v is not None},
     )
     ages = raw["max_signal_age_s"]
     th = raw["thresholds"]
@@ -252,11 +413,12 @@ def from_dict(data: Any, source: str, base_dir: Path) -> Config:
         bus=BusConfig(**raw["bus"]),
         dbc_path=_path(base_dir, raw["dbc"]),
         model_path=None if raw["model"] == "default" else _path(base_dir, raw["model"]),
-        drive=DriveConfig(motor_disp_cc=float(raw["drive"]["motor_disp_cc"])),
+        drive=drive,
+        oil=_oil(raw["oil"]),
         signals={r: SignalRef(**v) for r, v in raw["signals"].items() if v is not None},
         evaluation=EvaluationConfig(rate_hz=float(raw["evaluation"]["rate_hz"])),
         max_signal_age=SignalAges(ages["default"], {r: v for r, v in ages.items() if r != "default" and v is not None}),
-        gating=GatingConfig(limits, g["envelope_margin_pct"]),
+        gating=GatingConfig(_gate_limits(raw, drive), raw["gating"]["envelope_margin_pct"]),
         filter=FilterConfig(**raw["filter"]),
         thresholds=Thresholds(
             th["low_pct"], th["high_pct"], th["hysteresis_pct"], th["debounce_s"], th["fault_after_s"]
@@ -264,6 +426,7 @@ def from_dict(data: Any, source: str, base_dir: Path) -> Config:
         outputs=OutputsConfig(**{k: OutputMessageConfig(**v) for k, v in out.items()}),
         state=StateConfig(Path(raw["state"]["directory"]), float(raw["state"]["save_every_s"])),
         uplink=UplinkSettings.from_raw(raw["uplink"], raw["state"]["directory"], base_dir, source),
+        points=_points(raw, drive, source),
     )
 
 

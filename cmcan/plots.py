@@ -100,8 +100,8 @@ def plot_demo(res: Any, thresholds: Thresholds, path: str | Path) -> None:
 
 
 def plot_residuals(sets: list[Any], report: dict[str, Any], path: str | Path) -> None:
-    """Predicted minus actual motor speed over time, training end and damage onset marked (paper
-    Figures 6 and 7): one panel for the training run, one for the validation run."""
+    """Predicted minus actual output (motor speed or flow) over time, training end and damage onset
+    marked (paper Figures 6 and 7): one panel for the training run, one for the validation run."""
     plt = _pyplot()
 
     by = {s.name: s for s in sets}
@@ -116,10 +116,10 @@ def plot_residuals(sets: list[Any], report: dict[str, Any], path: str | Path) ->
     for ax, (title, names, mark, label) in zip(axes[:, 0], panels, strict=True):
         for n in names:
             s = by[n]
-            ax.plot(s.hours, s.pred_rpm - s.measured_rpm, ".", ms=1.5, color=colors.get(n, "tab:gray"), label=n)
+            ax.plot(s.hours, s.pred - s.measured, ".", ms=1.5, color=colors.get(n, "tab:gray"), label=n)
             ax.plot(
                 s.hours,
-                s.whitebox_rpm - s.measured_rpm,
+                s.whitebox - s.measured,
                 ".",
                 ms=0.8,
                 alpha=0.25,
@@ -132,7 +132,7 @@ def plot_residuals(sets: list[Any], report: dict[str, Any], path: str | Path) ->
         ax.axhline(0, color="k", lw=0.5)
         ax.set_title(title)
         ax.set_xlabel("time (h)")
-        ax.set_ylabel("predicted - measured (rpm)")
+        ax.set_ylabel(f"predicted - measured ({by[names[0]].unit})")
         ax.legend(loc="lower left", fontsize=7, markerscale=6)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -196,3 +196,56 @@ def plot_gap(
     plt.close(fig)
     names.append("gap_vs_variables.png")
     return names
+
+
+def plot_scores(
+    x: np.ndarray,
+    ratio_pct: np.ndarray,
+    labels: np.ndarray | None,
+    extrapolated: np.ndarray,
+    low_pct: float,
+    high_pct: float,
+    path: str | Path,
+    x_label: str,
+    label_name: str = "",
+    title: str = "CM ratio per operating point",
+) -> None:
+    """The ratio of each scored operating point (``cmcan score --plot``), coloured by a label column
+    (e.g. the leakage label of a test rig), extrapolated points drawn hollow, thresholds dashed."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(11, 4.5))
+    groups = [(None, np.ones(len(x), dtype=bool))]
+    if labels is not None:
+        groups = [(v, labels == v) for v in np.unique(labels[np.isfinite(labels)])]
+    palette = ["tab:green", "tab:orange", "tab:red", "tab:purple", "tab:brown", "tab:blue", "tab:pink", "tab:olive"]
+    for i, (value, m) in enumerate(groups):
+        color = palette[i % len(palette)] if labels is not None else "tab:blue"
+        name = f"{label_name} = {value:g}" if value is not None else "scored points"
+        inside, outside = m & ~extrapolated, m & extrapolated
+        if inside.any():
+            ax.plot(x[inside], ratio_pct[inside], "o", ms=3, color=color, label=name)
+        if outside.any():
+            ax.plot(
+                x[outside],
+                ratio_pct[outside],
+                "o",
+                ms=3,
+                mfc="none",
+                color=color,
+                label=f"{name}, extrapolated" if not inside.any() else None,
+            )
+    ax.axhline(low_pct, color="tab:orange", ls="--", lw=1, label=f"low {low_pct:g} %")
+    ax.axhline(high_pct, color="tab:purple", ls="--", lw=1, label=f"high {high_pct:g} %")
+    finite = ratio_pct[np.isfinite(ratio_pct)]
+    if finite.size:
+        ax.set_ylim(
+            max(50.0, min(low_pct - 1, float(finite.min()) - 0.5)),
+            min(150.0, max(high_pct + 1, float(finite.max()) + 0.5)),
+        )
+    ax.set_xlabel(x_label)
+    ax.set_ylabel("CM ratio (%)")
+    ax.set_title(title + ("  (hollow: outside the training envelope)" if extrapolated.any() else ""), fontsize=10)
+    ax.legend(loc="lower left", fontsize=8, markerscale=1.5)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -28,7 +28,12 @@ def build(out: Path) -> dict:
     series, truth = series_from_columns(run.columns, SCENARIO)
     op = operating_points(series, cfg.gate_limits, cfg.rate_hz, truth=truth)
     blob, _model, stats = train_on_points(
-        op, T_TRN_H, cfg.motor_disp_cc, f"scenario:{SCENARIO}", extra_training_info={"scenario_seed": s.seed}
+        op,
+        T_TRN_H,
+        cfg.motor_disp_cc,
+        f"scenario:{SCENARIO}",
+        extra_training_info={"scenario_seed": s.seed},
+        oil=cfg.oil,
     )
     tmp = out.with_name(out.name + ".tmp")
     tmp.write_bytes(blob)

@@ -23,14 +23,15 @@ from cmcan.monitor.core import Monitor
 from cmcan.monitor.gating import Gate
 from cmcan.monitor.tick import LEVEL_NAMES, Tick
 from cmcan.monitor.warnings import Level, Reason
+from cmcan.roles import MOTOR_SPEED, QUANTITY_SIGNALS
 
-TIMELINE_COLUMNS = (
-    "time_s",
-    "operating_h",
-    "gate",
-    "motor_speed_meas_rpm",
-    "motor_speed_pred_rpm",
-    "motor_speed_whitebox_rpm",
+
+def timeline_columns(quantity: str = MOTOR_SPEED) -> tuple[str, ...]:
+    """The timeline CSV's columns; the output quantity's three named as in its CM frame."""
+    return ("time_s", "operating_h", "gate", *QUANTITY_SIGNALS[quantity][:3], *_TAIL)
+
+
+_TAIL = (
     "cm_ratio_raw_pct",
     "cm_ratio_filt_pct",
     "cm_filt_valid",
@@ -39,6 +40,7 @@ TIMELINE_COLUMNS = (
     "warning_reason",
     "time_below_threshold_s",
 )
+TIMELINE_COLUMNS = timeline_columns(MOTOR_SPEED)
 CHUNK_TICKS = 8192
 
 
@@ -48,9 +50,9 @@ class TickColumns:
 
     t_s: NDArray[np.float64]
     gate: NDArray[np.int8]
-    motor_speed_meas_rpm: NDArray[np.float64]
-    motor_speed_pred_rpm: NDArray[np.float64]
-    motor_speed_whitebox_rpm: NDArray[np.float64]
+    measured: NDArray[np.float64]  # the output quantity: motor speed (rpm) or flow (l/min)
+    predicted: NDArray[np.float64]
+    whitebox: NDArray[np.float64]
     ratio_raw_pct: NDArray[np.float64]
     ratio_filt_pct: NDArray[np.float64]
     extra_leak_lpm: NDArray[np.float64]
@@ -70,9 +72,9 @@ class TickColumns:
         return cls(
             t_s=col("t_s", np.float64),
             gate=col("gate", np.int8),
-            motor_speed_meas_rpm=col("motor_speed_meas_rpm", np.float64),
-            motor_speed_pred_rpm=col("motor_speed_pred_rpm", np.float64),
-            motor_speed_whitebox_rpm=col("motor_speed_whitebox_rpm", np.float64),
+            measured=col("measured", np.float64),
+            predicted=col("predicted", np.float64),
+            whitebox=col("whitebox", np.float64),
             ratio_raw_pct=col("ratio_raw_pct", np.float64),
             ratio_filt_pct=col("ratio_filt_pct", np.float64),
             extra_leak_lpm=col("extra_leak_lpm", np.float64),
@@ -137,28 +139,30 @@ _REASON_NAMES = {int(r): r.name.lower() for r in Reason}
 
 
 class TimelineWriter(_FileSink):
-    """The timeline CSV (:data:`TIMELINE_COLUMNS`), one row per tick."""
+    """The timeline CSV (:func:`timeline_columns`), one row per tick."""
 
     wants_ticks = True
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, quantity: str = MOTOR_SPEED) -> None:
         super().__init__(path)
-        self.f.write(",".join(TIMELINE_COLUMNS) + "\r\n")
+        self.f.write(",".join(timeline_columns(quantity)) + "\r\n")
+        self.decimals = 2 if quantity == MOTOR_SPEED else 4  # 0.01 rpm; flows of small machines need more
 
     def ticks(self, c: TickColumns) -> None:
         gate = [_GATE_NAMES[g] for g in c.gate.tolist()]
         level = [_LEVEL_NAMES[v] for v in c.level.tolist()]
         reason = [_REASON_NAMES[r] for r in c.reason.tolist()]
         t0 = self.t0
+        d = self.decimals
         rows = [
-            f"{t:.3f},{(t - t0) / 3600.0:.6f},{g},{ms:.2f},{mp:.2f},{mw:.2f},{rr:.3f},{rf:.3f},{int(fv)},"
+            f"{t:.3f},{(t - t0) / 3600.0:.6f},{g},{ms:.{d}f},{mp:.{d}f},{mw:.{d}f},{rr:.3f},{rf:.3f},{int(fv)},"
             f"{lk:.3f},{lv},{rs},{tb:.1f}\r\n"
             for t, g, ms, mp, mw, rr, rf, fv, lk, lv, rs, tb in zip(
                 c.t_s.tolist(),
                 gate,
-                c.motor_speed_meas_rpm.tolist(),
-                c.motor_speed_pred_rpm.tolist(),
-                c.motor_speed_whitebox_rpm.tolist(),
+                c.measured.tolist(),
+                c.predicted.tolist(),
+                c.whitebox.tolist(),
                 c.ratio_raw_pct.tolist(),
                 c.ratio_filt_pct.tolist(),
                 c.filt_valid.tolist(),

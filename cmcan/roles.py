@@ -17,7 +17,7 @@ DP = "dp_bar"
 TEMP = "temp_c"
 MOTOR_SPEED = "motor_speed_rpm"
 MOTOR_DIRECTION = "motor_direction"
-FLOW = "flow_lpm"  # delivered flow of an open circuit, at a flow meter
+FLOW = "flow_lpm"  # delivered flow at a flow meter (an open circuit)
 
 UNITS: dict[str, str] = {
     PUMP_SPEED: "rpm",
@@ -32,14 +32,38 @@ UNITS: dict[str, str] = {
 }
 
 # Roles a configuration may map to DBC signals.
-MAPPABLE: tuple[str, ...] = (PUMP_SPEED, PUMP_DISP, HIGH_PRESSURE, LOW_PRESSURE, DP, TEMP, MOTOR_SPEED, MOTOR_DIRECTION)
+MAPPABLE: tuple[str, ...] = (
+    PUMP_SPEED,
+    PUMP_DISP,
+    HIGH_PRESSURE,
+    LOW_PRESSURE,
+    DP,
+    TEMP,
+    MOTOR_SPEED,
+    MOTOR_DIRECTION,
+    FLOW,
+)
 # Inputs of the model, in its input order.
 MODEL_INPUTS: tuple[str, ...] = (PUMP_SPEED, PUMP_DISP, DP, TEMP)
 MODEL_UNITS: dict[str, str] = {r: UNITS[r] for r in MODEL_INPUTS}
-# What a model may predict: a closed circuit's motor speed or an open circuit's delivered flow.
-OUTPUT_QUANTITIES: tuple[str, ...] = (MOTOR_SPEED, FLOW)
-# Roles the monitor keeps windows of and gates on, in this order: the model's inputs and the output.
-GATED: tuple[str, ...] = (*MODEL_INPUTS, MOTOR_SPEED)
+# What the model predicts and the CM ratio compares: a closed circuit's motor speed (flow over V_M)
+# or an open circuit's delivered flow.
+QUANTITIES: tuple[str, ...] = (MOTOR_SPEED, FLOW)
+# Model inputs a machine may hold constant instead of measuring them (a pump on a constant-speed
+# electric motor, a fixed-displacement pump).
+FIXABLE: tuple[str, ...] = (PUMP_SPEED, PUMP_DISP)
+
+
+def gated_roles(quantity: str = MOTOR_SPEED) -> tuple[str, ...]:
+    """Roles the monitor keeps windows of and gates on, in this order: the model's inputs and the output."""
+    if quantity not in QUANTITIES:
+        raise ValueError(f"output quantity {quantity!r} is not one of {', '.join(QUANTITIES)}")
+    return (*MODEL_INPUTS, quantity)
+
+
+# The reference drive's gated roles (motor speed); every role that can be gated, for configuration keys.
+GATED: tuple[str, ...] = gated_roles(MOTOR_SPEED)
+GATEABLE: tuple[str, ...] = (*MODEL_INPUTS, *QUANTITIES)
 
 
 @dataclass(frozen=True)
@@ -66,6 +90,15 @@ DEFAULT_INPUTS: dict[str, tuple[str, str]] = {
 MOTOR_FORWARD = 1
 MOTOR_STOPPED = 0
 
+# Each quantity's measured, predicted and white-box values and their validity flag, as the CM frame
+# and the timelines name them.
+QUANTITY_SIGNALS: dict[str, tuple[str, str, str, str]] = {
+    MOTOR_SPEED: ("motor_speed_meas_rpm", "motor_speed_pred_rpm", "motor_speed_whitebox_rpm", "cm_speed_valid"),
+    FLOW: ("flow_meas_lpm", "flow_pred_lpm", "flow_whitebox_lpm", "cm_flow_valid"),
+}
+# The output message that carries them (configuration key under outputs:).
+QUANTITY_OUTPUT: dict[str, str] = {MOTOR_SPEED: "cm_speed", FLOW: "cm_flow"}
+
 # The CM output messages (configuration key -> the DBC signals cmcan fills in).
 OUTPUT_SIGNALS: dict[str, tuple[str, ...]] = {
     "cm_ratio": (
@@ -77,12 +110,7 @@ OUTPUT_SIGNALS: dict[str, tuple[str, ...]] = {
         "cm_gate",
         "cm_alive_counter",
     ),
-    "cm_speed": (
-        "motor_speed_meas_rpm",
-        "motor_speed_pred_rpm",
-        "motor_speed_whitebox_rpm",
-        "cm_speed_valid",
-        "cm_alive_counter",
-    ),
+    "cm_speed": (*QUANTITY_SIGNALS[MOTOR_SPEED], "cm_alive_counter"),
+    "cm_flow": (*QUANTITY_SIGNALS[FLOW], "cm_alive_counter"),
     "warning": ("warning_level", "warning_reason", "time_below_threshold_s", "warning_count"),
 }

@@ -49,7 +49,7 @@ def test_train_from_a_candump_log_then_evaluate_with_plot(data):
     assert res.returncode == 0, res.stderr + res.stdout
     rep = json.loads(res.stdout)
     f = rep["sets"]["D_tst"]
-    assert f["rmse_graybox_rpm"] <= f["rmse_whitebox_rpm"] / 3
+    assert f["rmse_graybox"] <= f["rmse_whitebox"] / 3
     assert (data / "e.png").stat().st_size > 10_000
 
 

@@ -17,7 +17,16 @@ def all_signals(db):
 
 def test_loads_strictly_with_expected_messages(db):
     names = {m.name for m in db.messages}
-    assert {"PUMP_STATUS", "LOOP_PRESSURE", "MOTOR_STATUS", "OIL_STATUS", "CM_RATIO", "CM_SPEED", "CM_WARNING"} == names
+    assert {
+        "PUMP_STATUS",
+        "LOOP_PRESSURE",
+        "MOTOR_STATUS",
+        "OIL_STATUS",
+        "CM_RATIO",
+        "CM_SPEED",
+        "CM_FLOW",
+        "CM_WARNING",
+    } == names
     assert all(not m.is_extended_frame and m.frame_id <= 0x7FF for m in db.messages)
     assert {m.frame_id for m in db.messages if "DRIVE_CTRL" in m.senders} == INPUT_IDS
 
@@ -49,6 +58,21 @@ def test_outputs_carry_what_the_contract_names(db):
     assert {str(v) for v in choices.values()} == {"ok", "low", "high", "fault"}
 
 
+def test_cm_gate_table_is_the_gate_enum(db):
+    from cmcan.monitor.gating import Gate
+
+    choices = db.get_message_by_name("CM_RATIO").get_signal_by_name("cm_gate").choices
+    assert {int(k): str(v) for k, v in choices.items()} == {int(g): g.name.lower() for g in Gate}
+
+
+def test_each_quantity_has_its_output_message(db):
+    from cmcan.roles import OUTPUT_SIGNALS, QUANTITY_OUTPUT
+
+    for key in QUANTITY_OUTPUT.values():
+        msg = db.get_message_by_name({"cm_speed": "CM_SPEED", "cm_flow": "CM_FLOW"}[key])
+        assert set(OUTPUT_SIGNALS[key]) <= {s.name for s in msg.signals}
+
+
 def test_input_mapping_points_at_real_signals(db):
     for msg, sig in DEFAULT_INPUTS.values():
         db.get_message_by_name(msg).get_signal_by_name(sig)
@@ -60,7 +84,8 @@ def signal_values(m, s):
 
 
 @pytest.mark.parametrize(
-    "name", ["PUMP_STATUS", "LOOP_PRESSURE", "MOTOR_STATUS", "OIL_STATUS", "CM_RATIO", "CM_SPEED", "CM_WARNING"]
+    "name",
+    ["PUMP_STATUS", "LOOP_PRESSURE", "MOTOR_STATUS", "OIL_STATUS", "CM_RATIO", "CM_SPEED", "CM_FLOW", "CM_WARNING"],
 )
 @settings(max_examples=60, deadline=None)
 @given(data=st.data())
@@ -74,7 +99,8 @@ def test_every_signal_round_trips_within_its_resolution(db, name, data):
 
 
 @pytest.mark.parametrize(
-    "name", ["PUMP_STATUS", "LOOP_PRESSURE", "MOTOR_STATUS", "OIL_STATUS", "CM_RATIO", "CM_SPEED", "CM_WARNING"]
+    "name",
+    ["PUMP_STATUS", "LOOP_PRESSURE", "MOTOR_STATUS", "OIL_STATUS", "CM_RATIO", "CM_SPEED", "CM_FLOW", "CM_WARNING"],
 )
 @settings(max_examples=40, deadline=None)
 @given(data=st.data())
@@ -111,7 +137,8 @@ def test_out_of_range_values_saturate_instead_of_failing(db):
 
 
 @pytest.mark.parametrize(
-    "name", ["PUMP_STATUS", "LOOP_PRESSURE", "MOTOR_STATUS", "OIL_STATUS", "CM_RATIO", "CM_SPEED", "CM_WARNING"]
+    "name",
+    ["PUMP_STATUS", "LOOP_PRESSURE", "MOTOR_STATUS", "OIL_STATUS", "CM_RATIO", "CM_SPEED", "CM_FLOW", "CM_WARNING"],
 )
 @settings(max_examples=60, deadline=None)
 @given(data=st.data())

@@ -5,7 +5,17 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cmcan.monitor.gating import Gate, GateLimits, eval_times, gate, window_stats
+from cmcan.monitor.gating import (
+    EVALUATED,
+    REFERENCE_MOTOR_DISP_CC,
+    Gate,
+    GateLimits,
+    eval_times,
+    gate,
+    scaled,
+    table_stats,
+    window_stats,
+)
 from cmcan.monitor.windows import TIME_EPS_S
 
 
@@ -51,7 +61,8 @@ def test_a_steady_plausible_point_is_evaluated():
     ("over", "expected"),
     [
         ({"pump_speed_rpm": 500.0}, Gate.LOW_SPEED),
-        ({"pump_disp_cc": 5.0}, Gate.LOW_SPEED),
+        ({"pump_disp_cc": 5.0}, Gate.LOW_DISPLACEMENT),
+        ({"motor_speed_rpm": 250.0}, Gate.LOW_FLOW),
         ({"temp_c": 400.0}, Gate.IMPLAUSIBLE_INPUT),
         ({"motor_speed_rpm": float("nan")}, Gate.IMPLAUSIBLE_INPUT),
     ],
@@ -60,9 +71,16 @@ def test_rules(over, expected):
     assert gate(stats_for(**over), GateLimits())[0] == expected
 
 
+def test_outside_the_envelope_is_evaluated_and_marked_extrapolated():
+    env = {"dp_bar": (20.0, 560.0)}
+    assert gate(stats_for(dp_bar=600.0), GateLimits(), envelope=env)[0] == Gate.EXTRAPOLATED
+    assert gate(stats_for(dp_bar=560.0), GateLimits(), envelope=env)[0] == Gate.EVALUATING  # bounds included
+    assert Gate.EXTRAPOLATED in EVALUATED and Gate.EVALUATING in EVALUATED
+    # every refusal still wins over the envelope: an extrapolated point is a steady, plausible one
+    assert gate(stats_for(dp_bar=600.0, pump_speed_rpm=500.0), GateLimits(), envelope=env)[0] == Gate.LOW_SPEED
+
+
 def test_envelope_and_staleness():
-    s = stats_for(dp_bar=600.0)
-    assert gate(s, GateLimits(), envelope={"dp_bar": (20.0, 560.0)})[0] == Gate.OUTSIDE_ENVELOPE
     late = stats_for(t_eval=1.555)  # 5 ms after the newest sample
     assert gate(late, GateLimits(), max_age_s={"dp_bar": 0.004})[0] == Gate.STALE_INPUT
     assert gate(late, GateLimits(), max_age_s={"dp_bar": 0.006})[0] == Gate.EVALUATING
@@ -82,3 +100,39 @@ def test_eval_times_are_period_multiples_inside_the_span():
     t = eval_times(1767225600.03, 1767225601.0, 10.0)
     assert t[0] == pytest.approx(1767225600.1) and t[-1] == pytest.approx(1767225601.0)
     assert np.allclose(np.diff(t), 0.1)
+
+
+def test_scaled_limits_are_the_reference_for_the_reference_drive():
+    ref = scaled("motor_speed_rpm", REFERENCE_MOTOR_DISP_CC / 1000.0)
+    assert ref == GateLimits()
+
+
+def test_scaled_limits_follow_a_small_flow_machine():
+    # a 4.6 cm3/rev pump at 1450 rpm delivering into a flow meter: 6.67 l/min nominal
+    lim = scaled("flow_lpm", 1.0, 1450.0, 4.6)
+    assert lim.output_role == "flow_lpm"
+    assert lim.min_pump_speed_rpm == pytest.approx(700.0 * 1450 / 3000)
+    assert lim.min_pump_disp_cc == pytest.approx(20.0 * 4.6 / 78)
+    # the reference's 300 rpm x 44 cm3/rev = 13.2 l/min of 234 l/min nominal, as a share of 6.67 l/min
+    assert lim.min_output == pytest.approx(13.2 * 6.67 / 234.0)
+    assert lim.max_std["flow_lpm"] == pytest.approx(8.0 * 0.044 * 6.67 / 234.0)
+    assert "motor_speed_rpm" not in lim.max_std and "motor_speed_rpm" not in lim.plausible
+    means = {"pump_speed_rpm": 1450.0, "pump_disp_cc": 4.6, "dp_bar": 160.0, "temp_c": 40.0, "flow_lpm": 6.6}
+    stats = table_stats({k: np.array([v]) for k, v in means.items()})
+    assert gate(stats, lim)[0] == Gate.EVALUATING
+    # the reference drive's limits refuse the same point (the "only 0 steady points")
+    ref = scaled("flow_lpm", 1.0)
+    assert gate(stats, ref)[0] == Gate.LOW_DISPLACEMENT
+
+
+def test_table_points_skip_staleness_and_steadiness_but_not_the_rules():
+    lim = scaled("flow_lpm", 1.0, 1450.0, 4.6)
+    base = {"pump_speed_rpm": 1450.0, "pump_disp_cc": 4.6, "dp_bar": 160.0, "temp_c": 40.0}
+    rows = [
+        {**base, "flow_lpm": 6.6},
+        {**base, "flow_lpm": 0.1},  # pump off at this cycle
+        {**base, "flow_lpm": float("nan")},
+        {**base, "temp_c": 500.0, "flow_lpm": 6.6},
+    ]
+    stats = table_stats({k: np.array([r[k] for r in rows]) for k in rows[0]})
+    assert gate(stats, lim).tolist() == [Gate.EVALUATING, Gate.LOW_FLOW, Gate.IMPLAUSIBLE_INPUT, Gate.IMPLAUSIBLE_INPUT]

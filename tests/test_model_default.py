@@ -48,7 +48,7 @@ def test_graybox_rmse_is_at_most_a_third_of_whitebox(report, name):
     f = report["sets"][name]
     print(name, f)
     assert f["points"] > 1000
-    assert f["rmse_graybox_rpm"] <= f["rmse_whitebox_rpm"] / 3
+    assert f["rmse_graybox"] <= f["rmse_whitebox"] / 3
 
 
 @pytest.mark.parametrize("name", ["D_tst", "two_set_train", "D_val_healthy"])

@@ -10,7 +10,7 @@ import pytest
 from cmcan import config as cfgmod
 from cmcan.assemble import dbc_for
 from cmcan.model.features import operating_points, series_from_log
-from cmcan.monitor.gating import Gate
+from cmcan.monitor.gating import EVALUATED, Gate
 from cmcan.monitor.totals import Totals
 from cmcan.monitor.warnings import Level
 from tests.helpers import feed_all, frame, monitor, sim_frames, write_log
@@ -57,7 +57,7 @@ def test_core_gates_equal_the_training_features(short, tmp_path):
     codes = gate(op.stats, cfg.gate_limits, envelope=mon.params.envelope)
     by_t = {round(k.t_s, 3): k for k in mon.timeline}
     matched = [
-        (by_t[round(t, 3)], int(c), op.x[i], op.motor_speed_rpm[i])
+        (by_t[round(t, 3)], int(c), op.x[i], op.measured[i])
         for i, (t, c) in enumerate(zip(op.t_s, codes, strict=True))
         if round(t, 3) in by_t
     ]
@@ -65,9 +65,9 @@ def test_core_gates_equal_the_training_features(short, tmp_path):
     agree = sum(tk.gate == c for tk, c, _, _ in matched)
     assert agree / len(matched) > 0.999
     for tk, c, x, meas in matched:
-        if tk.gate == Gate.EVALUATING and c == Gate.EVALUATING:
-            assert tk.motor_speed_meas_rpm == pytest.approx(meas, rel=1e-9)
-            assert tk.motor_speed_pred_rpm == pytest.approx(mdl.predict(x[None, :])[0][0], rel=1e-6)
+        if tk.gate in EVALUATED and c == tk.gate:
+            assert tk.measured == pytest.approx(meas, rel=1e-9)
+            assert tk.predicted == pytest.approx(mdl.predict(x[None, :])[0][0], rel=1e-6)
 
 
 def test_bad_frames_are_counted_and_ignored(short):
@@ -177,8 +177,8 @@ def test_leakage_raises_the_low_warning_and_estimates_the_flow():
     warns = [(h["t_s"] - run.start_epoch_s) / 3600.0 for h in mon.totals.history if h["to"] == "low"]
     assert len(warns) == 1 and 1.0 < warns[0] < 1.2
     # the per-point estimate (predicted - measured) * V_M against the simulator's truth at the same instants
-    late = [k for k in mon.timeline if k.gate == Gate.EVALUATING and (k.t_s - run.start_epoch_s) / 3600 > 1.05]
-    est = np.array([(k.motor_speed_pred_rpm - k.motor_speed_meas_rpm) * 44.0 / 1000 for k in late])
+    late = [k for k in mon.timeline if k.gate in EVALUATED and (k.t_s - run.start_epoch_s) / 3600 > 1.05]
+    est = np.array([(k.predicted - k.measured) * 44.0 / 1000 for k in late])
     idx = np.searchsorted(run["time_s"], [k.t_s - run.start_epoch_s for k in late])
     truth = run["true_extra_leak_lpm"][np.minimum(idx, len(run) - 1)]
     assert np.mean(est) == pytest.approx(np.mean(truth), rel=0.1)

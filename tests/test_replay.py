@@ -46,7 +46,8 @@ def test_replay_writes_timeline_emit_plot_and_warnings(logs):
     with open(d / "tl.csv") as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == summary["final"]["counters"]["ticks"]
-    assert {r["gate"] for r in rows} >= {"evaluating", "low_speed"}
+    gates = {r["gate"] for r in rows}
+    assert "evaluating" in gates and gates & {"low_speed", "low_displacement", "low_flow"}
     out = emitted(d / "emit.log")
     assert {i for i, _ in out} == {0x3A0, 0x3A1, 0x3A2}
     assert (d / "ratio.png").stat().st_size > 10_000

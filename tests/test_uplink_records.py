@@ -35,9 +35,9 @@ def tick(t: float, gate: str = "evaluating", level: str = "ok", ratio: float | N
         ratio_raw_pct=ratio if gate == "evaluating" else None,
         ratio_filt_pct=ratio,
         extra_leak_lpm=0.5 if ratio is not None else None,
-        motor_speed_meas_rpm=1000.0,
-        motor_speed_pred_rpm=1010.0,
-        motor_speed_whitebox_rpm=1000.0,
+        measured=1000.0,
+        predicted=1010.0,
+        whitebox=1000.0,
     )
 
 

@@ -116,3 +116,78 @@ def test_properties_over_random_sequences(seq):
         if m.level == Level.FAULT:
             assert m.fault_reason in (Reason.INPUT_STALE, Reason.INPUT_IMPLAUSIBLE)
         assert m.level in (Level.FAULT, m.condition)
+
+
+def test_extrapolated_points_raise_a_warning_like_any_evaluated_point():
+    a, b = WarningMachine(TH), WarningMachine(TH)
+    assert run(a, [97.0] * N_DEBOUNCE, Gate.EXTRAPOLATED) == run(b, [97.0] * N_DEBOUNCE, Gate.EVALUATING)
+    assert a.level == Level.LOW and a.reason == Reason.RATIO_LOW
+
+
+def test_extrapolated_points_cannot_clear_a_warning():
+    m = WarningMachine(TH)
+    run(m, [97.0] * N_DEBOUNCE, Gate.EXTRAPOLATED)
+    assert run(m, [100.0] * (10 * N_DEBOUNCE), Gate.EXTRAPOLATED)[-1] == Level.LOW
+    # points inside the envelope clear it after the usual debounce
+    levels = run(m, [100.0] * N_DEBOUNCE, Gate.EVALUATING)
+    assert levels[-2] == Level.LOW and levels[-1] == Level.OK
+
+
+def test_an_extrapolated_point_outside_the_band_resets_the_clearing_count():
+    m = WarningMachine(TH)
+    run(m, [97.0] * N_DEBOUNCE)
+    run(m, [100.0] * (N_DEBOUNCE - 1))  # one tick short of clearing
+    run(m, [97.5], Gate.EXTRAPOLATED)  # evidence against clearing, even from outside the envelope
+    assert run(m, [100.0] * (N_DEBOUNCE - 1))[-1] == Level.LOW
+    assert run(m, [100.0])[-1] == Level.OK
+
+
+def check_envelope_rules(steps: list[tuple[float, bool]]) -> tuple[int, int]:
+    """Every return to ok happens on a point inside the envelope, and the first warning comes at the
+    same tick as if every point had been inside. Returns how often a warning cleared, and how often
+    the all-inside reference cleared where the mixed machine did not (an extrapolated point held it)."""
+    m, ref = WarningMachine(TH), WarningMachine(TH)
+    first_m = first_ref = None
+    cleared = held = 0
+    for i, (r, outside) in enumerate(steps):
+        g = Gate.EXTRAPOLATED if outside else Gate.EVALUATING
+        before, ref_before = m.level, ref.level
+        m.step(i * DT, DT, g, r)
+        ref.step(i * DT, DT, Gate.EVALUATING, r)
+        if before != Level.OK and m.level == Level.OK:
+            assert g == Gate.EVALUATING
+            cleared += 1
+        if ref_before != Level.OK and ref.level == Level.OK and m.level != Level.OK and before != Level.OK:
+            held += 1
+        if first_m is None and m.level != Level.OK:
+            first_m = i
+        if first_ref is None and ref.level != Level.OK:
+            first_ref = i
+    assert first_m == first_ref
+    return cleared, held
+
+
+RATIOS = [97.0, 98.2, 100.0, 101.8, 103.0]
+
+
+@settings(max_examples=200, deadline=None)
+@given(steps=st.lists(st.tuples(st.sampled_from(RATIOS), st.booleans()), min_size=1, max_size=120))
+def test_only_trusted_points_clear_and_raising_does_not_depend_on_the_envelope(steps):
+    check_envelope_rules(steps)
+
+
+def test_the_envelope_rules_reach_clearing_and_holding():
+    """The property's interesting cases happen: runs of ratios long enough to raise and to clear,
+    in- and out-of-envelope stretches mixed."""
+    import numpy as np
+
+    rng = np.random.default_rng(12)
+    cleared = held = 0
+    for _ in range(300):
+        steps = []
+        while len(steps) < 200:
+            run_len = int(rng.integers(1, 2 * N_DEBOUNCE))
+            steps += [(float(rng.choice(RATIOS)), bool(rng.random() < 0.5))] * run_len
+        c, h = check_envelope_rules(steps)
+        cleared, held = cleared + c, held + h
+    assert cleared > 20 and held > 20

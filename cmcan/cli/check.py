@@ -47,7 +47,9 @@ def run(args: argparse.Namespace) -> int:
         "model_version": m.model_version,
         "inputs": {r: f"{s.message}.{s.signal}" for r, s in cfg.signals.items()},
         "envelope": m.envelope,
+        "quantity": m.quantity_role,
         "motor_disp_cc": m.motor_disp_cc,
+        "fixed": cfg.drive.fixed,
         "bus": f"{cfg.bus.interface}:{cfg.bus.channel}",
     }
     if args.json:
@@ -56,9 +58,12 @@ def run(args: argparse.Namespace) -> int:
     else:
         print(f"ok: {cfg.source}")
         print(f"  dbc    {result['dbc']}")
-        print(f"  model  {result['model']} ({m.model_version}, V_M {m.motor_disp_cc:g} cm3/rev)")
+        machine = f"V_M {m.motor_disp_cc:g} cm3/rev" if m.motor_disp_cc is not None else "delivered flow"
+        print(f"  model  {result['model']} ({m.model_version}, predicts {m.quantity_role}: {machine})")
         for r, s in result["inputs"].items():
             lo, hi = m.envelope.get(r, (None, None))
             env = f"  envelope {lo:.1f}..{hi:.1f}" if lo is not None else ""
             print(f"  {r:<18} <- {s}{env}")
+        for r, v in cfg.drive.fixed.items():
+            print(f"  {r:<18} =  {v:g} (drive.fixed)")
     return 0

@@ -9,9 +9,9 @@ from pathlib import Path
 from typing import Any
 
 from cmcan.errors import CmcanError, Kind
-from cmcan.roles import MODEL_INPUTS, OUTPUT_QUANTITIES
+from cmcan.roles import MODEL_INPUTS, QUANTITIES
 
-ROLES = (*MODEL_INPUTS, *OUTPUT_QUANTITIES)
+ROLES = (*MODEL_INPUTS, *QUANTITIES)
 
 
 def add_subparser(sub: argparse._SubParsersAction) -> None:

@@ -49,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
     mon = assemble(cfg, args.model).monitor
     sinks: list = []
     if "out" in outs:
-        sinks.append(TimelineWriter(outs["out"]))
+        sinks.append(TimelineWriter(outs["out"], cfg.quantity))
     if "emit" in outs:
         sinks.append(EmitWriter(outs["emit"]))
     plot = TimelineCollector() if "plot" in outs else None

@@ -145,13 +145,20 @@ class Points:
     rows: NDArray[np.int64]  # 1-based data row numbers (the header is row 0) of the kept rows
     total_rows: int
     spec: PointSpec
+    # The file's column names and the kept rows' cells as written, for outputs that carry them on.
+    header: tuple[str, ...] = ()
+    cells: tuple[tuple[str, ...], ...] = ()
 
     def __len__(self) -> int:
         return len(self.rows)
 
 
-def read_points(path: str | Path, spec: PointSpec, roles: Iterable[str], min_rows: int = 1) -> Points:
-    """The roles ``roles`` from the CSV ``path`` as ``spec`` maps them; every one must be mapped."""
+def read_points(
+    path: str | Path, spec: PointSpec, roles: Iterable[str], min_rows: int = 1, missing_as_nan: bool = False
+) -> Points:
+    """The roles ``roles`` from the CSV ``path`` as ``spec`` maps them; every one must be mapped.
+    An empty or non-numeric cell of a role's column is an error, or NaN with ``missing_as_nan`` (for
+    readers that judge each row on its own, such as scoring: one bad row must not lose the others)."""
     p = Path(path)
     roles = tuple(roles)
     unmapped = [r for r in roles if r not in spec.columns and r not in spec.constants]
@@ -193,9 +200,9 @@ def read_points(path: str | Path, spec: PointSpec, roles: Iterable[str], min_row
     values: dict[str, NDArray[np.float64]] = {}
     for r in roles:
         if r in spec.columns:
-            v = _numeric(p, kept, index[spec.columns[r]], spec.columns[r], None, rows)
+            v = _numeric(p, kept, index[spec.columns[r]], spec.columns[r], None, rows, missing_as_nan)
             bad = np.flatnonzero(~np.isfinite(v))
-            if len(bad):
+            if len(bad) and not missing_as_nan:
                 raise PointsError(f"{p}: row {rows[bad[0]]}: column {spec.columns[r]!r} ({r}) is empty", "data")
             values[r] = v
         else:
@@ -204,7 +211,8 @@ def read_points(path: str | Path, spec: PointSpec, roles: Iterable[str], min_row
         cond = " and ".join(str(c) for c in spec.where) or "no filter"
         raise PointsError(f"{p}: {len(kept)} of {len(body)} rows kept ({cond}); need at least {min_rows}", "data")
     measured = frozenset(r for r in roles if r in spec.columns)
-    return Points(str(p), values, measured, rows, len(body), spec)
+    cells = tuple((*(c.strip() for c in row[: len(names)]), *("",) * (len(names) - len(row))) for row in kept)
+    return Points(str(p), values, measured, rows, len(body), spec, tuple(names), cells)
 
 
 def _delimiter(sample: str) -> str:
@@ -219,6 +227,7 @@ def _numeric(
     name: str,
     keep: NDArray[np.bool_] | None = None,
     rows: NDArray[np.int64] | None = None,
+    lenient: bool = False,
 ) -> NDArray[np.float64]:
     """Column ``col`` as numbers (NaN where empty); only where ``keep`` (the rest NaN); errors name the
     file's data row (``rows`` maps positions to it)."""
@@ -232,6 +241,8 @@ def _numeric(
         try:
             out[k] = float(cell)
         except ValueError:
+            if lenient:
+                continue
             at = int(rows[k]) if rows is not None else k + 1
             raise PointsError(f"{p}: row {at}: column {name!r}: {cell!r} is not a number", "data") from None
     return out

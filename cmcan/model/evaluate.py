@@ -10,6 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cmcan.model.features import OperatingPoints
+from cmcan.roles import UNITS
 
 
 class Predictor(Protocol):
@@ -18,15 +19,18 @@ class Predictor(Protocol):
 
 @dataclass(frozen=True)
 class SetResult:
+    """One set's points: the output quantity measured and predicted, in ``unit`` (rpm or l/min)."""
+
     name: str
     hours: NDArray[np.float64]
-    measured_rpm: NDArray[np.float64]
-    pred_rpm: NDArray[np.float64]
-    whitebox_rpm: NDArray[np.float64]
+    measured: NDArray[np.float64]
+    pred: NDArray[np.float64]
+    whitebox: NDArray[np.float64]
+    unit: str = "rpm"
 
     @property
     def ratio(self) -> NDArray[np.float64]:
-        return self.measured_rpm / self.pred_rpm
+        return self.measured / self.pred
 
     def figures(self) -> dict[str, Any]:
         if len(self.hours) == 0:
@@ -34,8 +38,9 @@ class SetResult:
         r = self.ratio * 100.0
         return {
             "points": len(self.hours),
-            "rmse_graybox_rpm": _rmse(self.pred_rpm - self.measured_rpm),
-            "rmse_whitebox_rpm": _rmse(self.whitebox_rpm - self.measured_rpm),
+            "unit": self.unit,
+            "rmse_graybox": _rmse(self.pred - self.measured),
+            "rmse_whitebox": _rmse(self.whitebox - self.measured),
             "ratio_mean_pct": float(np.mean(r)),
             "ratio_p1_pct": float(np.percentile(r, 1)),
             "ratio_p99_pct": float(np.percentile(r, 99)),
@@ -49,10 +54,11 @@ def _rmse(e: NDArray[np.float64]) -> float:
 
 def run_set(model: Predictor, op: OperatingPoints, mask: NDArray[np.bool_], name: str) -> SetResult:
     sub = op.select(mask & op.steady)
+    unit = UNITS[op.quantity]
     if len(sub.t_s) == 0:
-        return SetResult(name, np.empty(0), np.empty(0), np.empty(0), np.empty(0))
+        return SetResult(name, np.empty(0), np.empty(0), np.empty(0), np.empty(0), unit)
     pred, wb = model.predict(sub.x)
-    return SetResult(name, sub.hours, sub.motor_speed_rpm, pred, wb)
+    return SetResult(name, sub.hours, sub.measured, pred, wb, unit)
 
 
 def protocol(
@@ -84,9 +90,7 @@ def protocol(
         f = report["sets"][s.name]
         if s.name in ("D_trn", "D_val_damaged") or f["points"] == 0:
             continue
-        checks[f"{s.name}: graybox_rmse <= whitebox_rmse / 3"] = bool(
-            f["rmse_graybox_rpm"] <= f["rmse_whitebox_rpm"] / 3
-        )
+        checks[f"{s.name}: graybox_rmse <= whitebox_rmse / 3"] = bool(f["rmse_graybox"] <= f["rmse_whitebox"] / 3)
         checks[f"{s.name}: ratio p1..p99 within 99..101 %"] = bool(
             f["ratio_p1_pct"] >= 99.0 and f["ratio_p99_pct"] <= 101.0
         )
@@ -104,13 +108,15 @@ def protocol(
 
 
 def format_report(report: dict[str, Any]) -> str:
-    lines = [f"{'set':<16}{'points':>8}{'RMSE gray':>11}{'RMSE white':>12}{'ratio mean':>12}{'p1':>9}{'p99':>9}"]
+    units = {f["unit"] for f in report["sets"].values() if f["points"]}
+    unit = f" ({units.pop()})" if len(units) == 1 else ""
+    lines = [f"{'set':<16}{'points':>8}{'RMSE gray':>11}{'RMSE white':>12}{'ratio mean':>12}{'p1':>9}{'p99':>9}{unit}"]
     for name, f in report["sets"].items():
         if f["points"] == 0:
             lines.append(f"{name:<16}{0:>8}  (no steady points)")
             continue
         lines.append(
-            f"{name:<16}{f['points']:>8}{f['rmse_graybox_rpm']:>10.2f} {f['rmse_whitebox_rpm']:>11.2f} "
+            f"{name:<16}{f['points']:>8}{f['rmse_graybox']:>10.4g} {f['rmse_whitebox']:>11.4g} "
             f"{f['ratio_mean_pct']:>11.3f}%{f['ratio_p1_pct']:>8.3f}%{f['ratio_p99_pct']:>8.3f}%"
         )
     if "damage_shift_pct" in report:
@@ -121,3 +127,17 @@ def format_report(report: dict[str, Any]) -> str:
     for name, ok in report["checks"].items():
         lines.append(f"  [{'ok' if ok else 'FAIL'}] {name}")
     return "\n".join(lines)
+
+
+def auc_lower(healthy: NDArray[np.float64], faulty: NDArray[np.float64]) -> float:
+    """Area under the ROC curve of "a lower value means a fault": the probability that a faulty
+    point's value is below a healthy one's, ties counting one half (Mann-Whitney U / (n_h n_f))."""
+    h = np.sort(np.asarray(healthy, dtype=np.float64))
+    f = np.asarray(faulty, dtype=np.float64)
+    if h.size == 0 or f.size == 0:
+        return float("nan")
+    below = np.searchsorted(h, f, side="left")  # healthy values below each faulty one
+    not_above = np.searchsorted(h, f, side="right")
+    greater = h.size - not_above  # healthy values above each faulty one
+    ties = not_above - below
+    return float((np.sum(greater) + 0.5 * np.sum(ties)) / (h.size * f.size))

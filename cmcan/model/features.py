@@ -1,14 +1,17 @@
-"""Operating points for training and evaluation: measured data in, gated window means out.
+"""Operating points for training, scoring and evaluation: measured data in, gated means out.
 
-Measured data is a run CSV (columns named as ``cmcan simulate`` writes them) or a CAN log decoded
-through the DBC and the role mapping. Either becomes per-role time series, then trailing-window
-statistics at the evaluation rate, then the monitor's gate.
+Measured data is a run CSV (columns named as ``cmcan simulate`` writes them), a CAN log decoded
+through the DBC and the role mapping, or an operating-point table whose rows are already means (one
+per load cycle, :mod:`cmcan.io.points`). Time series become per-role series, then trailing-window
+statistics at the evaluation rate, then the monitor's gate; a table's rows are gated directly (the
+same rules, without staleness and steadiness, which a cycle mean does not have).
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from dataclasses import dataclass
+import contextlib
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -18,13 +21,24 @@ from numpy.typing import NDArray
 
 from cmcan import codec
 from cmcan.errors import CmcanError, Kind
+from cmcan.io.points import Condition, Points
 from cmcan.io.runcsv import read_run_csv
-from cmcan.monitor.gating import Gate, GateLimits, WindowStats, eval_times, gate, window_stats
+from cmcan.monitor.gating import Gate, GateLimits, WindowStats, eval_times, gate, table_stats, window_stats
 from cmcan.monitor.windows import dp_affine, dp_raw, role_affine
-from cmcan.roles import DEFAULT_INPUTS, DP, GATED, HIGH_PRESSURE, LOW_PRESSURE, MODEL_INPUTS, MOTOR_SPEED, SignalRef
+from cmcan.roles import (
+    DEFAULT_INPUTS,
+    DP,
+    HIGH_PRESSURE,
+    LOW_PRESSURE,
+    MODEL_INPUTS,
+    MOTOR_SPEED,
+    UNITS,
+    SignalRef,
+    gated_roles,
+)
 
 Series = dict[str, tuple[NDArray[np.float64], NDArray[np.float64]]]
-CSV_REQUIRED = ("time_s", *GATED)
+CSV_REQUIRED = ("time_s", *gated_roles(MOTOR_SPEED))
 LOG_SUFFIXES = (".log", ".asc", ".blf", ".trc", ".mf4", ".db", ".gz")
 
 
@@ -36,52 +50,115 @@ class DataError(CmcanError, ValueError):
 
 @dataclass(frozen=True)
 class OperatingPoints:
-    t_s: NDArray[np.float64]  # evaluation times (the data's own time base)
+    t_s: NDArray[np.float64]  # evaluation times (the data's own time base); a table: 0, 1, 2, ...
     x: NDArray[np.float64]  # (n, 4) model inputs in MODEL_INPUTS order: window means
-    motor_speed_rpm: NDArray[np.float64]
+    measured: NDArray[np.float64]  # the output quantity's window mean
     gate: NDArray[np.int64]
     stats: WindowStats
     truth: dict[str, NDArray[np.float64]]  # ground-truth columns at t_s where the data has them
     t0_s: float  # time of the first sample, for hours since start
+    quantity: str = MOTOR_SPEED
+    # A table's 1-based data row numbers, its column names and the kept rows' cells as written.
+    rows: NDArray[np.int64] | None = None
+    header: tuple[str, ...] = ()
+    cells: tuple[tuple[str, ...], ...] = ()
+    source: str = ""
 
     @property
     def steady(self) -> NDArray[np.bool_]:
+        """Points training may learn from: passed every gate (there is no envelope before training)."""
         return self.gate == Gate.EVALUATING
 
     @property
     def hours(self) -> NDArray[np.float64]:
         return (self.t_s - self.t0_s) / 3600.0
 
+    @property
+    def is_table(self) -> bool:
+        return self.rows is not None
+
+    def __len__(self) -> int:
+        return len(self.t_s)
+
     def select(self, mask: NDArray[np.bool_]) -> OperatingPoints:
         st = self.stats
         sub = WindowStats(*({k: v[mask] for k, v in d.items()} for d in (st.mean, st.std, st.count, st.age_s)))
+        idx = np.flatnonzero(mask)
         return OperatingPoints(
             self.t_s[mask],
             self.x[mask],
-            self.motor_speed_rpm[mask],
+            self.measured[mask],
             self.gate[mask],
             sub,
             {k: v[mask] for k, v in self.truth.items()},
             self.t0_s,
+            self.quantity,
+            None if self.rows is None else self.rows[mask],
+            self.header,
+            tuple(self.cells[i] for i in idx) if self.cells else (),
+            self.source,
         )
+
+    def columns(self) -> dict[str, NDArray[np.float64]]:
+        """Named columns of the points, for conditions and outputs: a table's own numeric columns,
+        or time, hours, each gated role's window mean and the ground truth of a time series."""
+        if self.is_table:
+            out: dict[str, NDArray[np.float64]] = {}
+            for j, name in enumerate(self.header):
+                out[name] = _floats([row[j] for row in self.cells])
+            return out
+        return {
+            "time_s": self.t_s,
+            "operating_h": self.hours,
+            **{r: self.stats.mean[r] for r in (*MODEL_INPUTS, self.quantity) if r in self.stats.mean},
+            **self.truth,
+        }
+
+    def where(self, conditions: Sequence[Condition]) -> NDArray[np.bool_]:
+        """Points that meet every condition (on :meth:`columns`); a condition's column must exist."""
+        keep = np.ones(len(self), dtype=bool)
+        if not conditions:
+            return keep
+        cols = self.columns()
+        for c in conditions:
+            if c.column not in cols:
+                raise DataError(f"{self.source}: --where {c}: no column {c.column!r}; there are {', '.join(cols)}")
+            keep &= c.holds(cols[c.column])
+        return keep
+
+
+def _floats(cells: Sequence[str]) -> NDArray[np.float64]:
+    out = np.full(len(cells), np.nan)
+    for i, c in enumerate(cells):
+        with contextlib.suppress(ValueError):  # a text cell is no number: NaN
+            out[i] = float(c)
+    return out
 
 
 def is_log(path: str | Path) -> bool:
     return Path(path).suffix.lower() in LOG_SUFFIXES
 
 
-def series_from_csv(path: str | Path) -> tuple[Series, dict[str, tuple[NDArray[np.float64], NDArray[np.float64]]]]:
+def series_from_csv(
+    path: str | Path, quantity: str = MOTOR_SPEED, constants: Mapping[str, float] | None = None
+) -> tuple[Series, dict[str, tuple[NDArray[np.float64], NDArray[np.float64]]]]:
+    constants = constants or {}
+    required = ("time_s", *(r for r in gated_roles(quantity) if r not in constants))
     try:
-        cols = read_run_csv(path, required=CSV_REQUIRED)
+        cols = read_run_csv(path, required=required)
     except ValueError as exc:
         raise DataError(str(exc), getattr(exc, "kind", Kind.DATA)) from None
-    return series_from_columns(cols, str(path))
+    return series_from_columns(cols, str(path), quantity, constants)
 
 
 def series_from_columns(
-    cols: Mapping[str, NDArray[np.float64]], source: str = "<run>"
+    cols: Mapping[str, NDArray[np.float64]],
+    source: str = "<run>",
+    quantity: str = MOTOR_SPEED,
+    constants: Mapping[str, float] | None = None,
 ) -> tuple[Series, dict[str, tuple[NDArray[np.float64], NDArray[np.float64]]]]:
-    """Per-role series (and ground truth) from run columns, as a CSV or ``simulate()`` holds them."""
+    """Per-role series (and ground truth) from run columns, as a CSV or ``simulate()`` holds them;
+    a role the machine holds constant is that value at every sample."""
     path = source
     t = cols["time_s"]
     if len(t) < 2:
@@ -89,7 +166,10 @@ def series_from_columns(
     if np.any(np.diff(t) <= 0):
         k = int(np.flatnonzero(np.diff(t) <= 0)[0]) + 2
         raise DataError(f"{path}: time_s must increase from row to row (row {k + 1} does not)")
-    series = {r: (t, cols[r]) for r in GATED}
+    constants = constants or {}
+    series = {
+        r: (t, np.full(len(t), float(constants[r])) if r in constants else cols[r]) for r in gated_roles(quantity)
+    }
     truth = {k: (t, v) for k, v in cols.items() if k.startswith("true_") or k == "operating_h"}
     return series, truth
 
@@ -104,9 +184,16 @@ def _affine(db: Database, ref: SignalRef) -> Any:
     return role_affine(db.get_message_by_name(ref.message), ref.signal, ref.scale, ref.offset)
 
 
-def series_from_log(path: str | Path, db: Database, mapping: Mapping[str, Any] | None = None) -> Series:
+def series_from_log(
+    path: str | Path,
+    db: Database,
+    mapping: Mapping[str, Any] | None = None,
+    quantity: str = MOTOR_SPEED,
+    constants: Mapping[str, float] | None = None,
+) -> Series:
     """Decode a CAN log into per-role series (vectorized per message), in each role's unit; dp from
-    high and low pressure is formed as the monitor forms it."""
+    high and low pressure is formed as the monitor forms it; a constant role is its value at the
+    output's samples."""
     from cmcan.io.columns import column_chunks
 
     refs = as_refs(mapping)
@@ -146,10 +233,14 @@ def series_from_log(path: str | Path, db: Database, mapping: Mapping[str, Any] |
         f, p, q = hl
         t, r = dp_raw(*raws[HIGH_PRESSURE], *raws[LOW_PRESSURE], p, q)
         series[DP] = (t, r * f.a + f.b)
-    missing = [r for r in GATED if r not in series]
+    constants = constants or {}
+    missing = [r for r in gated_roles(quantity) if r not in series and r not in constants]
     if missing:
         expected = sorted({refs[r].message for r in missing if r in refs})
         raise DataError(f"{path}: no frames for {', '.join(missing)} (expected messages {', '.join(expected)})")
+    t_out = series[quantity][0]
+    for r, v in constants.items():
+        series[r] = (t_out, np.full(len(t_out), float(v)))
     return series
 
 
@@ -167,18 +258,44 @@ def operating_points(
     rate_hz: float = 10.0,
     envelope: dict[str, tuple[float, float]] | None = None,
     truth: dict[str, tuple[NDArray[np.float64], NDArray[np.float64]]] | None = None,
+    source: str = "",
 ) -> OperatingPoints:
-    t_motor = series[MOTOR_SPEED][0]
-    spans = contiguous_spans(t_motor, max_gap_s=max(limits.window_s, 1.0))
+    quantity = limits.output_role
+    t_out = series[quantity][0]
+    spans = contiguous_spans(t_out, max_gap_s=max(limits.window_s, 1.0))
     t_eval = np.concatenate([eval_times(a, b, rate_hz) for a, b in spans]) if spans else np.empty(0)
-    stats = window_stats(series, t_eval, limits.window_s)
+    stats = window_stats({r: series[r] for r in gated_roles(quantity)}, t_eval, limits.window_s)
     codes = gate(stats, limits, envelope=envelope)
     x = np.column_stack([stats.mean[r] for r in MODEL_INPUTS])
     tr = {}
     for k, (tt, vv) in (truth or {}).items():
         idx = np.clip(np.searchsorted(tt, t_eval, side="right") - 1, 0, len(tt) - 1)
         tr[k] = vv[idx]
-    return OperatingPoints(t_eval, x, stats.mean[MOTOR_SPEED], codes, stats, tr, float(t_motor[0]))
+    return OperatingPoints(t_eval, x, stats.mean[quantity], codes, stats, tr, float(t_out[0]), quantity, source=source)
+
+
+def table_points(
+    points: Points, limits: GateLimits, envelope: dict[str, tuple[float, float]] | None = None
+) -> OperatingPoints:
+    """Operating points of a table whose rows are already means, gated by the same rules."""
+    quantity = limits.output_role
+    means = {r: points.values[r] for r in gated_roles(quantity)}
+    stats = table_stats(means)
+    n = len(points)
+    return OperatingPoints(
+        np.arange(n, dtype=np.float64),
+        np.column_stack([means[r] for r in MODEL_INPUTS]) if n else np.empty((0, len(MODEL_INPUTS))),
+        means[quantity],
+        gate(stats, limits, envelope=envelope),
+        stats,
+        {},
+        0.0,
+        quantity,
+        points.rows,
+        points.header,
+        points.cells,
+        points.source,
+    )
 
 
 def load_operating_points(
@@ -187,16 +304,91 @@ def load_operating_points(
     db: Database | None = None,
     mapping: Mapping[str, Any] | None = None,
     rate_hz: float = 10.0,
+    constants: Mapping[str, float] | None = None,
+    envelope: dict[str, tuple[float, float]] | None = None,
 ) -> OperatingPoints:
-    """Operating points of a run CSV or a CAN log (chosen by the file's extension)."""
+    """Operating points of a run CSV or a CAN log (chosen by the file's extension); ``envelope``
+    marks the points outside it ``EXTRAPOLATED``."""
     p = Path(path)
     if not p.exists():
         raise DataError(f"{p}: file not found", Kind.NO_INPUT)
+    q = limits.output_role
     if is_log(p):
         if db is None:
             from cmcan.dbc import load_dbc
 
             db = load_dbc()
-        return operating_points(series_from_log(p, db, mapping), limits, rate_hz)
-    series, truth = series_from_csv(p)
-    return operating_points(series, limits, rate_hz, truth=truth)
+        return operating_points(series_from_log(p, db, mapping, q, constants), limits, rate_hz, envelope, source=str(p))
+    series, truth = series_from_csv(p, q, constants)
+    return operating_points(series, limits, rate_hz, envelope, truth, source=str(p))
+
+
+@dataclass(frozen=True)
+class Refusal:
+    gate: Gate
+    points: int
+    why: str
+
+
+@dataclass(frozen=True)
+class GateReport:
+    """How many points each gate refused and why (``cmcan train``'s account of its data)."""
+
+    total: int
+    passed: int
+    refused: list[Refusal] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "points": self.total,
+            "passed": self.passed,
+            "refused": {r.gate.name.lower(): {"points": r.points, "why": r.why} for r in self.refused},
+        }
+
+    def lines(self) -> list[str]:
+        return [f"  {r.points:>8} {r.gate.name.lower():<17} {r.why}" for r in self.refused]
+
+
+def gate_report(op: OperatingPoints, limits: GateLimits, mask: NDArray[np.bool_] | None = None) -> GateReport:
+    """Each refusal with the limit that caused it, over the points in ``mask`` (all by default)."""
+    sel = np.ones(len(op), dtype=bool) if mask is None else mask
+    codes = op.gate[sel]
+    unit = UNITS[op.quantity]
+    why = {
+        Gate.NO_INPUT: "no input at all (machine off, bus idle)",
+        Gate.STALE_INPUT: "some input older than its max_signal_age_s",
+        Gate.WARMING_UP: f"fewer than {limits.min_samples} samples of some input in the window",
+        Gate.IMPLAUSIBLE_INPUT: "some input missing or outside its plausible range: " + _implausible(op, limits, sel),
+        Gate.LOW_SPEED: f"pump speed below {limits.min_pump_speed_rpm:.4g} rpm (gating.min_pump_speed_rpm)",
+        Gate.LOW_DISPLACEMENT: f"|pump displacement| below {limits.min_pump_disp_cc:.4g} cm3/rev "
+        "(gating.min_pump_disp_cc)",
+        Gate.LOW_FLOW: f"{op.quantity} below {limits.min_output:.4g} {unit} (gating.min_"
+        + ("motor_speed_rpm or min_flow_lpm)" if op.quantity == MOTOR_SPEED else "flow_lpm)"),
+        Gate.TRANSIENT: "not steady: spread within the window above gating.max_std for " + _transient(op, limits, sel),
+        Gate.EXTRAPOLATED: "outside the training envelope (evaluated)",
+    }
+    refused = []
+    for g in Gate:
+        n = int(np.sum(codes == g))
+        if n and g != Gate.EVALUATING:
+            refused.append(Refusal(g, n, why[g]))
+    refused.sort(key=lambda r: -r.points)
+    return GateReport(len(codes), int(np.sum(codes == Gate.EVALUATING)), refused)
+
+
+def _transient(op: OperatingPoints, limits: GateLimits, sel: NDArray[np.bool_]) -> str:
+    m = sel & (op.gate == Gate.TRANSIENT)
+    counts = {r: int(np.sum(op.stats.std[r][m] > lim)) for r, lim in limits.max_std.items() if r in op.stats.std}
+    return ", ".join(f"{r} ({n})" for r, n in sorted(counts.items(), key=lambda kv: -kv[1]) if n) or "-"
+
+
+def _implausible(op: OperatingPoints, limits: GateLimits, sel: NDArray[np.bool_]) -> str:
+    m = sel & (op.gate == Gate.IMPLAUSIBLE_INPUT)
+    out = []
+    for r, (lo, hi) in limits.plausible.items():
+        if r in op.stats.mean:
+            v = op.stats.mean[r][m]
+            n = int(np.sum(~((v >= lo) & (v <= hi))))
+            if n:
+                out.append(f"{r} outside [{lo:.4g}, {hi:.4g}] ({n})")
+    return ", ".join(out) or "-"

@@ -11,6 +11,15 @@ non-negative least squares: a convex problem with one solution, so training is r
 law that extrapolates in pressure and temperature where data-driven fits do not. A closed circuit's
 motor speed is the same flow over V_M.
 
+Real training data often leave a coefficient undetermined: a test rig whose pressure varies by 1 %
+cannot tell a pressure slope from whatever else moved with the pressure. The fit therefore carries
+physical priors (a Gaussian on each coefficient, a ridge penalty towards it, still one convex NNLS):
+the ideal flow as configured (c_geo = 1 +- 10 %), each leakage term within about 10 % of the flow
+(what a healthy piston unit loses), the compressibility of mineral oil (1000 / K, K ~ 15000 bar,
++- 100 %). The data's weight is 1 / sigma^2 per point, sigma the residual of the fit without priors,
+so wherever the data determine a coefficient (hundreds of points spread over the envelope) they
+decide it, and the priors only hold the directions the data cannot see.
+
 The plain white-box law n_M = n_P V_P / V_M * eta_vol (one efficiency fitted through the origin) is
 kept beside it as the baseline the gray box is judged against.
 """
@@ -60,16 +69,44 @@ def features(x: NDArray[np.float64], oil: Oil) -> NDArray[np.float64]:
     return np.column_stack([qg, -dp / nu, -np.sign(dp) * np.sqrt(np.abs(dp)), -qg * dp / 1000.0])
 
 
-def fit_coefficients(x: NDArray[np.float64], flow_lpm: NDArray[np.float64], oil: Oil) -> NDArray[np.float64]:
-    """Non-negative least squares of the delivered flow on :func:`features` (needs scipy)."""
+# The priors (mean, standard deviation) of the coefficients; see the module's docstring.
+IDEAL_FLOW_PRIOR = (1.0, 0.1)
+LEAK_SHARE = 0.1  # prior std of each leakage term: this share of the mean flow, at the mean training point
+BULK_MODULUS_BAR = 15000.0
+SIGMA_FLOOR = 1e-6  # relative to the mean flow: noiseless data still weigh finitely
+
+
+def _nnls(a: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.float64]:
     from scipy.optimize import nnls
 
-    a = features(x, oil)
     # Columns scaled to unit RMS: the same solution, better conditioned, so another BLAS agrees.
     scale = np.sqrt(np.mean(a * a, axis=0))
     scale[scale == 0.0] = 1.0
-    coef, _ = nnls(a / scale, flow_lpm, maxiter=50 * a.shape[1])
+    coef, _ = nnls(a / scale, y, maxiter=50 * a.shape[1])
     return coef / scale
+
+
+def priors(a: NDArray[np.float64], flow_lpm: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Prior mean and standard deviation of each coefficient for the feature columns ``a``."""
+    q = float(np.mean(np.abs(flow_lpm)))
+    col = np.mean(np.abs(a), axis=0)
+    comp = 1000.0 / BULK_MODULUS_BAR
+    mean = np.array([IDEAL_FLOW_PRIOR[0], 0.0, 0.0, comp])
+    leak = [LEAK_SHARE * q / c if c > 0 and q > 0 else 1.0 for c in col[1:3]]
+    std = np.array([IDEAL_FLOW_PRIOR[1], *leak, comp])
+    return mean, std
+
+
+def fit_coefficients(x: NDArray[np.float64], flow_lpm: NDArray[np.float64], oil: Oil) -> NDArray[np.float64]:
+    """The coefficients of :func:`features` by non-negative least squares with the physical priors
+    (needs scipy): rows ``a / sigma`` for the data, ``1 / std`` for the priors."""
+    a = features(x, oil)
+    y = np.asarray(flow_lpm, dtype=np.float64)
+    free = _nnls(a, y)
+    sigma = max(float(np.sqrt(np.mean((a @ free - y) ** 2))), SIGMA_FLOOR * float(np.mean(np.abs(y))), 1e-12)
+    mean, std = priors(a, y)
+    aug = np.vstack([a / sigma, np.diag(1.0 / std)])
+    return _nnls(aug, np.concatenate([y / sigma, mean / std]))
 
 
 def flow_lpm(x: NDArray[np.float64], coef: NDArray[np.float64], oil: Oil) -> NDArray[np.float64]:

@@ -9,6 +9,7 @@ from numpy.typing import NDArray
 
 from cmcan.errors import Kind
 from cmcan.model.metadata import INPUT_NAME, OUTPUT_PHYSICS, OUTPUT_PRED, OUTPUT_WHITEBOX, ModelError, ModelMeta
+from cmcan.oil import Oil
 from cmcan.roles import MODEL_INPUTS, MODEL_UNITS
 
 
@@ -16,7 +17,12 @@ class GrayBoxModel:
     """A loaded model: ``predict`` for batches, ``predict_one`` for the monitor's per-tick call."""
 
     def __init__(
-        self, path: str | Path, expected_inputs: dict[str, str] | None = None, motor_disp_cc: float | None = None
+        self,
+        path: str | Path,
+        expected_inputs: dict[str, str] | None = None,
+        motor_disp_cc: float | None = None,
+        quantity: str | None = None,
+        oil: Oil | None = None,
     ) -> None:
         import onnxruntime as ort
 
@@ -36,6 +42,7 @@ class GrayBoxModel:
         props = self.session.get_modelmeta().custom_metadata_map
         self.meta = ModelMeta.from_props(props, str(self.path))
         self._check(expected_inputs or MODEL_UNITS, motor_disp_cc)
+        self._check_machine(quantity, oil)
         self._outputs = [OUTPUT_PRED, OUTPUT_WHITEBOX]
         # The per-tick call binds preallocated arrays once: onnxruntime reads and writes them in place,
         # which saves the conversions of ``run`` (about 3 us of a 15 us call).
@@ -75,6 +82,26 @@ class GrayBoxModel:
                 f"{src}: trained for a motor displacement of {self.meta.motor_disp_cc:g} cm3/rev, "
                 f"the configuration says {motor_disp_cc:g} cm3/rev"
             )
+
+    def _check_machine(self, quantity: str | None, oil: Oil | None) -> None:
+        """The machine the configuration describes is the one the model learned: its output quantity
+        and the oil whose viscosity law the laminar leakage term uses."""
+        src = str(self.path)
+        if quantity is not None and self.meta.quantity_role != quantity:
+            raise ModelError(
+                f"{src}: predicts {self.meta.quantity_role}, the configuration's drive.quantity is {quantity}"
+            )
+        if oil is not None:
+            mine = (float(self.meta.oil["nu40_cst"]), float(self.meta.oil["nu100_cst"]))
+            if any(abs(a - b) > 1e-6 * b for a, b in zip(mine, (oil.nu40_cst, oil.nu100_cst), strict=True)):
+                raise ModelError(
+                    f"{src}: trained for an oil of {mine[0]:g} cSt at 40 C and {mine[1]:g} cSt at 100 C, the "
+                    f"configuration's oil has {oil.nu40_cst:g} and {oil.nu100_cst:g} cSt: retrain for the new oil"
+                )
+
+    @property
+    def quantity(self) -> str:
+        return self.meta.quantity_role
 
     @property
     def envelope(self) -> dict[str, tuple[float, float]]:
@@ -116,9 +143,13 @@ class GrayBoxModel:
 
 
 def load_model(
-    path: str | Path, expected_inputs: dict[str, str] | None = None, motor_disp_cc: float | None = None
+    path: str | Path,
+    expected_inputs: dict[str, str] | None = None,
+    motor_disp_cc: float | None = None,
+    quantity: str | None = None,
+    oil: Oil | None = None,
 ) -> GrayBoxModel:
-    return GrayBoxModel(path, expected_inputs, motor_disp_cc)
+    return GrayBoxModel(path, expected_inputs, motor_disp_cc, quantity, oil)
 
 
 def default_model_path() -> Path:

@@ -9,6 +9,7 @@ its residual by ridge regression (:mod:`cmcan.model.correction`), on steady heal
 from __future__ import annotations
 
 import hashlib
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -113,6 +114,11 @@ def to_onnx(model: TrainedModel, residual_stats: dict[str, Any], training: dict[
         physics={
             "coefficients": {t: float(c) for t, c in zip(physics.TERMS, model.coef, strict=True)},
             "eta_vol": model.eta_vol,
+            "priors": {
+                "ideal_flow": list(physics.IDEAL_FLOW_PRIOR),
+                "leak_share": physics.LEAK_SHARE,
+                "bulk_modulus_bar": physics.BULK_MODULUS_BAR,
+            },
         },
         correction={
             "basis": f"{len(model.correction.centers)} Gaussian RBFs on a {len(correction.LEVELS)}-level grid",
@@ -154,20 +160,25 @@ def train_on_points(
     source: str,
     t_start_h: float = 0.0,
     extra_training_info: dict[str, Any] | None = None,
-    quantity: str = "motor_speed_rpm",
+    quantity: str | None = None,
     oil: Oil = VG46,
+    select: NDArray[np.bool_] | None = None,
 ) -> tuple[bytes, TrainedModel, dict[str, Any]]:
     """The protocol's training step on operating points: fit on D_trn = steady points in
-    [t_start_h, t_trn_h), residual statistics on D_tst = steady points after t_trn_h."""
+    [t_start_h, t_trn_h), residual statistics on D_tst = steady points after t_trn_h; both only
+    among the points ``select`` keeps (``--where``). ``quantity`` defaults to the points' own."""
+    quantity = quantity or op.quantity
     hours = op.hours
-    trn = op.steady & (hours >= t_start_h) & (hours < t_trn_h)
-    tst = op.steady & (hours >= t_trn_h)
+    chosen = np.ones(len(hours), dtype=bool) if select is None else select
+    trn = op.steady & chosen & (hours >= t_start_h) & (hours < t_trn_h)
+    tst = op.steady & chosen & (hours >= t_trn_h)
     if trn.sum() < MIN_POINTS:
+        span = "" if math.isinf(t_trn_h) else f" before t_trn = {t_trn_h} h"
         raise ValueError(
-            f"{source}: only {int(trn.sum())} steady points before t_trn = {t_trn_h} h; "
-            "train on a longer stretch of healthy data"
+            f"{source}: only {int(trn.sum())} steady points{span}; need at least {MIN_POINTS}: "
+            "train on a longer stretch of healthy data, or see which gate refused the points"
         )
-    y = op.motor_speed_rpm
+    y = op.measured
     model = fit(op.x[trn], y[trn], motor_disp_cc, quantity, oil)
     check = tst if tst.sum() >= 10 else trn
     stats = residual_figures(model, op.x[check], y[check], "D_tst" if check is tst else "D_trn")
@@ -175,7 +186,7 @@ def train_on_points(
         "fingerprint": fingerprint(op.x[trn], y[trn]),
         "source": source,
         "t_start_h": t_start_h,
-        "t_trn_h": t_trn_h,
+        "t_trn_h": None if math.isinf(t_trn_h) else t_trn_h,
         "points_trn": int(trn.sum()),
         "points_tst": int(tst.sum()),
         **(extra_training_info or {}),

@@ -5,6 +5,23 @@
 ticks a frame completes; each tick gates the operating point, asks the model for its prediction,
 updates the ratio filter and the warning machine, and returns the CM frames due
 (:mod:`cmcan.monitor.payloads`). The daemon and the replay drive this same object.
+
+One tick, in order (:meth:`Monitor._evaluate`), each step a function of the windows and the state
+the previous ticks left:
+
+1. window statistics of every gated role at the tick's time; a role the machine holds constant
+   (``MonitorParams.constants``) is that value, fresh, with no spread;
+2. the gate (:func:`cmcan.monitor.gating.gate_point`) with the model's envelope: a verdict of
+   ``EVALUATING`` or ``EXTRAPOLATED`` (outside the envelope) evaluates the point, any other names why not;
+3. for an evaluated point one model call; a prediction that is not a positive finite number makes
+   the tick ``IMPLAUSIBLE_INPUT`` (counted in ``model_errors``);
+4. raw ratio = measured / predicted * 100 and leakage = (predicted - measured) * ``lpm_per_unit``
+   into the moving-average filter, extrapolated points included;
+5. the warning machine steps with the gate and, when the point was evaluated and the filter is
+   valid, the filtered ratio: extrapolated points may raise a warning, never clear one
+   (:mod:`cmcan.monitor.warnings`);
+6. the CM frames due at this tick; ``cm_gate`` carries the verdict, so a receiver sees that a ratio
+   came from an extrapolated point.
 """
 
 from __future__ import annotations
@@ -18,13 +35,13 @@ from cmcan.codec import Layout, checked_decoder
 from cmcan.frame import Frame
 from cmcan.monitor.clock import TickClock
 from cmcan.monitor.filter import RatioFilter
-from cmcan.monitor.gating import Gate, GateLimits, gate_point
+from cmcan.monitor.gating import EVALUATED, Gate, GateLimits, gate_point
 from cmcan.monitor.payloads import Outputs, Payloads
 from cmcan.monitor.tick import LEVEL_NAMES, Tick
 from cmcan.monitor.totals import HISTORY_MAX, Totals
 from cmcan.monitor.warnings import Level, Reason, Thresholds, WarningMachine
 from cmcan.monitor.windows import Affine, RoleWindow
-from cmcan.roles import DP, GATED, HIGH_PRESSURE, LOW_PRESSURE, MOTOR_SPEED
+from cmcan.roles import DP, HIGH_PRESSURE, LOW_PRESSURE, MODEL_INPUTS, gated_roles
 
 COUNTERS = (
     "frames_total",
@@ -82,9 +99,15 @@ class MonitorParams:
     filter_samples: int
     filter_min_samples: int
     thresholds: Thresholds
-    motor_disp_cc: float
+    lpm_per_unit: float  # l/min per unit of the output quantity: V_M / 1000 for motor speed, 1 for flow
     affine: Mapping[str, Affine]  # per gated role: its raw samples to the role's unit
     dp_from_high_low: DpFromHighLow | None = None
+    # Model inputs the machine holds constant instead of measuring (role -> value in its unit).
+    constants: Mapping[str, float] = field(default_factory=dict)
+
+    @property
+    def output_role(self) -> str:
+        return self.limits.output_role
 
 
 @dataclass
@@ -100,11 +123,12 @@ class Monitor:
         p = self.params
         self.period = 1.0 / p.rate_hz
         self.clock = TickClock(p.rate_hz, max_gap_s=max(p.limits.window_s, 1.0))
-        self.windows = {r: RoleWindow() for r in GATED}
+        self.windows = {r: RoleWindow() for r in gated_roles(p.output_role) if r not in p.constants}
+        self._constants = [(r, float(p.constants[r])) for r in MODEL_INPUTS if r in p.constants]
         self._plans = {fid: tuple(self._plan(r) for r in spec.roles) for fid, spec in self.inputs.items()}
         self._low: int | None = None
         self.counters = dict.fromkeys(COUNTERS, 0)
-        self.counters.update(ticks=0, evaluated=0, model_errors=0, clock_steps=0)
+        self.counters.update(ticks=0, evaluated=0, extrapolated=0, model_errors=0, clock_steps=0)
         self.machine = WarningMachine(p.thresholds)
         self.machine.condition = {"ok": Level.OK, "low": Level.LOW, "high": Level.HIGH}[self.totals.condition]
         self.machine.condition_reason = {
@@ -207,6 +231,7 @@ class Monitor:
     # -- evaluation --------------------------------------------------------------------------------
 
     def _evaluate(self, k: int) -> list[Frame]:
+        """One evaluation tick (the steps in the module's docstring)."""
         p = self.params
         t = k * self.period
         window_s = p.limits.window_s
@@ -214,11 +239,14 @@ class Monitor:
         for role, w in self.windows.items():
             mean[role], std[role], count[role] = w.stats(t, window_s, p.affine[role])
             age[role] = t - w.last_t
+        for role, value in self._constants:
+            mean[role], std[role], count[role], age[role] = value, 0.0, p.limits.min_samples, 0.0
         g = gate_point(mean, std, count, age, p.limits, p.max_age_s, p.envelope)
-        meas = mean[MOTOR_SPEED] if count[MOTOR_SPEED] else 0.0
+        out = p.output_role
+        meas = mean[out] if count[out] else 0.0
         pred = wb = raw = 0.0
         flt = self.filter
-        if g == Gate.EVALUATING:
+        if g in EVALUATED:
             try:
                 pred, wb = self.model.predict_one(
                     mean["pump_speed_rpm"], mean["pump_disp_cc"], mean[DP], mean["temp_c"]
@@ -231,12 +259,14 @@ class Monitor:
                 pred = wb = 0.0
             else:
                 raw = meas / pred * 100.0
-                flt.add(raw, (pred - meas) * p.motor_disp_cc / 1000.0)
+                flt.add(raw, (pred - meas) * p.lpm_per_unit)
                 self.counters["evaluated"] += 1
+                if g == Gate.EXTRAPOLATED:
+                    self.counters["extrapolated"] += 1
                 self.totals.evaluated_s += self.period
         filt_valid = flt.valid
         filt = flt.ratio_pct
-        evaluated = g == Gate.EVALUATING
+        evaluated = g in EVALUATED
         m = self.machine
         cond_before, fault_before = m.condition, m.fault_reason
         for tr in m.step(t, self.period, g, filt if (filt_valid and evaluated) else None):
@@ -252,9 +282,9 @@ class Monitor:
         tick = Tick(
             t_s=t,
             gate=g,
-            motor_speed_meas_rpm=meas,
-            motor_speed_pred_rpm=pred,
-            motor_speed_whitebox_rpm=wb,
+            measured=meas,
+            predicted=pred,
+            whitebox=wb,
             ratio_raw_pct=raw if evaluated else 0.0,
             ratio_filt_pct=filt,
             extra_leak_lpm=flt.leak_lpm,

@@ -1,37 +1,58 @@
-"""Which operating points may be evaluated: the rules shared by training and the monitor.
+"""Which operating points may be evaluated: the rules shared by training, scoring and the monitor.
 
-An operating point is the mean of each input over a trailing window; it is evaluated only when every
-input is fresh and plausible, the drive is steady (each input's spread within the window is small),
-pump speed and displacement are high enough for the ratio to mean something, and the point lies in
-the model's training envelope. Training applies the same rules (without the envelope, which it is
-about to define), so transients never teach the model.
+An operating point is the mean of each input over a trailing window (or a row of an operating-point
+table, already a mean). It is evaluated only when every input is fresh and plausible, the drive is
+steady (each input's spread within the window is small), and pump speed, pump displacement and the
+measured output are high enough for the ratio to mean something. A point outside the model's
+training envelope is still evaluated, and marked ``EXTRAPOLATED``: the model's physics carries it
+(the learned correction fades out there), and a fault that moves the operating point out of the
+envelope must not silence the monitor. What an extrapolated point may trigger is the warning
+machine's business (:mod:`cmcan.monitor.warnings`). Training applies the same rules (without the
+envelope, which it is about to define), so transients never teach the model.
+
+The default limits are the reference drive's (3000 rpm, 78 cm3/rev, 44 cm3/rev motor): :func:`scaled`
+sizes them for another machine from its nominal pump speed, displacement and flow.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import IntEnum
 
 import numpy as np
 from numpy.typing import NDArray
 
 from cmcan.monitor.windows import Affine, mean_std, window_sums
-from cmcan.roles import GATED as GATED_ROLES
+from cmcan.roles import MODEL_INPUTS, MOTOR_SPEED, PUMP_DISP, PUMP_SPEED
 
 
 class Gate(IntEnum):
-    """Why a point is or is not evaluated; values are the DBC's ``cm_gate`` table."""
+    """The verdict on an operating point; values are the DBC's ``cm_gate`` table.
+
+    ``EVALUATING`` and ``EXTRAPOLATED`` points get a ratio (see :data:`EVALUATED`); the others say
+    why a point got none."""
 
     EVALUATING = 0
     NO_INPUT = 1
     STALE_INPUT = 2
     IMPLAUSIBLE_INPUT = 3
-    LOW_SPEED = 4
+    LOW_SPEED = 4  # pump speed below its minimum
     TRANSIENT = 5
-    OUTSIDE_ENVELOPE = 6
+    EXTRAPOLATED = 6  # evaluated, outside the model's training envelope
     WARMING_UP = 7
+    LOW_DISPLACEMENT = 8  # pump displacement below its minimum
+    LOW_FLOW = 9  # measured output (motor speed or flow) below its minimum
+
+
+EVALUATED: frozenset[Gate] = frozenset({Gate.EVALUATING, Gate.EXTRAPOLATED})
+
+# The reference drive the default limits are sized for: nominal pump speed and displacement, and the
+# motor displacement that turns the minimum motor speed into a minimum flow.
+REFERENCE_PUMP_SPEED_RPM = 3000.0
+REFERENCE_PUMP_DISP_CC = 78.0
+REFERENCE_MOTOR_DISP_CC = 44.0
 
 
 @dataclass(frozen=True)
@@ -42,7 +63,9 @@ class GateLimits:
     # Below this pump displacement a fixed leakage is a large share of a small flow and the ratio
     # exaggerates it; the extra-leakage estimate in l/min is still published.
     min_pump_disp_cc: float = 20.0
-    min_motor_speed_rpm: float = 300.0
+    # The measured output quantity: its role and its minimum, in its own unit.
+    output_role: str = MOTOR_SPEED
+    min_output: float = 300.0
     # Largest standard deviation within the window for the drive to count as steady.
     max_std: dict[str, float] = field(
         default_factory=lambda: {
@@ -62,6 +85,50 @@ class GateLimits:
             "temp_c": (-40.0, 130.0),
             "motor_speed_rpm": (0.0, 9000.0),
         }
+    )
+
+
+def scaled(
+    output_role: str,
+    lpm_per_unit: float,
+    pump_speed_nominal_rpm: float = REFERENCE_PUMP_SPEED_RPM,
+    pump_disp_max_cc: float = REFERENCE_PUMP_DISP_CC,
+    base: GateLimits | None = None,
+) -> GateLimits:
+    """The reference drive's limits sized for a machine: speed limits in proportion to its nominal
+    pump speed, displacement limits to its largest displacement, output limits to its nominal flow
+    (``pump_speed_nominal_rpm * pump_disp_max_cc``), in the output's unit (``lpm_per_unit`` l/min per
+    unit: V_M / 1000 for motor speed, 1 for flow). The reference drive gets its limits unchanged."""
+    b = base or GateLimits()
+    ks = pump_speed_nominal_rpm / REFERENCE_PUMP_SPEED_RPM
+    kd = pump_disp_max_cc / REFERENCE_PUMP_DISP_CC
+    # The reference output is motor speed; as flow it is rpm * V_M,ref / 1000, then scaled by the
+    # nominal flow and put in the machine's unit. Exactly 1.0 for the reference drive.
+    ko = (pump_speed_nominal_rpm * pump_disp_max_cc) / (REFERENCE_PUMP_SPEED_RPM * REFERENCE_PUMP_DISP_CC)
+    ko = ko * ((REFERENCE_MOTOR_DISP_CC / 1000.0) / lpm_per_unit)
+    k = {PUMP_SPEED: ks, PUMP_DISP: kd}
+    ref_out = b.output_role
+
+    def std_of(role: str) -> float | None:
+        if role == output_role:
+            return b.max_std[ref_out] * ko if ref_out in b.max_std else None
+        v = b.max_std.get(role)
+        return None if v is None else v * k.get(role, 1.0)
+
+    max_std = {r: v for r in (*MODEL_INPUTS, output_role) if (v := std_of(r)) is not None}
+    plausible = {
+        r: (lo * k.get(r, 1.0), hi * k.get(r, 1.0)) for r, (lo, hi) in b.plausible.items() if r in MODEL_INPUTS
+    }
+    lo, hi = b.plausible[ref_out]
+    plausible[output_role] = (lo * ko, hi * ko)
+    return replace(
+        b,
+        min_pump_speed_rpm=b.min_pump_speed_rpm * ks,
+        min_pump_disp_cc=b.min_pump_disp_cc * kd,
+        output_role=output_role,
+        min_output=b.min_output * ko,
+        max_std=max_std,
+        plausible=plausible,
     )
 
 
@@ -106,13 +173,17 @@ def gate_point(
     max_age_s: Mapping[str, float] | None = None,
     envelope: Mapping[str, tuple[float, float]] | None = None,
 ) -> Gate:
-    """The gate of one operating point; the first failing rule in the order of :class:`Gate` wins.
+    """The gate of one operating point; the first failing rule in this order wins: no input, stale
+    input, warming up, implausible input, low pump speed, low displacement, low output, transient;
+    a point that passes them all is ``EXTRAPOLATED`` when a model input lies outside ``envelope``
+    (input name -> [min, max], bounds included), else ``EVALUATING``.
 
     The monitor calls this per evaluation tick and training per window, so both apply the very same
     rules. All inputs silent (the machine is off, the bus idle) is ``NO_INPUT``, not a fault; some
     inputs silent while others arrive is ``STALE_INPUT``.
     """
-    roles = [r for r in GATED_ROLES if r in mean]
+    out = limits.output_role
+    roles = [r for r in (*MODEL_INPUTS, out) if r in mean]
     missing = 0
     for r in roles:
         a = age_s[r]
@@ -130,19 +201,19 @@ def gate_point(
         m = mean[r]
         if not (lo <= m <= hi):  # also catches NaN
             return Gate.IMPLAUSIBLE_INPUT
-    if (
-        mean["pump_speed_rpm"] < limits.min_pump_speed_rpm
-        or abs(mean["pump_disp_cc"]) < limits.min_pump_disp_cc
-        or mean["motor_speed_rpm"] < limits.min_motor_speed_rpm
-    ):
+    if mean[PUMP_SPEED] < limits.min_pump_speed_rpm:
         return Gate.LOW_SPEED
+    if abs(mean[PUMP_DISP]) < limits.min_pump_disp_cc:
+        return Gate.LOW_DISPLACEMENT
+    if mean[out] < limits.min_output:
+        return Gate.LOW_FLOW
     for r, lim in limits.max_std.items():
         if r in std and std[r] > lim:
             return Gate.TRANSIENT
     if envelope is not None:
         for r, (lo, hi) in envelope.items():
             if not (lo <= mean[r] <= hi):
-                return Gate.OUTSIDE_ENVELOPE
+                return Gate.EXTRAPOLATED
     return Gate.EVALUATING
 
 
@@ -156,8 +227,9 @@ def gate_columns(
     envelope: Mapping[str, tuple[float, float]] | None = None,
 ) -> NDArray[np.int8]:
     """:func:`gate_point` over arrays of operating points, rule for rule (tests hold the two equal):
-    training, evaluation and the columnar replay call this one, the streaming core the other."""
-    roles = [r for r in GATED_ROLES if r in mean]
+    training, scoring and the columnar replay call this one, the streaming core the other."""
+    out_role = limits.output_role
+    roles = [r for r in (*MODEL_INPUTS, out_role) if r in mean]
     n = len(mean[roles[0]]) if roles else 0
     out = np.full(n, Gate.EVALUATING, dtype=np.int8)
     open_ = np.ones(n, dtype=bool)  # no rule has decided yet
@@ -177,18 +249,14 @@ def gate_columns(
     decide(missing > 0, Gate.STALE_INPUT)
     for r in roles:
         decide(count[r] < limits.min_samples, Gate.WARMING_UP)
-    for r in roles:
-        lo, hi = limits.plausible.get(r, (-math.inf, math.inf))
-        m = mean[r]
-        with np.errstate(invalid="ignore"):
-            decide(~((lo <= m) & (m <= hi)), Gate.IMPLAUSIBLE_INPUT)  # NaN too
     with np.errstate(invalid="ignore"):
-        decide(
-            (mean["pump_speed_rpm"] < limits.min_pump_speed_rpm)
-            | (np.abs(mean["pump_disp_cc"]) < limits.min_pump_disp_cc)
-            | (mean["motor_speed_rpm"] < limits.min_motor_speed_rpm),
-            Gate.LOW_SPEED,
-        )
+        for r in roles:
+            lo, hi = limits.plausible.get(r, (-math.inf, math.inf))
+            m = mean[r]
+            decide(~((lo <= m) & (m <= hi)), Gate.IMPLAUSIBLE_INPUT)  # NaN too
+        decide(mean[PUMP_SPEED] < limits.min_pump_speed_rpm, Gate.LOW_SPEED)
+        decide(np.abs(mean[PUMP_DISP]) < limits.min_pump_disp_cc, Gate.LOW_DISPLACEMENT)
+        decide(mean[out_role] < limits.min_output, Gate.LOW_FLOW)
         transient = np.zeros(n, dtype=bool)
         for r, lim in limits.max_std.items():
             if r in std:
@@ -198,7 +266,7 @@ def gate_columns(
             outside = np.zeros(n, dtype=bool)
             for r, (lo, hi) in envelope.items():
                 outside |= ~((lo <= mean[r]) & (mean[r] <= hi))
-            decide(outside, Gate.OUTSIDE_ENVELOPE)
+            decide(outside, Gate.EXTRAPOLATED)
     return out
 
 
@@ -210,6 +278,21 @@ def gate(
 ) -> NDArray[np.int64]:
     """:func:`gate_point` over many windows (training and evaluation)."""
     return gate_columns(stats.mean, stats.std, stats.count, stats.age_s, limits, max_age_s, envelope).astype(np.int64)
+
+
+def table_stats(means: dict[str, NDArray[np.float64]]) -> WindowStats:
+    """Statistics of points that are already means (rows of an operating-point table): every input
+    fresh, enough samples, no spread within the point. Gated with :func:`gate` like windows, so the
+    rules on plausibility, minimum speed, displacement and output and the envelope are the same;
+    staleness and steadiness do not apply to a cycle mean."""
+    n = len(next(iter(means.values()))) if means else 0
+    big = np.iinfo(np.int64).max
+    return WindowStats(
+        {r: np.asarray(v, dtype=np.float64) for r, v in means.items()},
+        {r: np.zeros(n) for r in means},
+        {r: np.full(n, big, dtype=np.int64) for r in means},
+        {r: np.zeros(n) for r in means},
+    )
 
 
 def eval_times(t_first: float, t_last: float, rate_hz: float) -> NDArray[np.float64]:

@@ -12,8 +12,9 @@ from dataclasses import dataclass, field
 
 from cmcan.codec import Layout, frame_encoder
 from cmcan.frame import Frame
-from cmcan.monitor.gating import Gate
+from cmcan.monitor.gating import EVALUATED
 from cmcan.monitor.tick import Tick
+from cmcan.roles import MOTOR_SPEED, QUANTITY_SIGNALS
 
 ALIVE_MODULO = 16
 
@@ -37,10 +38,14 @@ class OutputMessage:
 
 @dataclass(frozen=True)
 class Outputs:
+    """The CM messages: the ratio, the output quantity's measured and predicted values (CM_SPEED for
+    motor speed, CM_FLOW for flow: ``quantity_signals`` names its signals), the warning."""
+
     ratio: OutputMessage
-    speed: OutputMessage
+    quantity: OutputMessage
     warning: OutputMessage
     channel: str = ""
+    quantity_signals: tuple[str, str, str, str] = QUANTITY_SIGNALS[MOTOR_SPEED]
 
 
 class Payloads:
@@ -59,7 +64,7 @@ class Payloads:
     def frames(self, k: int, tick: Tick, warning_count: int) -> list[Frame]:
         o = self.outputs
         out = []
-        evaluated = tick.gate == Gate.EVALUATING
+        evaluated = tick.gate in EVALUATED
         if k % o.ratio.every_ticks == 0:
             out.append(
                 self._frame(
@@ -76,17 +81,18 @@ class Payloads:
                     },
                 )
             )
-        if k % o.speed.every_ticks == 0:
-            meas = tick.motor_speed_meas_rpm
+        if k % o.quantity.every_ticks == 0:
+            meas = tick.measured
+            name_meas, name_pred, name_wb, name_valid = o.quantity_signals
             out.append(
                 self._frame(
                     tick.t_s,
-                    o.speed,
+                    o.quantity,
                     {
-                        "motor_speed_meas_rpm": meas if math.isfinite(meas) else 0.0,
-                        "motor_speed_pred_rpm": tick.motor_speed_pred_rpm,
-                        "motor_speed_whitebox_rpm": tick.motor_speed_whitebox_rpm,
-                        "cm_speed_valid": float(evaluated),
+                        name_meas: meas if math.isfinite(meas) else 0.0,
+                        name_pred: tick.predicted,
+                        name_wb: tick.whitebox,
+                        name_valid: float(evaluated),
                         "cm_alive_counter": float(self.alive),
                     },
                 )

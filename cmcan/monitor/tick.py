@@ -14,9 +14,11 @@ LEVEL_NAMES = {Level.OK: "ok", Level.LOW: "low", Level.HIGH: "high", Level.FAULT
 class Tick:
     t_s: float
     gate: Gate
-    motor_speed_meas_rpm: float
-    motor_speed_pred_rpm: float
-    motor_speed_whitebox_rpm: float
+    # The output quantity (motor speed in rpm or flow in l/min): measured, predicted by the gray box,
+    # by its white-box baseline; the predictions are 0 where the point was not evaluated.
+    measured: float
+    predicted: float
+    whitebox: float
     ratio_raw_pct: float  # 0 where the point was not evaluated
     ratio_filt_pct: float
     extra_leak_lpm: float

@@ -4,6 +4,11 @@ Two layers, each debounced in *evaluated* time (the sum of evaluation periods th
 - the condition, from the filtered CM ratio: ok -> low after ``debounce_s`` below ``low_pct``,
   ok -> high after ``debounce_s`` above ``high_pct``; back to ok only after ``debounce_s`` inside the
   band narrowed by ``hysteresis_pct``; low <-> high directly after the debounce on the other side;
+- extrapolated points (evaluated outside the model's training envelope, ``Gate.EXTRAPOLATED``) count
+  like any evaluated point toward raising a low or high warning, so a fault that pushes the operating
+  point out of the envelope is still warned about; but they cannot clear a warning: the return to ok
+  needs ``debounce_s`` of points inside the envelope (an extrapolated point inside the band leaves
+  that count where it is, one outside the band resets it, as any point does);
 - the fault, from the gate: inputs stale or implausible for ``fault_after_s`` of tick time raise it,
   as many seconds of good input clear it. While faulted the published level is fault; the condition
   underneath is kept and comes back when the fault clears.
@@ -15,7 +20,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import IntEnum
 
-from cmcan.monitor.gating import Gate
+from cmcan.monitor.gating import EVALUATED, Gate
 
 
 class Level(IntEnum):
@@ -82,11 +87,12 @@ class WarningMachine:
 
     def step(self, t_s: float, dt_s: float, gate: Gate, ratio_filt_pct: float | None) -> list[Transition]:
         """Advance by one evaluation tick. ``ratio_filt_pct`` is given when this tick evaluated a
-        steady point and the filter is valid; it is None otherwise. Returns the level changes."""
+        steady point (in or outside the envelope) and the filter is valid; it is None otherwise.
+        Returns the level changes."""
         before = self.level
         self._fault(gate, dt_s)
-        if ratio_filt_pct is not None and gate == Gate.EVALUATING:
-            self._condition(ratio_filt_pct, dt_s)
+        if ratio_filt_pct is not None and gate in EVALUATED:
+            self._condition(ratio_filt_pct, dt_s, trusted=gate == Gate.EVALUATING)
         after = self.level
         if after == before:
             return []
@@ -108,14 +114,18 @@ class WarningMachine:
             if self.fault_reason != Reason.NONE and self.good_input_s >= self.th.fault_after_s - _EPS:
                 self.fault_reason = Reason.NONE
 
-    def _condition(self, r: float, dt_s: float) -> None:
+    def _condition(self, r: float, dt_s: float, trusted: bool = True) -> None:
         th = self.th
         below = r < th.low_pct
         above = r > th.high_pct
         inside = th.low_pct + th.hysteresis_pct <= r <= th.high_pct - th.hysteresis_pct
         self.below_s = self.below_s + dt_s if below else 0.0
         self.above_s = self.above_s + dt_s if above else 0.0
-        self.inside_s = self.inside_s + dt_s if inside else 0.0
+        # Clearing needs trusted evidence: an extrapolated point adds nothing to it (nor breaks it).
+        if not inside:
+            self.inside_s = 0.0
+        elif trusted:
+            self.inside_s += dt_s
         if below:
             self.time_below_s += dt_s
         elif self.condition != Level.LOW:

@@ -29,7 +29,9 @@ class UplinkFeed:
         self._ticks = monitor.counters["ticks"]
         history = monitor.totals.history
         self._last_seen = history[-1] if history else None  # transitions before this start are old news
-        self.summaries = SummaryBuilder(summary_every_s, self._cumulative(monitor, {}))
+        self.summaries = SummaryBuilder(
+            summary_every_s, self._cumulative(monitor, {}), quantity=monitor.params.output_role
+        )
 
     @classmethod
     def open(cls, settings: UplinkSettings, monitor: Any) -> UplinkFeed:
@@ -103,10 +105,10 @@ def _sample(tick: Any) -> TickSample:
         gate=gate,
         level=_name(_LEVELS, tick.level),
         reason=_name(_REASONS, tick.reason),
-        ratio_raw_pct=tick.ratio_raw_pct if gate == "evaluating" else None,
+        ratio_raw_pct=tick.ratio_raw_pct if gate in ("evaluating", "extrapolated") else None,
         ratio_filt_pct=tick.ratio_filt_pct if tick.filt_valid else None,
         extra_leak_lpm=tick.extra_leak_lpm if tick.filt_valid else None,
-        motor_speed_meas_rpm=tick.motor_speed_meas_rpm,
-        motor_speed_pred_rpm=tick.motor_speed_pred_rpm,
-        motor_speed_whitebox_rpm=tick.motor_speed_whitebox_rpm,
+        measured=tick.measured,
+        predicted=tick.predicted,
+        whitebox=tick.whitebox,
     )

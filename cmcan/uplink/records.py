@@ -49,9 +49,10 @@ class TickSample:
     ratio_raw_pct: float | None  # None when the tick did not evaluate
     ratio_filt_pct: float | None  # None while the filter is not valid
     extra_leak_lpm: float | None
-    motor_speed_meas_rpm: float
-    motor_speed_pred_rpm: float
-    motor_speed_whitebox_rpm: float
+    # the output quantity (motor speed in rpm or flow in l/min): measured, predicted, white-box
+    measured: float
+    predicted: float
+    whitebox: float
 
 
 @dataclass(frozen=True)
@@ -168,10 +169,11 @@ class SummaryBuilder:
     current one into a summary entry. Totals are taken as differences of ``Cumulative`` snapshots, so
     time in each level and counters are exact even where a tick was not sampled."""
 
-    def __init__(self, every_s: float, baseline: Cumulative) -> None:
+    def __init__(self, every_s: float, baseline: Cumulative, quantity: str = "motor_speed_rpm") -> None:
         if not every_s > 0:
             raise ValueError("every_s must be positive")
         self.every_s = float(every_s)
+        self.quantity = quantity  # the measured output's statistics go under its role's name
         self.cum = baseline  # the snapshot at the newest tick seen (or at start)
         self.window: _Window | None = None
 
@@ -192,11 +194,9 @@ class SummaryBuilder:
         w.gates[tick.gate] = w.gates.get(tick.gate, 0) + 1
         if tick.ratio_raw_pct is not None:
             w.ratio.add(tick.ratio_raw_pct)
-            w.speed.add(tick.motor_speed_meas_rpm)
-            if tick.motor_speed_whitebox_rpm > 0:
-                w.correction.add(
-                    (tick.motor_speed_pred_rpm - tick.motor_speed_whitebox_rpm) / tick.motor_speed_whitebox_rpm * 100.0
-                )
+            w.speed.add(tick.measured)
+            if tick.whitebox > 0:
+                w.correction.add((tick.predicted - tick.whitebox) / tick.whitebox * 100.0)
         if tick.ratio_filt_pct is not None:
             w.ratio_filt = tick.ratio_filt_pct
             w.leak = tick.extra_leak_lpm
@@ -235,7 +235,7 @@ class SummaryBuilder:
             "extra_leak_lpm": num(w.leak, 4),
             "ratio_raw_pct": w.ratio.to_dict(4),
             "correction_pct": w.correction.to_dict(4),
-            "motor_speed_meas_rpm": w.speed.to_dict(2),
+            self.quantity: w.speed.to_dict(4),
             "gate_ticks": dict(sorted(w.gates.items())),
             "time_in_level_s": {
                 lv: num(b.time_in_level_s.get(lv, 0.0) - a.time_in_level_s.get(lv, 0.0), 3) for lv in LEVELS
