@@ -12,7 +12,7 @@ from cmcan import __version__
 from cmcan.cli.errors import EX_SOFTWARE, exit_code
 from cmcan.errors import CmcanError
 
-SUBCOMMANDS = ("simulate", "train", "evaluate", "replay", "run", "check", "demo", "gap")
+SUBCOMMANDS = ("simulate", "train", "evaluate", "replay", "run", "check", "demo", "gap", "fleet")
 
 
 def build_parser() -> argparse.ArgumentParser:
