@@ -125,7 +125,7 @@ class Downsampler:
 
     def add(self, chunk: TickColumns) -> dict[str, NDArray[Any]]:
         """Rows of the bins this chunk completes (all but its last bin, which may go on)."""
-        c = TickColumns.concat([self.pending, chunk]) if self.pending is not None else chunk
+        c = type(chunk).concat([self.pending, chunk]) if self.pending is not None else chunk
         if len(c) == 0:
             return {}
         bins = np.floor(c.t_s * self.rate_hz + 1e-9)

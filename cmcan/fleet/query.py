@@ -22,13 +22,13 @@ from cmcan.fleet import dataset as ds
 # Columns of a table that has no file yet, so queries over an empty data set still run.
 EMPTY = {
     "timeline": "time_s DOUBLE, log_time_h DOUBLE, ticks BIGINT, evaluated BIGINT, cm_ratio_raw_pct DOUBLE, "
-    "cm_ratio_filt_pct DOUBLE, extra_leak_lpm DOUBLE, warning_level VARCHAR, log_hash VARCHAR",
+    "cm_ratio_filt_pct DOUBLE, extra_leak_lpm DOUBLE, warning_level VARCHAR",
     "events": "time_s DOUBLE, log_time_h DOUBLE, from_level VARCHAR, to_level VARCHAR, reason VARCHAR, "
-    "cm_ratio_filt_pct DOUBLE, log_hash VARCHAR",
+    "cm_ratio_filt_pct DOUBLE",
     "logs": "log VARCHAR, first_time_s DOUBLE, last_time_s DOUBLE, duration_h DOUBLE, evaluated_h DOUBLE, "
     "warnings_low BIGINT, warnings_high BIGINT, faults BIGINT, final_level VARCHAR, threshold_low_pct DOUBLE, "
-    "threshold_high_pct DOUBLE, cm_ratio_filt_last_pct DOUBLE, log_hash VARCHAR",
-    "quarantine": "log VARCHAR, stage VARCHAR, reason VARCHAR, quarantined_at VARCHAR, log_hash VARCHAR",
+    "threshold_high_pct DOUBLE, cm_ratio_filt_last_pct DOUBLE",
+    "quarantine": "log VARCHAR, stage VARCHAR, reason VARCHAR, quarantined_at VARCHAR",
 }
 
 
@@ -53,7 +53,7 @@ def connect(root: str | Path) -> Any:
         depth = "machine=*/*.parquet" if table == "quarantine" else "machine=*/day=*/*.parquet"
         pattern = (root / table / depth).as_posix().replace("'", "''")
         if next((root / table).glob(depth), None) is None:
-            cols = "machine VARCHAR" + (", day DATE" if table != "quarantine" else "") + ", " + EMPTY[table]
+            cols = "machine VARCHAR" + (", day DATE" if table != "quarantine" else "") + ", " + EMPTY[table] + PROVENANCE_COLUMNS
             con.execute(f"CREATE VIEW {table} AS SELECT * FROM (SELECT {_nulls(cols)}) WHERE false")
             continue
         types = "{'machine': 'VARCHAR'" + (", 'day': 'DATE'}" if table != "quarantine" else "}")
@@ -76,6 +76,9 @@ def connect(root: str | Path) -> Any:
            FROM logs"""
     )
     return con
+
+
+PROVENANCE_COLUMNS = ", log_hash VARCHAR, config_hash VARCHAR, dbc_hash VARCHAR, model_hash VARCHAR, cmcan_version VARCHAR"
 
 
 def _nulls(cols: str) -> str:
