@@ -213,7 +213,7 @@ def build(root: str | Path, trend_h: float = 50.0, max_machines: int = 50) -> st
     if ms:
         parts.append(_img(plot_fleet_overview(lines, low, high), "filtered CM ratio of every machine"))
     parts.append(
-        "<table><tr><th>#</th><th class='l'>machine</th><th class='l'>state</th><th class='l'>now</th>"
+        "<table id='ranking'><tr><th>#</th><th class='l'>machine</th><th class='l'>state</th><th class='l'>now</th>"
         f"<th>trend (%/100 h, last {trend_h:g} h)</th><th>filtered ratio now (%)</th><th>low</th><th>high</th>"
         "<th>faults</th><th>first warning (h)</th><th>logs</th><th>logged (h)</th><th>evaluated (h)</th>"
         "<th class='l'>days</th></tr>"
