@@ -26,11 +26,11 @@ import tempfile
 import time
 from pathlib import Path
 
+from cmcan.fleet import dataset as ds
 from cmcan.fleet.run import run_fleet
 from cmcan.fleet.simfleet import write_fleet
 from cmcan.fleet.sources import discover
 from cmcan.fleet.task import Options, process_log
-from cmcan.fleet import dataset as ds
 from cmcan.sim.fleet import FleetSpec
 
 FRAMES_PER_BURST = 3100  # 10 s bursts at 310 input frames per second
@@ -100,9 +100,7 @@ def main() -> None:
             total, tasks, frames_w = on_dask(jobs, work / f"dask{w}", w)
             assert frames_w == frames
             res[f"dask_{w}"] = {"s": round(total, 1), "s_tasks": round(tasks, 1), "frames_per_s": round(frames / total)}
-            print(
-                f"Dask, {w} worker(s): {total:.1f} s ({tasks:.1f} s running tasks) = {frames / total:,.0f} frames/s"
-            )
+            print(f"Dask, {w} worker(s): {total:.1f} s ({tasks:.1f} s running tasks) = {frames / total:,.0f} frames/s")
         if "dask_1" in res:
             over = (res["dask_1"]["s"] - res["single_process"]["s"]) / res["single_process"]["s"] * 100.0
             res["dask_overhead_pct"] = round(over, 1)

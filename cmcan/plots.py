@@ -177,11 +177,14 @@ def plot_fleet_machine(
     ax.axhline(high_pct, color="tab:purple", ls="--", lw=1, label=f"high {high_pct:g} %")
     seen = set()
     for x, level in events:
-        ax.axvline(x, color=LEVEL_COLORS.get(level, "k"), lw=1.2, ls=":",
-                   label=None if level in seen else f"warning {level}")  # fmt: skip
+        ax.axvline(
+            x, color=LEVEL_COLORS.get(level, "k"), lw=1.2, ls=":", label=None if level in seen else f"warning {level}"
+        )
         seen.add(level)
     y = filt[okf] if okf.any() else np.array([100.0])
-    ax.set_ylim(max(50.0, min(low_pct - 3, float(np.nanmin(y)) - 1)), min(150.0, max(high_pct + 3, float(np.nanmax(y)) + 1)))
+    ax.set_ylim(
+        max(50.0, min(low_pct - 3, float(np.nanmin(y)) - 1)), min(150.0, max(high_pct + 3, float(np.nanmax(y)) + 1))
+    )
     ax.set_xlabel("operating hours (h, logged time of this machine)")
     ax.set_ylabel("CM ratio (%)")
     ax.set_title(title, fontsize=10)
@@ -206,8 +209,15 @@ def plot_fleet_overview(lines: list[tuple[str, Any, Any, str]], low_pct: float, 
         color = LEVEL_COLORS.get(state, "tab:gray") if state != "ok" else "0.6"
         ax.plot(h[ok], r[ok], "-", lw=1.0 if state == "ok" else 1.6, color=color, alpha=0.8)
         if state != "ok":
-            ax.annotate(name, (h[ok][-1], r[ok][-1]), fontsize=7, color=color, xytext=(3, 0),
-                        textcoords="offset points", va="center")  # fmt: skip
+            ax.annotate(
+                name,
+                (h[ok][-1], r[ok][-1]),
+                fontsize=7,
+                color=color,
+                xytext=(3, 0),
+                textcoords="offset points",
+                va="center",
+            )
     ax.axhline(low_pct, color="tab:orange", ls="--", lw=1)
     ax.axhline(high_pct, color="tab:purple", ls="--", lw=1)
     ax.set_xlabel("operating hours (h)")

@@ -7,6 +7,7 @@ it from calling out at start (the machine has no network but the package registr
 from __future__ import annotations
 
 import base64
+import contextlib
 import json
 import os
 import queue
@@ -60,7 +61,7 @@ class _Pipe:
             stdin=subprocess.DEVNULL,
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
-            preexec_fn=fds,  # noqa: PLW1509 - a test helper, no threads yet
+            preexec_fn=fds,
             close_fds=False,
         )
         os.close(to_r)
@@ -88,8 +89,9 @@ class _Pipe:
                 else:
                     self.events.put(msg)
 
-    def call(self, method: str, params: dict[str, Any] | None = None, session: str | None = None,
-             timeout: float = 60.0) -> dict[str, Any]:  # fmt: skip
+    def call(
+        self, method: str, params: dict[str, Any] | None = None, session: str | None = None, timeout: float = 60.0
+    ) -> dict[str, Any]:
         self.next_id += 1
         i = self.next_id
         msg: dict[str, Any] = {"id": i, "method": method, "params": params or {}}
@@ -109,10 +111,8 @@ class _Pipe:
         return reply.get("result", {})
 
     def close(self) -> None:
-        try:
+        with contextlib.suppress(Exception):
             self.call("Browser.close", timeout=10)
-        except Exception:
-            pass
         try:
             self.proc.wait(timeout=10)
         except subprocess.TimeoutExpired:
@@ -122,9 +122,13 @@ class _Pipe:
 
 
 def open_page(
-    url: str, screenshot: Path | None, expressions: dict[str, str] | None = None, width: int = 1280,
-    height: int = 2400, timeout: float = 60.0,
-) -> PageResult:  # fmt: skip
+    url: str,
+    screenshot: Path | None,
+    expressions: dict[str, str] | None = None,
+    width: int = 1280,
+    height: int = 2400,
+    timeout: float = 60.0,
+) -> PageResult:
     exe = chromium_path()
     if exe is None:
         raise FileNotFoundError("chromium is not installed (Debian package chromium)")
@@ -136,8 +140,11 @@ def open_page(
             s = p.call("Target.attachToTarget", {"targetId": target, "flatten": True})["sessionId"]
             for domain in ("Runtime", "Log", "Network", "Page"):
                 p.call(f"{domain}.enable", session=s)
-            p.call("Emulation.setDeviceMetricsOverride",
-                   {"width": width, "height": height, "deviceScaleFactor": 1, "mobile": False}, session=s)  # fmt: skip
+            p.call(
+                "Emulation.setDeviceMetricsOverride",
+                {"width": width, "height": height, "deviceScaleFactor": 1, "mobile": False},
+                session=s,
+            )
             p.call("Page.navigate", {"url": url}, session=s)
             deadline = time.monotonic() + timeout
             loaded = False
@@ -174,7 +181,9 @@ def _note(ev: dict[str, Any], res: PageResult) -> str | None:
     if m == "Runtime.exceptionThrown":
         res.errors.append(f"exception: {prm.get('exceptionDetails', {}).get('text')}")
     elif m == "Runtime.consoleAPICalled" and prm.get("type") in ("error", "assert"):
-        res.errors.append("console: " + " ".join(str(a.get("value", a.get("description"))) for a in prm.get("args", [])))
+        res.errors.append(
+            "console: " + " ".join(str(a.get("value", a.get("description"))) for a in prm.get("args", []))
+        )
     elif m == "Log.entryAdded" and prm.get("entry", {}).get("level") == "error":
         res.errors.append(f"log: {prm['entry'].get('text')} {prm['entry'].get('url', '')}")
     elif m == "Network.requestWillBeSent":

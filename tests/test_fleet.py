@@ -14,16 +14,16 @@ from hypothesis import strategies as st
 pytest.importorskip("pyarrow")
 pytest.importorskip("duckdb")
 
-from cmcan.errors import CmcanError  # noqa: E402
-from cmcan.fleet import dataset as ds  # noqa: E402
-from cmcan.fleet.aggregate import Downsampler, LogStats, reduce_runs  # noqa: E402
-from cmcan.fleet.query import format_rows, run_sql  # noqa: E402
-from cmcan.fleet.sources import discover, machine_of  # noqa: E402
-from cmcan.fleet.task import LogJob, Options, process_log  # noqa: E402
-from cmcan.monitor.gating import Gate  # noqa: E402
-from cmcan.replay import TickColumns  # noqa: E402
-from tests.conftest import ROOT, run_cli  # noqa: E402
-from tests.helpers import sim_frames, write_log  # noqa: E402
+from cmcan.errors import CmcanError
+from cmcan.fleet import dataset as ds
+from cmcan.fleet.aggregate import Downsampler, LogStats, reduce_runs
+from cmcan.fleet.query import format_rows, run_sql
+from cmcan.fleet.sources import discover, machine_of
+from cmcan.fleet.task import LogJob, Options, process_log
+from cmcan.monitor.gating import Gate
+from cmcan.replay import TickColumns
+from tests.conftest import ROOT, run_cli
+from tests.helpers import sim_frames, write_log
 
 
 def ticks(n: int, seed: int = 0, t0: float = 1767225600.0, period: float = 0.1) -> TickColumns:
@@ -55,8 +55,19 @@ def slice_cols(c: TickColumns, a: int, b: int) -> TickColumns:
 
 def naive_rows(c: TickColumns, rate_hz: float) -> dict[str, list]:
     """The timeline's reductions written out as a loop over bins, to check the vectorised ones."""
-    out: dict[str, list] = {k: [] for k in ("time_s", "ticks", "evaluated", "cm_ratio_raw_pct", "cm_ratio_filt_pct",
-                                            "warning_level", "motor_speed_meas_rpm", "gate")}  # fmt: skip
+    out: dict[str, list] = {
+        k: []
+        for k in (
+            "time_s",
+            "ticks",
+            "evaluated",
+            "cm_ratio_raw_pct",
+            "cm_ratio_filt_pct",
+            "warning_level",
+            "motor_speed_meas_rpm",
+            "gate",
+        )
+    }
     bins = np.floor(c.t_s * rate_hz + 1e-9)
     i = 0
     while i < len(c):
@@ -114,8 +125,11 @@ def test_a_tick_field_added_later_gets_a_column_by_its_type():
         flow_pred_lpm: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
 
     base = dataclasses.replace(ticks(40), t_s=1767225600.0 + np.arange(40) * 0.1)
-    c = More(**{f.name: getattr(base, f.name) for f in dataclasses.fields(base)},
-             extrapolated=np.arange(40) % 5 == 0, flow_pred_lpm=np.arange(40.0))  # fmt: skip
+    c = More(
+        **{f.name: getattr(base, f.name) for f in dataclasses.fields(base)},
+        extrapolated=np.arange(40) % 5 == 0,
+        flow_pred_lpm=np.arange(40.0),
+    )
     d = Downsampler(1.0)
     rows = [d.add(slice_cols(c, 0, 15)), d.add(slice_cols(c, 15, 40)), d.finish()]
     share = np.concatenate([r["extrapolated_share"] for r in rows if r])
@@ -133,8 +147,20 @@ def test_log_stats_percentiles_and_trends_against_numpy():
     h = (t - t0) / 3600
     ratio = 100 - 0.3 * h + rng.normal(0, 0.5, n)
     leak = 0.2 * h + rng.normal(0, 0.1, n)
-    c = TickColumns(t, gate, ratio * 20, np.full(n, 2000.0), np.full(n, 2000.0), np.where(gate == 0, ratio, 0.0),
-                    ratio, leak, np.ones(n, bool), np.zeros(n, np.int8), np.zeros(n, np.int8), np.zeros(n))  # fmt: skip
+    c = TickColumns(
+        t,
+        gate,
+        ratio * 20,
+        np.full(n, 2000.0),
+        np.full(n, 2000.0),
+        np.where(gate == 0, ratio, 0.0),
+        ratio,
+        leak,
+        np.ones(n, bool),
+        np.zeros(n, np.int8),
+        np.zeros(n, np.int8),
+        np.zeros(n),
+    )
     s = LogStats(t0=t0)
     for a in range(0, n, 3000):
         s.add(slice_cols(c, a, a + 3000))
@@ -155,8 +181,15 @@ def test_log_stats_percentiles_and_trends_against_numpy():
 
 def test_machine_rule_for_folders_and_file_names(tmp_path):
     root = tmp_path / "fleet"
-    for rel in ("exc-017/2026/01/a.log", "exc-017/b.log.gz", "wl_3/c.blf", "dz-9_20260102.log", "lone.asc",
-                "notes.txt", "wl_3/run.csv"):  # fmt: skip
+    for rel in (
+        "exc-017/2026/01/a.log",
+        "exc-017/b.log.gz",
+        "wl_3/c.blf",
+        "dz-9_20260102.log",
+        "lone.asc",
+        "notes.txt",
+        "wl_3/run.csv",
+    ):
         (root / rel).parent.mkdir(parents=True, exist_ok=True)
         (root / rel).write_bytes(b"")
     jobs = discover([str(root)])
@@ -205,7 +238,7 @@ def test_a_log_is_committed_once_and_skipped_after(small_log, tmp_path):
     r = process_log(job, opt)
     assert r["status"] == "done" and r["frames"] > 10000
     assert process_log(job, opt)["status"] == "skipped"
-    cols, rows = run_sql(root, "SELECT count(*), min(log_hash), min(model_hash), min(cmcan_version) FROM timeline")
+    _, rows = run_sql(root, "SELECT count(*), min(log_hash), min(model_hash), min(cmcan_version) FROM timeline")
     assert rows[0][0] > 100
     assert rows[0][1] == ds.sha256_file(small_log)
     from cmcan.model import default_model_path
@@ -254,7 +287,9 @@ def test_bad_logs_go_to_quarantine_with_the_reason(small_log, tmp_path):
     assert run_sql(root, "SELECT count(*) FROM logs")[1][0][0] == 0
     # quarantined with the same inputs: skipped on the next run unless asked to retry
     assert process_log(LogJob("m2", str(garbage)), opt)["status"] == "skipped"
-    assert process_log(LogJob("m2", str(garbage)), Options(str(root), retry_quarantined=True))["status"] == "quarantined"
+    assert (
+        process_log(LogJob("m2", str(garbage)), Options(str(root), retry_quarantined=True))["status"] == "quarantined"
+    )
     # the timed-out log goes through when retried with time enough, and leaves the quarantine
     assert process_log(LogJob("m5", str(small_log)), Options(str(root), retry_quarantined=True))["status"] == "done"
     assert "m5" not in {r[0] for r in run_sql(root, "SELECT machine FROM quarantine")[1]}
@@ -303,11 +338,11 @@ def test_a_data_set_is_not_created_over_other_files(tmp_path):
     (tmp_path / "x" / "mine.txt").write_text("keep")
     with pytest.raises(CmcanError, match="not a cmcan fleet data set"):
         ds.open_dataset(tmp_path / "x", create=True)
-    with pytest.raises(CmcanError, match="no _dataset.json"):
+    with pytest.raises(CmcanError, match=r"no _dataset\.json"):
         ds.open_dataset(tmp_path / "x", create=False)
     root = ds.open_dataset(tmp_path / "y", create=True)
     assert json.loads((root / "_dataset.json").read_text())["format"] == ds.FORMAT
-    with ds.writer_lock(root), pytest.raises(CmcanError, match="another cmcan fleet replay"), ds.writer_lock(root):
+    with ds.writer_lock(root), pytest.raises(CmcanError, match=r"another cmcan fleet replay"), ds.writer_lock(root):
         pass
 
 

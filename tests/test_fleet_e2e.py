@@ -17,10 +17,10 @@ import pytest
 pytest.importorskip("distributed")
 pytest.importorskip("duckdb")
 
-from cmcan.fleet import dataset as ds  # noqa: E402
-from cmcan.fleet.query import run_sql  # noqa: E402
-from tests.chromium import chromium_path, open_page  # noqa: E402
-from tests.conftest import ROOT, run_cli  # noqa: E402
+from cmcan.fleet import dataset as ds
+from cmcan.fleet.query import run_sql
+from tests.chromium import chromium_path, open_page
+from tests.conftest import ROOT, run_cli
 
 pytestmark = pytest.mark.slow
 ARTIFACTS = ROOT / "tests" / "artifacts"
@@ -31,8 +31,21 @@ def fleet(tmp_path_factory):
     """Six machines of three sizes, 60 h each in 20 h logs, half degrading; one corrupt log added."""
     d = tmp_path_factory.mktemp("fleet")
     out = d / "sim"
-    r = run_cli("simulate", "fleet", "--machines", "6", "--hours", "60", "--log-hours", "20", "--seed", "4",
-                "--out", str(out), "--json")  # fmt: skip
+    r = run_cli(
+        "simulate",
+        "fleet",
+        "--machines",
+        "6",
+        "--hours",
+        "60",
+        "--log-hours",
+        "20",
+        "--seed",
+        "4",
+        "--out",
+        str(out),
+        "--json",
+    )
     assert r.returncode == 0, r.stderr
     summary = json.loads(r.stdout)
     assert summary["machines"] == 6 and summary["degrading"] == 3 and summary["logs"] == 18
@@ -112,8 +125,9 @@ def test_every_row_carries_its_provenance(fleet):
 
 def test_a_rerun_skips_everything(fleet):
     before = sorted(p.stat().st_mtime_ns for p in fleet["ds"].rglob("*.parquet"))
-    r = run_cli("fleet", "replay", str(fleet["sim"] / "manifest.csv"), "--out", str(fleet["ds"]), "--workers", "2",
-                "--json")  # fmt: skip
+    r = run_cli(
+        "fleet", "replay", str(fleet["sim"] / "manifest.csv"), "--out", str(fleet["ds"]), "--workers", "2", "--json"
+    )
     assert r.returncode == 0, r.stderr
     rep = json.loads(r.stdout)
     assert (rep["done"], rep["skipped"], rep["quarantined"], rep["frames"]) == (0, 19, 0, 0)
@@ -121,8 +135,14 @@ def test_a_rerun_skips_everything(fleet):
 
 
 def test_query_command(fleet):
-    r = run_cli("fleet", "query", str(fleet["ds"]), "SELECT machine, count(*) AS logs FROM logs GROUP BY 1 ORDER BY 1",
-                "--format", "csv")  # fmt: skip
+    r = run_cli(
+        "fleet",
+        "query",
+        str(fleet["ds"]),
+        "SELECT machine, count(*) AS logs FROM logs GROUP BY 1 ORDER BY 1",
+        "--format",
+        "csv",
+    )
     assert r.returncode == 0, r.stderr
     assert r.stdout.splitlines() == ["machine,logs", *[f"m00{i},3" for i in range(1, 7)]]
     r = run_cli("fleet", "query", str(fleet["ds"]), "SELECT * FROM nowhere")
@@ -165,7 +185,8 @@ def test_the_report_loads_in_headless_chromium_without_errors(fleet, tmp_path):
 def test_ctrl_c_keeps_whole_logs_and_a_rerun_finishes(fleet, tmp_path):
     """SIGINT in the middle of a run: the logs committed stay whole, nothing else is left, and the
     same command again does exactly the rest."""
-    rows = list(csv.reader(open(fleet["sim"] / "manifest.csv")))
+    with open(fleet["sim"] / "manifest.csv", newline="") as f:
+        rows = list(csv.reader(f))
     manifest = tmp_path / "manifest.csv"
     with open(manifest, "w", newline="") as f:
         w = csv.writer(f, lineterminator="\n")
@@ -202,5 +223,8 @@ def test_ctrl_c_keeps_whole_logs_and_a_rerun_finishes(fleet, tmp_path):
     assert rep["skipped"] == len(committed) + (rep["quarantined"] == 0)  # the corrupt log, if quarantined before
     assert len(ds.committed(dataset)) == 9
     # the same results as the uninterrupted run
-    q = "SELECT machine, log_hash, evaluated, cm_ratio_p50_pct FROM logs WHERE machine IN ('m001','m002','m003') ORDER BY 2"
+    q = (
+        "SELECT machine, log_hash, evaluated, cm_ratio_p50_pct FROM logs "
+        "WHERE machine IN ('m001','m002','m003') ORDER BY 2"
+    )
     assert run_sql(dataset, q)[1] == run_sql(fleet["ds"], q)[1]

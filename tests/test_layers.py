@@ -20,7 +20,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("cmcan.model", "cmcan.sim", "cmcan.io", "cmcan.dbc", "cmcan.statefile", "cmcan.sdnotify"),
     ("cmcan.gap", "cmcan.config"),
     ("cmcan.assemble", "cmcan.preflight", "cmcan.plots"),
-    ("cmcan.daemon", "cmcan.replay", "cmcan.demo", "cmcan.rebuild_default"),
+    ("cmcan.daemon", "cmcan.replay", "cmcan.demo", "cmcan.rebuild_default", "cmcan.fleet"),
     ("cmcan.cli", "cmcan.__main__"),
 ]
 

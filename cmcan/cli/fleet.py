@@ -57,7 +57,7 @@ def add_subparser(sub: argparse._SubParsersAction) -> None:
         description="Run SQL on the views timeline, events, logs, quarantine and machine_logs (docs/fleet.md).",
     )
     q.add_argument("dataset", help="data set folder")
-    q.add_argument("sql", help="the statement, e.g. \"SELECT machine, sum(warnings_low) FROM logs GROUP BY 1\"")
+    q.add_argument("sql", help='the statement, e.g. "SELECT machine, sum(warnings_low) FROM logs GROUP BY 1"')
     q.add_argument("--format", choices=("table", "csv", "json"), default="table", help="output format")
     q.add_argument("--max-rows", type=int, default=100, help="rows shown in table format")
     q.set_defaults(func=run_query)

@@ -293,7 +293,9 @@ class LogWriter:
             w.close()
         self._writers.clear()
         row = {k: [v] for k, v in summary.items()}
-        write_parquet(self.stage / SUMMARY_TABLE / f"day={day}" / f"{self.prov.key}.parquet", {**row, **self.prov.columns()})
+        write_parquet(
+            self.stage / SUMMARY_TABLE / f"day={day}" / f"{self.prov.key}.parquet", {**row, **self.prov.columns()}
+        )
         self._remove_previous()
         staged = sorted(self.stage.rglob("*.parquet"), key=lambda p: p.parts[-3] == SUMMARY_TABLE)
         for f in staged:  # the summary sorts last

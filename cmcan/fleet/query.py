@@ -39,8 +39,9 @@ def _require_duckdb() -> Any:
     try:
         import duckdb
     except ImportError:
-        raise CmcanError("this needs the 'fleet' extra: pip install 'cmcan[fleet]' (duckdb is missing)",
-                         Kind.UNAVAILABLE) from None  # fmt: skip
+        raise CmcanError(
+            "this needs the 'fleet' extra: pip install 'cmcan[fleet]' (duckdb is missing)", Kind.UNAVAILABLE
+        ) from None
     return duckdb
 
 
@@ -53,12 +54,20 @@ def connect(root: str | Path) -> Any:
         depth = "machine=*/*.parquet" if table == "quarantine" else "machine=*/day=*/*.parquet"
         pattern = (root / table / depth).as_posix().replace("'", "''")
         if next((root / table).glob(depth), None) is None:
-            cols = "machine VARCHAR" + (", day DATE" if table != "quarantine" else "") + ", " + EMPTY[table] + PROVENANCE_COLUMNS
+            cols = (
+                "machine VARCHAR"
+                + (", day DATE" if table != "quarantine" else "")
+                + ", "
+                + EMPTY[table]
+                + PROVENANCE_COLUMNS
+            )
             con.execute(f"CREATE VIEW {table} AS SELECT * FROM (SELECT {_nulls(cols)}) WHERE false")
             continue
         types = "{'machine': 'VARCHAR'" + (", 'day': 'DATE'}" if table != "quarantine" else "}")
-        src = (f"read_parquet('{pattern}', hive_partitioning = true, union_by_name = true, "
-               f"hive_types = {types}, hive_types_autocast = false)")  # fmt: skip
+        src = (
+            f"read_parquet('{pattern}', hive_partitioning = true, union_by_name = true, "
+            f"hive_types = {types}, hive_types_autocast = false)"
+        )
         if table in ds.DATA_TABLES:  # rows of committed logs only (an interrupted commit leaves orphans)
             name = f"_{table}_all"
             con.execute(f"CREATE VIEW {name} AS SELECT * FROM {src}")
@@ -78,7 +87,9 @@ def connect(root: str | Path) -> Any:
     return con
 
 
-PROVENANCE_COLUMNS = ", log_hash VARCHAR, config_hash VARCHAR, dbc_hash VARCHAR, model_hash VARCHAR, cmcan_version VARCHAR"
+PROVENANCE_COLUMNS = (
+    ", log_hash VARCHAR, config_hash VARCHAR, dbc_hash VARCHAR, model_hash VARCHAR, cmcan_version VARCHAR"
+)
 
 
 def _nulls(cols: str) -> str:

@@ -82,7 +82,8 @@ def machines(con: Any, trend_h: float) -> list[MachineRow]:
         WITH tl AS ({_TIMELINE}),
         span AS (SELECT machine, max(op_h) AS end_h FROM tl GROUP BY machine),
         trend AS (
-            SELECT tl.machine, regr_slope(raw, op_h) * 100 AS trend, arg_max(filt, op_h) FILTER (WHERE filt IS NOT NULL AND NOT isnan(filt)) AS recent
+            SELECT tl.machine, regr_slope(raw, op_h) * 100 AS trend,
+                   arg_max(filt, op_h) FILTER (WHERE filt IS NOT NULL AND NOT isnan(filt)) AS recent
             FROM tl JOIN span USING (machine) WHERE op_h >= end_h - ? GROUP BY tl.machine),
         warn AS (
             SELECT e.machine, min(ml.offset_h + e.log_time_h) AS first_h
@@ -102,8 +103,23 @@ def machines(con: Any, trend_h: float) -> list[MachineRow]:
         [trend_h],
     ).fetchall()
     out = [
-        MachineRow(r[0], int(r[1]), float(r[2]), float(r[3]), int(r[4]), int(r[5]), int(r[6]), r[7], r[8], r[9],
-                   _f(r[10]), _f(r[11]), _f(r[12]), float(r[13]), float(r[14]))  # fmt: skip
+        MachineRow(
+            r[0],
+            int(r[1]),
+            float(r[2]),
+            float(r[3]),
+            int(r[4]),
+            int(r[5]),
+            int(r[6]),
+            r[7],
+            r[8],
+            r[9],
+            _f(r[10]),
+            _f(r[11]),
+            _f(r[12]),
+            float(r[13]),
+            float(r[14]),
+        )
         for r in rows
     ]
     return sorted(out, key=lambda m: (-m.attention, -abs(m.trend_pct_per_100h or 0.0), m.machine))
@@ -175,8 +191,15 @@ def build(root: str | Path, trend_h: float = 50.0, max_machines: int = 50) -> st
     total_h = max((m.hours for m in ms), default=1.0)
     ser = series(con, max(total_h / MAX_POINTS_PER_MACHINE, 1.0 / 3600.0))
     evs = events(con)
-    starts = {m: [float(h) for (h,) in con.execute(
-        "SELECT offset_h FROM machine_logs WHERE machine = ? ORDER BY offset_h", [m]).fetchall()] for m in ser}  # fmt: skip
+    starts = {
+        m: [
+            float(h)
+            for (h,) in con.execute(
+                "SELECT offset_h FROM machine_logs WHERE machine = ? ORDER BY offset_h", [m]
+            ).fetchall()
+        ]
+        for m in ser
+    }
     quarantine = con.execute(
         "SELECT machine, log, stage, reason, quarantined_at FROM quarantine ORDER BY machine, log"
     ).fetchall()
@@ -231,19 +254,27 @@ def build(root: str | Path, trend_h: float = 50.0, max_machines: int = 50) -> st
     parts.append("<h2 id='machines'>Machines</h2>")
     for m in ms[:max_machines]:
         h, raw, filt = ser.get(m.machine, ([], [], []))
-        title = (f"{m.machine}: CM ratio over operating hours ({m.warnings_low} low, {m.warnings_high} high warnings, "
-                 f"{m.faults} faults)")  # fmt: skip
+        title = (
+            f"{m.machine}: CM ratio over operating hours ({m.warnings_low} low, {m.warnings_high} high warnings, "
+            f"{m.faults} faults)"
+        )
         parts.append(f"<h3 id='m-{html.escape(m.machine)}'>{html.escape(m.machine)} {_tag(m.state)}</h3>")
         parts.append(
-            _img(plot_fleet_machine(h, raw, filt, m.low_pct, m.high_pct, evs.get(m.machine, []),
-                                    starts.get(m.machine, []), title), title)  # fmt: skip
+            _img(
+                plot_fleet_machine(
+                    h, raw, filt, m.low_pct, m.high_pct, evs.get(m.machine, []), starts.get(m.machine, []), title
+                ),
+                title,
+            )
         )
     if len(ms) > max_machines:
         parts.append(f"<p class='meta'>{len(ms) - max_machines} more machines in the table above (not drawn).</p>")
     parts.append(f"<h2 id='quarantine'>Quarantine ({len(quarantine)})</h2>")
     if quarantine:
-        parts.append("<table><tr><th class='l'>machine</th><th class='l'>log</th><th class='l'>stage</th>"
-                     "<th class='l'>reason</th><th class='l'>when</th></tr>")  # fmt: skip
+        parts.append(
+            "<table><tr><th class='l'>machine</th><th class='l'>log</th><th class='l'>stage</th>"
+            "<th class='l'>reason</th><th class='l'>when</th></tr>"
+        )
         for q in quarantine:
             parts.append("<tr>" + "".join(f"<td class='l'>{html.escape(str(v))}</td>" for v in q) + "</tr>")
         parts.append("</table>")

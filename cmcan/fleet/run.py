@@ -156,7 +156,9 @@ def _drive(
             if job is None:
                 break
             # pure=False: a rerun must run again (the data set changed), not reuse a cached result
-            fut = client.submit(process_log, job, opt, pure=False, key=f"log-{job.machine}-{len(by_future)}-{time.monotonic_ns()}")
+            fut = client.submit(
+                process_log, job, opt, pure=False, key=f"log-{job.machine}-{len(by_future)}-{time.monotonic_ns()}"
+            )
             by_future[fut] = job
             out.append(fut)
         return out
@@ -206,5 +208,11 @@ def _worker_failure(opt: Options, job: LogJob, exc: BaseException) -> dict[str, 
             "cmcan_version": ds.__version__,
         },
     )
-    return {"machine": job.machine, "log": job.log, "status": "quarantined", "key": key, "frames": 0,
-            "reason": f"worker: {reason}"}  # fmt: skip
+    return {
+        "machine": job.machine,
+        "log": job.log,
+        "status": "quarantined",
+        "key": key,
+        "frames": 0,
+        "reason": f"worker: {reason}",
+    }

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import csv
 import io
+import itertools
 import json
 import os
 import shutil
@@ -87,7 +88,7 @@ def train_type(t: sf.MachineType, seed: int, cfg: cfgmod.Config) -> tuple[bytes,
 def _split(frames: Frames, edges_s: list[float]) -> list[Frames]:
     cut = np.searchsorted(frames.timestamp_s, edges_s)
     out = []
-    for a, b in zip(cut[:-1], cut[1:], strict=True):
+    for a, b in itertools.pairwise(cut):
         out.append(Frames(frames.timestamp_s[a:b], frames.arbitration_id[a:b], frames.dlc[a:b], frames.data[a:b]))
     return out
 

@@ -150,16 +150,32 @@ def _quarantine(
         "stage": stage,
         "reason": reason,
         "quarantined_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        **(prov.columns() if prov else {"log_hash": None, "config_hash": None, "dbc_hash": None, "model_hash": None,
-                                         "cmcan_version": ds.__version__}),  # fmt: skip
+        **(
+            prov.columns()
+            if prov
+            else {
+                "log_hash": None,
+                "config_hash": None,
+                "dbc_hash": None,
+                "model_hash": None,
+                "cmcan_version": ds.__version__,
+            }
+        ),
     }
     ds.write_quarantine(root, job.machine, key, row)
     return _result(job, "quarantined", key, started, reason=f"{stage}: {reason}")
 
 
 def _result(job: LogJob, status: str, key: str, started: float, **extra: Any) -> dict[str, Any]:
-    return {"machine": job.machine, "log": job.log, "status": status, "key": key,
-            "seconds": time.monotonic() - started, "frames": 0, **extra}  # fmt: skip
+    return {
+        "machine": job.machine,
+        "log": job.log,
+        "status": status,
+        "key": key,
+        "seconds": time.monotonic() - started,
+        "frames": 0,
+        **extra,
+    }
 
 
 def process_log(job: LogJob, opt: Options) -> dict[str, Any]:

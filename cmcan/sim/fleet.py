@@ -11,6 +11,7 @@ hundred thousand frames; a burst's timestamps carry its true operating time.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 from typing import Any
 
@@ -107,8 +108,16 @@ def _degradation(kind: str, t: MachineType, hours: float, rng: np.random.Generat
     span = float(min(fail_h * 0.8, hours * rng.uniform(0.30, 0.45)))
     start_h = round(fail_h - span, 2)
     if kind == "misposition":  # the displacement control drifts (ratio goes up)
-        return [{"type": "misposition", "mode": "drift", "start_h": start_h, "end_h": fail_h, "pct": -10.0,
-                 "fail_h": fail_h}]  # fmt: skip
+        return [
+            {
+                "type": "misposition",
+                "mode": "drift",
+                "start_h": start_h,
+                "end_h": fail_h,
+                "pct": -10.0,
+                "fail_h": fail_h,
+            }
+        ]
     return [
         {
             "type": "wear",
@@ -157,14 +166,15 @@ def plan_fleet(spec: FleetSpec) -> list[MachinePlan]:
             "sampling": {"mode": "bursts", "burst_s": spec.burst_s, "every_min": spec.every_min},
             "drive": mt.drive(),
             "oil": {"model": "prescribed", "temp_c": oil_c, "swing_c": swing_c, "period_h": 10.0},
-            "duty": {"kind": duty, "speed_scale": round(float(rng.uniform(0.9, 1.1)), 3),
-                     "load_scale": round(float(rng.uniform(0.8, 1.1)), 3)},  # fmt: skip
+            "duty": {
+                "kind": duty,
+                "speed_scale": round(float(rng.uniform(0.9, 1.1)), 3),
+                "load_scale": round(float(rng.uniform(0.8, 1.1)), 3),
+            },
             "events": events,
         }
         s = scn.from_dict(raw, source=f"<fleet {name}>")
-        failures = [
-            {**f, "fail_epoch_s": start + f["fail_h"] * 3600.0} for f in _failures(events)
-        ]
+        failures = [{**f, "fail_epoch_s": start + f["fail_h"] * 3600.0} for f in _failures(events)]
         truth = {
             "machine": name,
             "type": mt.name,
@@ -202,15 +212,23 @@ def training_scenario(t: MachineType, seed: int) -> scn.Scenario:
         "seed": seed,
         "duration_h": TRAINING_HOURS,
         "drive": t.drive(),
-        "oil": {"model": "profile", "points": [[0.0, 45], [0.1, 95], [0.2, 20], [0.3, 80], [0.4, 30], [0.5, 100],
-                                               [0.6, 55]]},  # fmt: skip
-        "duty": {"kind": "sweep", "pump_speed_rpm": [800, 2600], "pump_disp_pct": [5, 100], "dp_bar": [20, 520],
-                 "hold_s": [4, 10], "edge_share": 0.2},  # fmt: skip
+        "oil": {
+            "model": "profile",
+            "points": [[0.0, 45], [0.1, 95], [0.2, 20], [0.3, 80], [0.4, 30], [0.5, 100], [0.6, 55]],
+        },
+        "duty": {
+            "kind": "sweep",
+            "pump_speed_rpm": [800, 2600],
+            "pump_disp_pct": [5, 100],
+            "dp_bar": [20, 520],
+            "hold_s": [4, 10],
+            "edge_share": 0.2,
+        },
     }
     return scn.from_dict(raw, source=f"<training {t.name}>")
 
 
 def log_spans(spec: FleetSpec) -> list[tuple[float, float]]:
     """Operating-hour spans [start, end) of a machine's logs: one log per ``log_hours`` of operation."""
-    edges = np.arange(0.0, spec.hours, spec.log_hours).tolist() + [spec.hours]
-    return [(float(a), float(b)) for a, b in zip(edges[:-1], edges[1:], strict=True) if b > a]
+    edges = [*np.arange(0.0, spec.hours, spec.log_hours).tolist(), spec.hours]
+    return [(float(a), float(b)) for a, b in itertools.pairwise(edges) if b > a]
