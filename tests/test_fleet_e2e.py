@@ -228,3 +228,24 @@ def test_ctrl_c_keeps_whole_logs_and_a_rerun_finishes(fleet, tmp_path):
         "WHERE machine IN ('m001','m002','m003') ORDER BY 2"
     )
     assert run_sql(dataset, q)[1] == run_sql(fleet["ds"], q)[1]
+
+
+def test_the_same_code_runs_against_an_existing_scheduler(fleet, tmp_path):
+    """--scheduler ADDRESS: the tasks run on a cluster the command did not start, with the same results."""
+    from distributed import LocalCluster
+
+    logs = sorted((fleet["sim"] / "logs" / "m004").glob("*.log"))
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        dataset = tmp_path / "ds"
+        r = run_cli(
+            "fleet", "replay", *map(str, logs), "--out", str(dataset), "--scheduler", cluster.scheduler_address,
+            "--config", str(fleet["sim"] / "types" / "compact" / "cmcan.yaml"),
+            "--model", str(fleet["sim"] / "types" / "compact" / "model.onnx"), "--json",
+        )  # fmt: skip
+        assert r.returncode == 0, r.stderr
+        rep = json.loads(r.stdout)
+        assert (rep["done"], rep["workers"]) == (3, 1)
+        assert len(cluster.scheduler_info["workers"]) == 1  # still up: the command leaves a cluster it did not start
+    q = "SELECT machine, log_hash, model_hash, evaluated, cm_ratio_p50_pct FROM logs ORDER BY log_hash"
+    mine = run_sql(dataset, q)[1]
+    assert mine == run_sql(fleet["ds"], q.replace("FROM logs", "FROM logs WHERE machine = 'm004'"))[1]

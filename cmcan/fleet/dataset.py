@@ -169,10 +169,15 @@ def committed(root: Path) -> set[tuple[str, str]]:
 
 
 def remove_orphans(root: Path) -> int:
-    """Delete the staging area and data files of logs without a summary (an interrupted commit)."""
+    """Delete the staging area, temporaries of interrupted writes and data files of logs without a
+    summary (an interrupted commit)."""
     shutil.rmtree(root / STAGING, ignore_errors=True)
-    done = committed(root)
     n = 0
+    for table in TABLES:
+        for tmp in (root / table).rglob(".*.tmp"):
+            tmp.unlink(missing_ok=True)
+            n += 1
+    done = committed(root)
     for table in DATA_TABLES:
         for mk, files in _keys(root, table).items():
             if mk not in done:
@@ -180,14 +185,6 @@ def remove_orphans(root: Path) -> int:
                     f.unlink(missing_ok=True)
                     n += 1
     return n
-
-
-def committed_files(root: Path, table: str) -> list[Path]:
-    """The files of a table that belong to committed logs (what queries read)."""
-    if table in (SUMMARY_TABLE, "quarantine"):
-        return sorted(f for files in _keys(root, table).values() for f in files)
-    done = committed(root)
-    return sorted(f for mk, files in _keys(root, table).items() if mk in done for f in files)
 
 
 def is_committed(root: Path, machine: str, key: str) -> bool:

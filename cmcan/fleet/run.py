@@ -9,6 +9,7 @@ thousand logs does not flood the scheduler. A task that dies with its worker is 
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import time
@@ -112,7 +113,7 @@ def run_fleet(
     the run: committed logs stay, nothing half-written does, and the next run does the rest."""
     _require_dask()
     root = ds.open_dataset(Path(opt.dataset), create=True)
-    opt = Options(**{**opt.__dict__, "dataset": os.path.abspath(root)})
+    opt = dataclasses.replace(opt, dataset=os.path.abspath(root))
     report = RunReport(logs=len(jobs))
     started = time.monotonic()
     with ds.writer_lock(root):
