@@ -54,28 +54,35 @@ def single_process(jobs: list, root: Path) -> tuple[float, int]:
     ds.open_dataset(root, create=True)
     opt = Options(dataset=str(root))
     t = time.perf_counter()
+    cpu = time.process_time()
     frames = 0
     for j in jobs:
         r = process_log(j, opt)
         assert r["status"] == "done", r
         frames += r["frames"]
-    return time.perf_counter() - t, frames
+    return time.perf_counter() - t, time.process_time() - cpu, frames
 
 
-def on_dask(jobs: list, root: Path, workers: int) -> tuple[float, float, int]:
-    """(seconds for the whole run with the cluster's start and stop, seconds of the tasks, frames)."""
+def on_dask(jobs: list, root: Path, workers: int) -> tuple[float, float, float, int]:
+    """(seconds for the whole run with the cluster's start and stop, seconds of the tasks, CPU seconds
+    of the tasks on the workers plus this process's (client and scheduler), frames)."""
     from cmcan.fleet.run import make_client
 
     t0 = time.perf_counter()
     client = make_client(None, workers)
     t1 = time.perf_counter()
-    rep = run_fleet(jobs, Options(dataset=str(root)), client=client)
+    cpu_driver = time.process_time()
+    task_cpu = []
+    rep = run_fleet(
+        jobs, Options(dataset=str(root)), client=client, progress=lambda r, _rep: task_cpu.append(r["cpu_s"])
+    )
+    cpu = time.process_time() - cpu_driver + sum(task_cpu)
     t2 = time.perf_counter()
     client.close()
     client.cluster.close()
     t3 = time.perf_counter()
     assert rep.counts["done"] == len(jobs), rep.to_dict()
-    return (t1 - t0) + (t2 - t1) + (t3 - t2), t2 - t1, rep.frames
+    return t3 - t0, t2 - t1, cpu, rep.frames
 
 
 def main() -> None:
@@ -92,19 +99,35 @@ def main() -> None:
     work = Path(tempfile.mkdtemp(prefix="cmcan-bench-fleet-ds-"))
     res: dict = {"logs": len(jobs), "cores": os.cpu_count()}
     try:
-        secs, frames = single_process(jobs, work / "single")
+        secs, cpu, frames = single_process(jobs, work / "single")
         res["frames"] = frames
-        res["single_process"] = {"s": round(secs, 1), "frames_per_s": round(frames / secs)}
-        print(f"single process (no Dask): {frames / 1e6:.1f} M frames in {secs:.1f} s = {frames / secs:,.0f} frames/s")
-        for w in [int(x) for x in args.workers.split(",")]:
-            total, tasks, frames_w = on_dask(jobs, work / f"dask{w}", w)
+        res["single_process"] = {"s": round(secs, 1), "cpu_s": round(cpu, 1), "frames_per_s": round(frames / secs)}
+        print(
+            f"single process (no Dask): {frames / 1e6:.1f} M frames in {secs:.1f} s = {frames / secs:,.0f} frames/s"
+            f" ({cpu:.1f} CPU s)"
+        )
+        for w in [int(x) for x in args.workers.split(",") if x.strip()]:
+            total, tasks, cpu_w, frames_w = on_dask(jobs, work / f"dask{w}", w)
             assert frames_w == frames
-            res[f"dask_{w}"] = {"s": round(total, 1), "s_tasks": round(tasks, 1), "frames_per_s": round(frames / total)}
-            print(f"Dask, {w} worker(s): {total:.1f} s ({tasks:.1f} s running tasks) = {frames / total:,.0f} frames/s")
+            res[f"dask_{w}"] = {
+                "s": round(total, 1),
+                "s_tasks": round(tasks, 1),
+                "cpu_s": round(cpu_w, 1),
+                "frames_per_s": round(frames / total),
+            }
+            print(
+                f"Dask, {w} worker(s): {total:.1f} s ({tasks:.1f} s running tasks) = {frames / total:,.0f} frames/s"
+                f" ({cpu_w:.1f} CPU s in tasks and driver)"
+            )
         if "dask_1" in res:
             over = (res["dask_1"]["s"] - res["single_process"]["s"]) / res["single_process"]["s"] * 100.0
             res["dask_overhead_pct"] = round(over, 1)
-            print(f"Dask overhead on 1 worker vs the single process: {over:+.1f} %")
+            print(f"Dask overhead on 1 worker vs the single process: {over:+.1f} % of wall-clock time")
+        for w in (1, 2):
+            if f"dask_{w}" in res:
+                cpu_over = (res[f"dask_{w}"]["cpu_s"] / res["single_process"]["cpu_s"] - 1.0) * 100.0
+                res[f"dask_{w}_cpu_overhead_pct"] = round(cpu_over, 1)
+                print(f"Dask overhead with {w} worker(s) in CPU time (robust to other load): {cpu_over:+.1f} %")
         if "dask_1" in res and "dask_2" in res:
             ratio = res["dask_2"]["frames_per_s"] / res["dask_1"]["frames_per_s"]
             res["scaling_2_vs_1"] = round(ratio, 2)
