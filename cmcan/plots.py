@@ -249,3 +249,93 @@ def plot_scores(
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+LEVEL_COLORS = {"low": "tab:orange", "high": "tab:purple", "fault": "tab:red", "ok": "tab:green"}
+
+
+def _png(fig: Any) -> bytes:
+    import io
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90)
+    return buf.getvalue()
+
+
+def plot_fleet_machine(
+    hours: Any,
+    raw_pct: Any,
+    filt_pct: Any,
+    low_pct: float,
+    high_pct: float,
+    events: list[tuple[float, str]],
+    log_starts_h: list[float],
+    title: str,
+) -> bytes:
+    """One machine of a fleet: the CM ratio over its operating hours (means of the timeline), the
+    thresholds, each warning where it was raised and the start of each log; PNG bytes."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(10, 3.2))
+    h, raw, filt = (np.asarray(x, dtype=float) for x in (hours, raw_pct, filt_pct))
+    for x in log_starts_h:
+        ax.axvline(x, color="0.85", lw=0.6, zorder=0)
+    ok = np.isfinite(raw)
+    if ok.any():
+        ax.plot(h[ok], raw[ok], ".", ms=1.5, alpha=0.4, color="tab:gray", label="raw (mean)")
+    okf = np.isfinite(filt)
+    if okf.any():
+        ax.plot(h[okf], filt[okf], "-", lw=1.2, color="tab:blue", label="filtered")
+    ax.axhline(low_pct, color="tab:orange", ls="--", lw=1, label=f"low {low_pct:g} %")
+    ax.axhline(high_pct, color="tab:purple", ls="--", lw=1, label=f"high {high_pct:g} %")
+    seen = set()
+    for x, level in events:
+        ax.axvline(
+            x, color=LEVEL_COLORS.get(level, "k"), lw=1.2, ls=":", label=None if level in seen else f"warning {level}"
+        )
+        seen.add(level)
+    y = filt[okf] if okf.any() else np.array([100.0])
+    ax.set_ylim(
+        max(50.0, min(low_pct - 3, float(np.nanmin(y)) - 1)), min(150.0, max(high_pct + 3, float(np.nanmax(y)) + 1))
+    )
+    ax.set_xlabel("operating hours (h, logged time of this machine)")
+    ax.set_ylabel("CM ratio (%)")
+    ax.set_title(title, fontsize=10)
+    ax.legend(loc="lower left", fontsize=7, ncol=4, markerscale=4)
+    fig.tight_layout()
+    out = _png(fig)
+    plt.close(fig)
+    return out
+
+
+def plot_fleet_overview(lines: list[tuple[str, Any, Any, str]], low_pct: float, high_pct: float) -> bytes:
+    """Every machine's filtered CM ratio over its operating hours, coloured by its state (``lines``:
+    machine, hours, ratio, state in ok/low/high/fault); PNG bytes."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(10, 3.6))
+    order = sorted(lines, key=lambda x: x[3] != "ok")  # machines needing a look drawn on top
+    for name, h, r, state in order:
+        h, r = np.asarray(h, dtype=float), np.asarray(r, dtype=float)
+        ok = np.isfinite(r)
+        if not ok.any():
+            continue
+        color = LEVEL_COLORS.get(state, "tab:gray") if state != "ok" else "0.6"
+        ax.plot(h[ok], r[ok], "-", lw=1.0 if state == "ok" else 1.6, color=color, alpha=0.8)
+        if state != "ok":
+            ax.annotate(
+                name,
+                (h[ok][-1], r[ok][-1]),
+                fontsize=7,
+                color=color,
+                xytext=(3, 0),
+                textcoords="offset points",
+                va="center",
+            )
+    ax.axhline(low_pct, color="tab:orange", ls="--", lw=1)
+    ax.axhline(high_pct, color="tab:purple", ls="--", lw=1)
+    ax.set_xlabel("operating hours (h)")
+    ax.set_ylabel("filtered CM ratio (%)")
+    ax.set_title("Fleet: filtered CM ratio of every machine (grey: ok; coloured: warning or fault)", fontsize=10)
+    fig.tight_layout()
+    out = _png(fig)
+    plt.close(fig)
+    return out

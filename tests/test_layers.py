@@ -34,7 +34,15 @@ LAYERS: list[tuple[str, ...]] = [
     ),
     ("cmcan.gap", "cmcan.config"),
     ("cmcan.assemble", "cmcan.preflight"),
-    ("cmcan.daemon", "cmcan.replay", "cmcan.columnar", "cmcan.demo", "cmcan.rebuild_default", "cmcan.uplink"),
+    (
+        "cmcan.daemon",
+        "cmcan.replay",
+        "cmcan.columnar",
+        "cmcan.demo",
+        "cmcan.rebuild_default",
+        "cmcan.uplink",
+        "cmcan.fleet",
+    ),
     ("cmcan.cli", "cmcan.__main__"),
 ]
 

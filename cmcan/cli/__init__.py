@@ -13,7 +13,7 @@ from cmcan import __version__
 from cmcan.cli.errors import EX_SOFTWARE, EX_USAGE, exit_code
 from cmcan.errors import CmcanError
 
-SUBCOMMANDS = ("simulate", "train", "evaluate", "score", "replay", "run", "check", "demo", "gap", "uplink")
+SUBCOMMANDS = ("simulate", "train", "evaluate", "score", "replay", "run", "check", "demo", "gap", "uplink", "fleet")
 
 
 class _Parser(argparse.ArgumentParser):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 
 from cmcan.cli.errors import ensure_writable
 from cmcan.dbc import load_dbc
@@ -23,10 +24,13 @@ def add_subparser(sub: argparse._SubParsersAction) -> None:
         help="simulate a drive scenario to CSV and candump log",
         description="Simulate a scenario (a YAML file, or the name of a shipped one: "
         + ", ".join(sorted(x.stem for x in scn.shipped_dir().glob("*.yaml")))
-        + ") and write the run as CSV and, with --candump, as a candump -l log.",
+        + ") and write the run as CSV and, with --candump, as a candump -l log. "
+        "`cmcan simulate fleet --machines N --hours H --out DIR` writes a whole fleet instead: logs of N "
+        "machines of a few drive sizes (each type with its configuration and model), a manifest and the "
+        "ground truth (docs/fleet.md).",
     )
-    p.add_argument("scenario", help="scenario YAML file or shipped scenario name")
-    p.add_argument("--out", required=True, help="run CSV to write")
+    p.add_argument("scenario", help="scenario YAML file or shipped scenario name, or 'fleet'")
+    p.add_argument("--out", required=True, help="run CSV to write (for fleet: the folder to write)")
     p.add_argument("--candump", help="also write the input frames as a candump -l log")
     p.add_argument("--channel", default="can0", help="channel name in the candump log (default can0)")
     p.add_argument("--dbc", help="DBC to encode frames with (default: the shipped dbc/cmcan.dbc)")
@@ -34,10 +38,25 @@ def add_subparser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--duration-h", type=float, help="override the scenario's duration (hours)")
     p.add_argument("--force", action="store_true", help="overwrite existing output files")
     p.add_argument("--json", action="store_true", help="print a summary as JSON")
+    f = p.add_argument_group("fleet (with SCENARIO = fleet)")
+    f.add_argument("--machines", type=int, help="number of machines")
+    f.add_argument("--hours", type=float, help="operating hours of each machine")
+    f.add_argument("--degrading-share", type=float, default=0.5, help="share of machines that degrade (0.5)")
+    f.add_argument("--log-hours", type=float, default=24.0, help="operating hours per log file (24)")
+    f.add_argument("--burst-s", type=float, default=10.0, help="time-lapse: seconds sampled per burst (10)")
+    f.add_argument("--every-min", type=float, default=20.0, help="time-lapse: one burst every N minutes (20)")
     p.set_defaults(func=run)
 
 
+FLEET_ONLY = ("machines", "hours")
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.scenario == "fleet":
+        return run_fleet(args)
+    used = [f"--{k.replace('_', '-')}" for k in FLEET_ONLY if getattr(args, k) is not None]
+    if used:
+        raise CmcanError(f"{', '.join(used)} only apply to `cmcan simulate fleet`", Kind.USAGE)
     out = ensure_writable(args.out, args.force)
     log = ensure_writable(args.candump, args.force) if args.candump else None
     path = scn.resolve(args.scenario)
@@ -79,5 +98,48 @@ def run(args: argparse.Namespace) -> int:
         print(
             f"{s.name}: {len(r)} samples ({summary['operating_h']:.2f} h) -> {out}"
             + (f", {n_frames} frames -> {log}" if log else "")
+        )
+    return 0
+
+
+def run_fleet(args: argparse.Namespace) -> int:
+    from cmcan.cli.errors import require_extra
+
+    require_extra("train", "onnx")
+    require_extra("train", "scipy")
+    from cmcan.fleet.simfleet import remove_outputs, write_fleet
+    from cmcan.sim.fleet import FleetSpec
+
+    if args.machines is None or args.hours is None:
+        raise CmcanError("simulate fleet needs --machines N and --hours H", Kind.USAGE)
+    for opt in ("candump", "dbc", "duration_h"):
+        if getattr(args, opt) is not None:
+            raise CmcanError(f"--{opt.replace('_', '-')} does not apply to `cmcan simulate fleet`", Kind.USAGE)
+    spec = FleetSpec(
+        machines=args.machines,
+        hours=args.hours,
+        seed=args.seed if args.seed is not None else 1,
+        degrading_share=args.degrading_share,
+        burst_s=args.burst_s,
+        every_min=args.every_min,
+        log_hours=args.log_hours,
+    )
+    try:
+        spec.check()
+    except ValueError as exc:
+        raise CmcanError(f"simulate fleet: {exc}", Kind.USAGE) from None
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise CmcanError(f"{out}: exists and is not a folder", Kind.CANT_CREATE)
+    if args.force and out.is_dir():
+        remove_outputs(out)
+    summary = write_fleet(spec, out, force=args.force, progress=None if args.json else print)
+    if args.json:
+        json.dump(summary, sys.stdout, indent=2)
+        sys.stdout.write("\n")
+    else:
+        print(
+            f"{out}: {summary['machines']} machines ({summary['degrading']} degrading), {summary['logs']} logs, "
+            f"{summary['frames'] / 1e6:.1f} M frames; manifest.csv and truth.json beside them"
         )
     return 0

@@ -1,0 +1,156 @@
+"""``cmcan fleet``: replay many machines' logs on Dask into a Parquet data set, report on it, query it."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from cmcan.cli.errors import EX_DATAERR, ensure_writable, require_extra
+from cmcan.errors import CmcanError, Kind
+
+
+def add_subparser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "fleet",
+        help="many machines' logs on Dask into a Parquet data set; report and SQL over it",
+        description="Fleet scale (needs the 'fleet' extra). See docs/fleet.md for the data set's tables.",
+    )
+    fsub = p.add_subparsers(dest="fleet_command", metavar="FLEET_COMMAND", required=True)
+
+    r = fsub.add_parser(
+        "replay",
+        help="replay and diagnose every log of the sources into the data set",
+        description="Replay every log of the SOURCES (folders, glob patterns, manifest CSVs with columns "
+        "machine,log[,config][,model], single logs) through the monitor on Dask and add the results to the "
+        "Parquet data set DATASET. A log already there with the same hashes is skipped; a log that fails "
+        "goes to the quarantine table. Exit status 0, or 65 when a log of this run was quarantined.",
+    )
+    r.add_argument("sources", nargs="+", help="folder, glob pattern ('quote/*/it.log'), manifest .csv or log")
+    r.add_argument("--out", required=True, help="data set folder (created if missing)")
+    r.add_argument("--config", help="configuration for logs without one in a manifest (default: the shipped one)")
+    r.add_argument("--model", help="model for logs without one in a manifest (default: the configuration's)")
+    r.add_argument("--rate-hz", type=float, default=1.0, help="timeline rows per second of log time (default 1)")
+    r.add_argument("--scheduler", help="address of an existing Dask scheduler (default: an embedded LocalCluster)")
+    r.add_argument("--workers", type=int, help="worker processes of the embedded cluster (default: one per core)")
+    r.add_argument("--timeout-s", type=float, default=3600.0, help="quarantine a log whose replay takes longer")
+    r.add_argument("--retry-quarantined", action="store_true", help="try again the logs quarantined before")
+    r.add_argument("--engine", default="columnar", choices=("columnar", "streaming"), help="replay engine")
+    r.add_argument("--json", action="store_true", help="print the run's summary as JSON")
+    r.add_argument("-q", "--quiet", action="store_true", help="no progress lines on stderr")
+    r.set_defaults(func=run_replay)
+
+    rep = fsub.add_parser("report", help="one self-contained HTML page over the data set")
+    rep.add_argument("dataset", help="data set folder")
+    rep.add_argument("--out", required=True, help="HTML file to write")
+    rep.add_argument("--trend-hours", type=float, default=50.0, help="rank by the ratio trend over these last hours")
+    rep.add_argument("--max-machines", type=int, default=50, help="draw at most this many machines (ranked)")
+    rep.add_argument("--force", action="store_true", help="overwrite an existing report")
+    rep.set_defaults(func=run_report)
+
+    q = fsub.add_parser(
+        "query",
+        help="SQL over the data set with DuckDB",
+        description="Run SQL on the views timeline, events, logs, quarantine and machine_logs (docs/fleet.md).",
+    )
+    q.add_argument("dataset", help="data set folder")
+    q.add_argument("sql", help='the statement, e.g. "SELECT machine, sum(warnings_low) FROM logs GROUP BY 1"')
+    q.add_argument("--format", choices=("table", "csv", "json"), default="table", help="output format")
+    q.add_argument("--max-rows", type=int, default=100, help="rows shown in table format")
+    q.set_defaults(func=run_query)
+
+
+def _check_options(args: argparse.Namespace) -> None:
+    if not (0 < args.rate_hz <= 100):
+        raise CmcanError(f"--rate-hz: expected a rate in (0, 100] Hz, got {args.rate_hz}", Kind.USAGE)
+    if args.workers is not None and args.workers < 1:
+        raise CmcanError(f"--workers: expected at least 1, got {args.workers}", Kind.USAGE)
+    if args.scheduler and args.workers:
+        raise CmcanError("--workers sizes the embedded cluster; it does not apply with --scheduler", Kind.USAGE)
+    if args.timeout_s <= 0:
+        raise CmcanError(f"--timeout-s: expected a positive number of seconds, got {args.timeout_s}", Kind.USAGE)
+    for opt in ("config", "model"):
+        v = getattr(args, opt)
+        if v and not Path(v).is_file():
+            raise CmcanError(f"--{opt} {v}: file not found", Kind.NO_INPUT)
+
+
+def run_replay(args: argparse.Namespace) -> int:
+    require_extra("fleet", "distributed")
+    require_extra("fleet", "pyarrow")
+    _check_options(args)
+    from cmcan.fleet.run import run_fleet
+    from cmcan.fleet.sources import discover
+    from cmcan.fleet.task import Options
+
+    jobs = discover(args.sources, args.config, args.model)
+    if not jobs:
+        raise CmcanError(f"no logs found in {', '.join(args.sources)}", Kind.NO_INPUT)
+    opt = Options(
+        dataset=args.out,
+        rate_hz=args.rate_hz,
+        timeout_s=args.timeout_s,
+        retry_quarantined=args.retry_quarantined,
+        engine=args.engine,
+    )
+    last = [0.0]
+
+    def progress(res: dict[str, Any], rep: Any) -> None:
+        if args.quiet:
+            return
+        n = sum(rep.counts.values())
+        if res["status"] == "quarantined":
+            print(f"quarantined {res['machine']} {res['log']}: {res.get('reason')}", file=sys.stderr)
+        now = time.monotonic()
+        if now - last[0] >= 2.0 or n == rep.logs:
+            last[0] = now
+            print(
+                f"[{n}/{rep.logs}] {rep.counts['done']} done, {rep.counts['skipped']} skipped, "
+                f"{rep.counts['quarantined']} quarantined, {rep.frames / 1e6:.1f} M frames",
+                file=sys.stderr,
+            )
+
+    try:
+        rep = run_fleet(jobs, opt, scheduler=args.scheduler, workers=args.workers, progress=progress)
+    except KeyboardInterrupt:
+        print(
+            "cmcan fleet replay: interrupted; the logs committed so far stay in the data set, "
+            "run the same command again to do the rest",
+            file=sys.stderr,
+        )
+        raise
+    d = rep.to_dict()
+    if args.json:
+        json.dump(d, sys.stdout, indent=2)
+        sys.stdout.write("\n")
+    else:
+        rate = f", {d['frames_per_s'] / 1e3:.0f} k frames/s" if d["frames_per_s"] else ""
+        print(
+            f"{args.out}: {d['logs']} logs: {d['done']} replayed, {d['skipped']} skipped (already there), "
+            f"{d['quarantined']} quarantined; {d['frames'] / 1e6:.2f} M frames in {d['seconds']:.1f} s "
+            f"on {d['workers']} workers{rate}"
+        )
+    return EX_DATAERR if d["quarantined"] else 0
+
+
+def run_report(args: argparse.Namespace) -> int:
+    require_extra("fleet", "duckdb")
+    require_extra("plot", "matplotlib")
+    out = ensure_writable(args.out, args.force)
+    from cmcan.fleet.report import write_report
+
+    n = write_report(args.dataset, out, args.trend_hours, args.max_machines)
+    print(f"{out}: fleet report ({n / 1e3:.0f} kB, self-contained)")
+    return 0
+
+
+def run_query(args: argparse.Namespace) -> int:
+    require_extra("fleet", "duckdb")
+    from cmcan.fleet.query import format_rows, run_sql
+
+    cols, rows = run_sql(args.dataset, args.sql)
+    sys.stdout.write(format_rows(cols, rows, args.format, args.max_rows))
+    return 0

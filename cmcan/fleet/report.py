@@ -1,0 +1,292 @@
+"""``cmcan fleet report``: one self-contained HTML page over the data set (no script, no link out).
+
+The fleet overview ranks the machines: those with a warning active at the end of their last log
+first, then those that had warnings, then faults, each group by the size of its CM ratio trend over
+its last ``trend_h`` operating hours. Each machine then gets its CM ratio over its operating hours
+with the thresholds and its warnings (the figures are PNG inlined as base64), and the quarantine
+list closes the page. A machine's operating hours are its logged hours: its logs in time order,
+each one's duration added (``machine_logs.offset_h``).
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import math
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from cmcan import __version__
+from cmcan.fleet.query import connect
+
+ATTENTION = {3: "warning now", 2: "had warnings", 1: "faults", 0: "ok"}
+MAX_POINTS_PER_MACHINE = 1500
+
+
+@dataclass
+class MachineRow:
+    machine: str
+    logs: int
+    hours: float
+    evaluated_h: float
+    warnings_low: int
+    warnings_high: int
+    faults: int
+    first_day: Any
+    last_day: Any
+    level_now: str
+    ratio_now: float | None
+    trend_pct_per_100h: float | None
+    first_warning_h: float | None
+    low_pct: float
+    high_pct: float
+
+    @property
+    def attention(self) -> int:
+        if self.level_now in ("low", "high"):
+            return 3
+        if self.warnings_low + self.warnings_high > 0:
+            return 2
+        if self.faults > 0 or self.level_now == "fault":
+            return 1
+        return 0
+
+    @property
+    def state(self) -> str:
+        if self.level_now in ("low", "high", "fault"):
+            return self.level_now
+        if self.warnings_low + self.warnings_high > 0:
+            return "low" if self.warnings_low >= self.warnings_high else "high"
+        return "fault" if self.faults else "ok"
+
+
+def _f(x: Any) -> float | None:
+    if x is None:
+        return None
+    x = float(x)
+    return None if math.isnan(x) else x
+
+
+_TIMELINE = """
+    SELECT t.machine, ml.offset_h + t.log_time_h AS op_h, t.cm_ratio_raw_pct AS raw, t.cm_ratio_filt_pct AS filt
+    FROM timeline t JOIN machine_logs ml ON t.machine = ml.machine AND t.log_hash = ml.log_hash
+    WHERE t.evaluated > 0"""
+
+
+def machines(con: Any, trend_h: float) -> list[MachineRow]:
+    rows = con.execute(
+        f"""
+        WITH tl AS ({_TIMELINE}),
+        span AS (SELECT machine, max(op_h) AS end_h FROM tl GROUP BY machine),
+        trend AS (
+            SELECT tl.machine, regr_slope(raw, op_h) * 100 AS trend,
+                   arg_max(filt, op_h) FILTER (WHERE filt IS NOT NULL AND NOT isnan(filt)) AS recent
+            FROM tl JOIN span USING (machine) WHERE op_h >= end_h - ? GROUP BY tl.machine),
+        warn AS (
+            SELECT e.machine, min(ml.offset_h + e.log_time_h) AS first_h
+            FROM events e JOIN machine_logs ml ON e.machine = ml.machine AND e.log_hash = ml.log_hash
+            WHERE e.to_level IN ('low', 'high') GROUP BY e.machine),
+        agg AS (
+            SELECT machine, count(*) AS logs, sum(duration_h) AS hours, sum(evaluated_h) AS evaluated_h,
+                   sum(warnings_low) AS wl, sum(warnings_high) AS wh, sum(faults) AS faults,
+                   min(day) AS first_day, max(day) AS last_day,
+                   arg_max(final_level, first_time_s) AS level_now,
+                   max(threshold_low_pct) AS low_pct, min(threshold_high_pct) AS high_pct
+            FROM machine_logs GROUP BY machine)
+        SELECT agg.machine, logs, hours, evaluated_h, wl, wh, faults, first_day, last_day, level_now,
+               trend.recent, trend.trend, warn.first_h, low_pct, high_pct
+        FROM agg LEFT JOIN trend USING (machine) LEFT JOIN warn USING (machine)
+        """,
+        [trend_h],
+    ).fetchall()
+    out = [
+        MachineRow(
+            r[0],
+            int(r[1]),
+            float(r[2]),
+            float(r[3]),
+            int(r[4]),
+            int(r[5]),
+            int(r[6]),
+            r[7],
+            r[8],
+            r[9],
+            _f(r[10]),
+            _f(r[11]),
+            _f(r[12]),
+            float(r[13]),
+            float(r[14]),
+        )
+        for r in rows
+    ]
+    return sorted(out, key=lambda m: (-m.attention, -abs(m.trend_pct_per_100h or 0.0), m.machine))
+
+
+def series(con: Any, width_h: float) -> dict[str, tuple[list[float], list[float], list[float]]]:
+    rows = con.execute(
+        f"""
+        WITH tl AS ({_TIMELINE})
+        SELECT machine, avg(op_h), avg(raw), avg(filt) FROM tl
+        GROUP BY machine, floor(op_h / ?) ORDER BY machine, 2""",
+        [width_h],
+    ).fetchall()
+    out: dict[str, tuple[list[float], list[float], list[float]]] = {}
+    for m, h, raw, filt in rows:
+        s = out.setdefault(m, ([], [], []))
+        s[0].append(h)
+        s[1].append(raw if raw is not None else math.nan)
+        s[2].append(filt if filt is not None else math.nan)
+    return out
+
+
+def events(con: Any) -> dict[str, list[tuple[float, str]]]:
+    rows = con.execute(
+        """SELECT e.machine, ml.offset_h + e.log_time_h, e.to_level
+           FROM events e JOIN machine_logs ml ON e.machine = ml.machine AND e.log_hash = ml.log_hash
+           WHERE e.to_level <> 'ok' ORDER BY 1, 2"""
+    ).fetchall()
+    out: dict[str, list[tuple[float, str]]] = {}
+    for m, h, level in rows:
+        out.setdefault(m, []).append((float(h), level))
+    return out
+
+
+CSS = """
+body{font-family:system-ui,-apple-system,"Segoe UI",Roboto,sans-serif;margin:24px;color:#222;max-width:1200px}
+h1{font-size:22px;margin-bottom:4px} h2{font-size:18px;margin-top:32px;border-bottom:1px solid #ddd}
+h3{font-size:15px;margin:20px 0 4px}
+.meta{color:#666;font-size:13px} .cards{display:flex;gap:12px;flex-wrap:wrap;margin:16px 0}
+.card{border:1px solid #ddd;border-radius:6px;padding:8px 14px;min-width:110px}
+.card b{display:block;font-size:20px} .card span{font-size:12px;color:#666}
+table{border-collapse:collapse;font-size:13px;margin:8px 0}
+th,td{border-bottom:1px solid #eee;padding:4px 8px;text-align:right} th{background:#f6f6f6}
+td.l,th.l{text-align:left} tr.a3 td{background:#fff1e0} tr.a2 td{background:#fffbe8} tr.a1 td{background:#fdeeee}
+.tag{border-radius:3px;padding:1px 6px;font-size:12px;color:#fff}
+.t-ok{background:#4a9a4a}.t-low{background:#e08a00}.t-high{background:#8a4fbf}.t-fault{background:#c83a3a}
+img{max-width:100%;height:auto;border:1px solid #eee}
+"""
+
+
+def _tag(level: str) -> str:
+    return f'<span class="tag t-{html.escape(level)}">{html.escape(level)}</span>'
+
+
+def _num(x: float | None, fmt: str = "{:.2f}") -> str:
+    return "&ndash;" if x is None else fmt.format(x)
+
+
+def _img(png: bytes, alt: str) -> str:
+    return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{base64.b64encode(png).decode()}">'
+
+
+def build(root: str | Path, trend_h: float = 50.0, max_machines: int = 50) -> str:
+    """The report's HTML."""
+    from cmcan.plots import plot_fleet_machine, plot_fleet_overview
+
+    con = connect(root)
+    ms = machines(con, trend_h)
+    total_h = max((m.hours for m in ms), default=1.0)
+    ser = series(con, max(total_h / MAX_POINTS_PER_MACHINE, 1.0 / 3600.0))
+    evs = events(con)
+    starts = {
+        m: [
+            float(h)
+            for (h,) in con.execute(
+                "SELECT offset_h FROM machine_logs WHERE machine = ? ORDER BY offset_h", [m]
+            ).fetchall()
+        ]
+        for m in ser
+    }
+    quarantine = con.execute(
+        "SELECT machine, log, stage, reason, quarantined_at FROM quarantine ORDER BY machine, log"
+    ).fetchall()
+    tot = con.execute(
+        "SELECT count(*), coalesce(sum(duration_h), 0), coalesce(sum(evaluated_h), 0), "
+        "coalesce(sum(count_frames_total), 0), string_agg(DISTINCT cmcan_version, ', ') FROM logs"
+    ).fetchall()[0]
+    low = min((m.low_pct for m in ms), default=98.0)
+    high = max((m.high_pct for m in ms), default=102.0)
+
+    parts = [
+        "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>",
+        "<meta name='viewport' content='width=device-width, initial-scale=1'>",
+        f"<title>cmcan fleet report: {html.escape(Path(root).name)}</title><style>{CSS}</style></head><body>",
+        "<h1>Fleet condition report</h1>",
+        f"<div class='meta'>data set {html.escape(os.path.abspath(root))} &middot; written by cmcan {__version__} "
+        f"at {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())} &middot; results from cmcan "
+        f"{html.escape(tot[4] or '-')}</div>",
+        "<div class='cards'>",
+    ]
+    need = sum(1 for m in ms if m.attention >= 2)
+    for value, label in (
+        (len(ms), "machines"),
+        (need, "need a look"),
+        (tot[0], "logs"),
+        (f"{tot[1]:.0f} h", "logged"),
+        (f"{tot[2]:.1f} h", "evaluated"),
+        (f"{tot[3] / 1e6:.1f} M", "frames"),
+        (len(quarantine), "quarantined"),
+    ):
+        parts.append(f"<div class='card'><b>{value}</b><span>{label}</span></div>")
+    parts.append("</div><h2 id='overview'>Fleet overview</h2>")
+    lines = [(m.machine, *ser.get(m.machine, ([], [], []))[::2], m.state) for m in ms]
+    if ms:
+        parts.append(_img(plot_fleet_overview(lines, low, high), "filtered CM ratio of every machine"))
+    parts.append(
+        "<table id='ranking'><tr><th>#</th><th class='l'>machine</th><th class='l'>state</th><th class='l'>now</th>"
+        f"<th>trend (%/100 h, last {trend_h:g} h)</th><th>filtered ratio now (%)</th><th>low</th><th>high</th>"
+        "<th>faults</th><th>first warning (h)</th><th>logs</th><th>logged (h)</th><th>evaluated (h)</th>"
+        "<th class='l'>days</th></tr>"
+    )
+    for i, m in enumerate(ms, 1):
+        parts.append(
+            f"<tr class='a{m.attention}'><td>{i}</td><td class='l'><a href='#m-{html.escape(m.machine)}'>"
+            f"{html.escape(m.machine)}</a></td><td class='l'>{ATTENTION[m.attention]}</td>"
+            f"<td class='l'>{_tag(m.level_now)}</td><td>{_num(m.trend_pct_per_100h)}</td><td>{_num(m.ratio_now)}</td>"
+            f"<td>{m.warnings_low}</td><td>{m.warnings_high}</td><td>{m.faults}</td>"
+            f"<td>{_num(m.first_warning_h, '{:.1f}')}</td><td>{m.logs}</td><td>{m.hours:.1f}</td>"
+            f"<td>{m.evaluated_h:.2f}</td><td class='l'>{m.first_day} &ndash; {m.last_day}</td></tr>"
+        )
+    parts.append("</table>")
+    parts.append("<h2 id='machines'>Machines</h2>")
+    for m in ms[:max_machines]:
+        h, raw, filt = ser.get(m.machine, ([], [], []))
+        title = (
+            f"{m.machine}: CM ratio over operating hours ({m.warnings_low} low, {m.warnings_high} high warnings, "
+            f"{m.faults} faults)"
+        )
+        parts.append(f"<h3 id='m-{html.escape(m.machine)}'>{html.escape(m.machine)} {_tag(m.state)}</h3>")
+        parts.append(
+            _img(
+                plot_fleet_machine(
+                    h, raw, filt, m.low_pct, m.high_pct, evs.get(m.machine, []), starts.get(m.machine, []), title
+                ),
+                title,
+            )
+        )
+    if len(ms) > max_machines:
+        parts.append(f"<p class='meta'>{len(ms) - max_machines} more machines in the table above (not drawn).</p>")
+    parts.append(f"<h2 id='quarantine'>Quarantine ({len(quarantine)})</h2>")
+    if quarantine:
+        parts.append(
+            "<table><tr><th class='l'>machine</th><th class='l'>log</th><th class='l'>stage</th>"
+            "<th class='l'>reason</th><th class='l'>when</th></tr>"
+        )
+        for q in quarantine:
+            parts.append("<tr>" + "".join(f"<td class='l'>{html.escape(str(v))}</td>" for v in q) + "</tr>")
+        parts.append("</table>")
+    else:
+        parts.append("<p>No log failed.</p>")
+    parts.append("</body></html>\n")
+    return "\n".join(parts)
+
+
+def write_report(root: str | Path, out: Path, trend_h: float = 50.0, max_machines: int = 50) -> int:
+    text = build(root, trend_h, max_machines)
+    tmp = out.with_name(f".{out.name}.tmp")
+    tmp.write_text(text, encoding="utf-8")
+    os.replace(tmp, out)
+    return len(text)
