@@ -33,7 +33,7 @@ from cmcan.monitor.core import _HIGH, _LOW, _WINDOW, Monitor
 from cmcan.monitor.gating import EVALUATED, Gate, gate_columns
 from cmcan.monitor.payloads import OutputMessage
 from cmcan.monitor.tick import LEVEL_NAMES, Tick
-from cmcan.monitor.warnings import Level, Reason
+from cmcan.monitor.warnings import Level, Reason, add_repeat
 from cmcan.monitor.windows import TIME_EPS_S, Affine, RoleWindow, mean_std
 from cmcan.replay import ReplaySummary, Sink, TickColumns, summarize
 from cmcan.roles import DP, MODEL_INPUTS
@@ -80,7 +80,7 @@ class _Engine:
         self.want_frames = any(s.wants_frames for s in sinks)
         monitor.keep_timeline = self.want_ticks
         self.n_frames_out = 0
-        self.pending_frames: list[Frame] = []
+        self.pending_frames: list[FrameColumns] = []  # in order: scalar pieces and stretches
         # per input message: (role or None, kind) of each decoded value, as the core routes them
         self.targets: dict[int, list[tuple[str | None, int]]] = {}
         roles_of = {id(w): r for r, w in monitor.windows.items()}
@@ -93,7 +93,7 @@ class _Engine:
     def scalar_out(self, frames: list[Frame]) -> None:
         """Frames (and ticks on the monitor's timeline) from the streaming path, in order."""
         if self.want_frames and frames:
-            self.pending_frames.extend(frames)
+            self.pending_frames.append(FrameColumns.from_frames(frames))
         self.drain_timeline()
 
     def drain_timeline(self) -> None:
@@ -111,10 +111,11 @@ class _Engine:
 
     def _push_frames(self) -> None:
         if self.pending_frames:
-            self.n_frames_out += len(self.pending_frames)
-            for s in self.sinks:
-                if s.wants_frames:
-                    s.frames(self.pending_frames)
+            for piece in self.pending_frames:
+                self.n_frames_out += len(piece)
+                for s in self.sinks:
+                    if s.wants_frames:
+                        s.frames(piece)
             self.pending_frames = []
 
     def drain(self) -> None:
@@ -395,39 +396,58 @@ class _Engine:
         totals = m.totals
         n = len(ks)
         valid = filt_n >= p.filter_min_samples
-        level = np.empty(n, dtype=np.int8)
-        reason = np.empty(n, dtype=np.int8)
-        below = np.empty(n)
-        wcount = np.empty(n, dtype=np.int64)
         step = machine.step
         record = m._record
         t_list = t_k.tolist()
-        g_list = [Gate(g) for g in gates.tolist()]
-        arg = np.where(valid & evaluated, filt, np.nan).tolist()
-        ok_level, low, high = Level.OK, Level.LOW, Level.HIGH
-        none = Reason.NONE
-        for i in range(n):
+        g_list = gates.tolist()  # the machine compares gates as ints (they are IntEnum values)
+        ratio_arg = np.where(valid & evaluated, filt, np.nan)
+        arg = ratio_arg.tolist()
+        cond = np.zeros(n, dtype=np.int8)
+        creason = np.zeros(n, dtype=np.int8)
+        fault = np.zeros(n, dtype=np.int8)
+        below = np.zeros(n, dtype=np.float64)
+        wcount = np.zeros(n, dtype=np.int64)
+        # runs of quiet ticks in the ok state are skipped over in one step; the rest go tick by tick
+        quiet = machine.quiet(gates, ratio_arg)
+        quiet_l = quiet.tolist()
+        loud = np.append(np.flatnonzero(~quiet), n)
+        wc, fc = totals.warning_count, totals.fault_count
+        low, high = int(Level.LOW), int(Level.HIGH)
+        i = 0
+        while i < n:
+            if quiet_l[i] and machine.can_skip():
+                j = int(loud[np.searchsorted(loud, i)])
+                below[i:j] = machine.skip(gates[i:j], ratio_arg[i:j], P)
+                creason[i:j] = machine.condition_reason
+                wcount[i:j] = wc
+                i = j
+                continue
             a = arg[i]
-            cond_before, fault_before = machine.condition, machine.fault_reason
-            for tr in step(t_list[i], P, g_list[i], None if a != a else a):
+            cb, fb = machine.condition, machine.fault_reason
+            trs = step(t_list[i], P, g_list[i], None if a != a else a)
+            for tr in trs:
                 record(tr.t_s, tr.level_from, tr.level_to, tr.reason, tr.ratio_pct)
-            cond = machine.condition
-            if cond != cond_before and cond in (low, high):
-                totals.warning_count += 1
-            if fault_before == none and machine.fault_reason != none:
-                totals.fault_count += 1
-            level[i] = machine.level
-            reason[i] = machine.reason
+            c, f = machine.condition, machine.fault_reason
+            if c != cb and c in (low, high):
+                wc += 1
+            if fb == 0 and f != 0:
+                fc += 1
+            cond[i] = c
+            creason[i] = machine.condition_reason
+            fault[i] = f
             below[i] = machine.time_below_s
-            wcount[i] = totals.warning_count
-        _ = ok_level
+            wcount[i] = wc
+            i += 1
+        totals.warning_count, totals.fault_count = wc, fc
+        level = np.where(fault != 0, np.int8(Level.FAULT), cond).astype(np.int8)
+        reason = np.where(fault != 0, fault, creason).astype(np.int8)
         totals.condition = LEVEL_NAMES[machine.condition]
         # time in each level and evaluated time: the same float additions, in the same order
         for lv in Level:
             cnt = int((level == lv).sum())
             if cnt:
-                totals.time_in_level_s[LEVEL_NAMES[lv]] = _add_repeat(totals.time_in_level_s[LEVEL_NAMES[lv]], P, cnt)
-        totals.evaluated_s = _add_repeat(totals.evaluated_s, P, int(evaluated.sum()))
+                totals.time_in_level_s[LEVEL_NAMES[lv]] = add_repeat(totals.time_in_level_s[LEVEL_NAMES[lv]], P, cnt)
+        totals.evaluated_s = add_repeat(totals.evaluated_s, P, int(evaluated.sum()))
         m.counters["ticks"] += n
         ratio_raw = np.where(evaluated, raw, 0.0)
         cols = TickColumns(
@@ -459,15 +479,14 @@ class _Engine:
             reason=Reason(int(reason[last])),
             time_below_s=float(below[last]),
         )
-        frames = self._frames(ks, cols, wcount) if self.want_frames else []
         if self.want_frames:
-            self.pending_frames.extend(frames)
+            self.pending_frames.append(self._frames(ks, cols, wcount))
         if self.want_ticks:
             self._push_ticks(cols)
         elif self.want_frames:
             self._push_frames()
 
-    def _frames(self, ks: NDArray[np.int64], c: TickColumns, wcount: NDArray[np.int64]) -> list[Frame]:
+    def _frames(self, ks: NDArray[np.int64], c: TickColumns, wcount: NDArray[np.int64]) -> FrameColumns:
         """The CM frames of the ticks, as :class:`~cmcan.monitor.payloads.Payloads` builds them."""
         pl = self.m.payloads
         o = pl.outputs
@@ -523,42 +542,43 @@ class _Engine:
                 "warning_count": (wcount % 65536).astype(np.float64),
             },
         )
-        # interleave: per tick ratio, speed, warning
-        order_t, order_kind, order_row = [], [], []
-        for kind, (rows, _payloads) in enumerate((enc["ratio"], enc["speed"], enc["warning"])):
-            order_t.append(rows)
-            order_kind.append(np.full(len(rows), kind))
-            order_row.append(np.arange(len(rows)))
-        tick_of = np.concatenate(order_t)
-        kind_of = np.concatenate(order_kind)
-        row_of = np.concatenate(order_row)
-        order = np.lexsort((kind_of, tick_of))
+        # interleave: per tick ratio, quantity, warning
         msgs = (o.ratio, o.quantity, o.warning)
-        payloads = [enc["ratio"][1], enc["speed"][1], enc["warning"][1]]
-        ch = o.channel
-        t_list = c.t_s.tolist()
-        return [
-            Frame(t_list[ti], ch, msgs[k].frame_id, msgs[k].extended, False, False, False, payloads[k][r])
-            for ti, k, r in zip(tick_of[order].tolist(), kind_of[order].tolist(), row_of[order].tolist(), strict=True)
-        ]
+        parts = (enc["ratio"], enc["speed"], enc["warning"])
+        tick_of = np.concatenate([rows for rows, _ in parts])
+        kind_of = np.concatenate([np.full(len(rows), k, dtype=np.int64) for k, (rows, _) in enumerate(parts)])
+        data = np.zeros((len(tick_of), 8), dtype=np.uint8)
+        at = 0
+        for rows, payload in parts:
+            data[at : at + len(rows), : payload.shape[1]] = payload[:, :8]
+            at += len(rows)
+        order = np.lexsort((kind_of, tick_of))
+        tick_of, kind_of, data = tick_of[order], kind_of[order], data[order]
+        ids = np.array([m.frame_id for m in msgs], dtype=np.uint32)[kind_of]
+        ext = np.array([m.extended for m in msgs], dtype=bool)[kind_of]
+        dlc = np.array([m.length for m in msgs], dtype=np.int16)[kind_of]
+        no = np.zeros(len(tick_of), dtype=bool)
+        return FrameColumns(
+            timestamp_s=c.t_s[tick_of],
+            channel=np.zeros(len(tick_of), dtype=np.int16),
+            channel_names=(o.channel,),
+            arbitration_id=ids,
+            extended=ext,
+            remote=no,
+            error=no,
+            fd=no,
+            dlc=dlc,
+            data=data,
+        )
 
 
 def _encode(
     msg: OutputMessage, rows: NDArray[np.int64], values: dict[str, NDArray[np.float64]]
-) -> tuple[NDArray[np.int64], list[bytes]]:
-    """Payloads of ``msg`` for the tick rows, as its per-frame encoder gives them."""
-    if not len(rows):
-        return rows, []
-    data = codec.encode_all(msg.layouts, msg.size, msg.length, {k: v[rows] for k, v in values.items()})
-    return rows, [r.tobytes() for r in data]
-
-
-def _add_repeat(start: float, step: float, times: int) -> float:
-    """``start`` plus ``step``, ``times`` times, one addition after the other (as the core does)."""
-    acc = np.empty(times + 1)
-    acc[0] = start
-    acc[1:] = step
-    return float(np.cumsum(acc)[-1])
+) -> tuple[NDArray[np.int64], NDArray[np.uint8]]:
+    """Payloads of ``msg`` for the tick rows (n, length), as its per-frame encoder gives them."""
+    if msg.length > 8:
+        raise ValueError("an output message longer than 8 bytes: the columnar replay writes classic frames")
+    return rows, codec.encode_all(msg.layouts, msg.size, msg.length, {k: v[rows] for k, v in values.items()})
 
 
 def _filter(

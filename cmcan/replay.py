@@ -18,7 +18,8 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from cmcan.frame import Frame
+from cmcan.frame import Frame, FrameColumns
+from cmcan.io import textcols as tc
 from cmcan.monitor.core import Monitor
 from cmcan.monitor.gating import Gate
 from cmcan.monitor.tick import LEVEL_NAMES, Tick
@@ -98,7 +99,7 @@ class Sink(Protocol):
 
     def start(self, t0: float) -> None: ...
     def ticks(self, chunk: TickColumns) -> None: ...
-    def frames(self, frames: Sequence[Frame]) -> None: ...
+    def frames(self, frames: FrameColumns) -> None: ...
     def close(self) -> None: ...
     def abort(self) -> None: ...
 
@@ -121,7 +122,7 @@ class _FileSink:
     def ticks(self, chunk: TickColumns) -> None:
         pass
 
-    def frames(self, frames: Sequence[Frame]) -> None:
+    def frames(self, frames: FrameColumns) -> None:
         pass
 
     def close(self) -> None:
@@ -149,35 +150,46 @@ class TimelineWriter(_FileSink):
         self.decimals = 2 if quantity == MOTOR_SPEED else 4  # 0.01 rpm; flows of small machines need more
 
     def ticks(self, c: TickColumns) -> None:
-        gate = [_GATE_NAMES[g] for g in c.gate.tolist()]
-        level = [_LEVEL_NAMES[v] for v in c.level.tolist()]
-        reason = [_REASON_NAMES[r] for r in c.reason.tolist()]
-        t0 = self.t0
+        # The columns formatted with arrays, byte for byte what f"{x:.3f}" and friends write.
+        if not len(c):
+            return
         d = self.decimals
-        rows = [
-            f"{t:.3f},{(t - t0) / 3600.0:.6f},{g},{ms:.{d}f},{mp:.{d}f},{mw:.{d}f},{rr:.3f},{rf:.3f},{int(fv)},"
-            f"{lk:.3f},{lv},{rs},{tb:.1f}\r\n"
-            for t, g, ms, mp, mw, rr, rf, fv, lk, lv, rs, tb in zip(
-                c.t_s.tolist(),
-                gate,
-                c.measured.tolist(),
-                c.predicted.tolist(),
-                c.whitebox.tolist(),
-                c.ratio_raw_pct.tolist(),
-                c.ratio_filt_pct.tolist(),
-                c.filt_valid.tolist(),
-                c.extra_leak_lpm.tolist(),
-                level,
-                reason,
-                c.time_below_s.tolist(),
-                strict=True,
-            )
-        ]
-        self.f.writelines(rows)
+        comma = b","
+        line = tc.rows(
+            [
+                tc.fixed(c.t_s, 3),
+                comma,
+                tc.fixed((c.t_s - self.t0) / 3600.0, 6),
+                comma,
+                tc.Column.of_names(c.gate, _GATE_NAMES),
+                comma,
+                tc.fixed(c.measured, d),
+                comma,
+                tc.fixed(c.predicted, d),
+                comma,
+                tc.fixed(c.whitebox, d),
+                comma,
+                tc.fixed(c.ratio_raw_pct, 3),
+                comma,
+                tc.fixed(c.ratio_filt_pct, 3),
+                comma,
+                tc.integers(c.filt_valid.astype(np.int64)),
+                comma,
+                tc.fixed(c.extra_leak_lpm, 3),
+                comma,
+                tc.Column.of_names(c.level, _LEVEL_NAMES),
+                comma,
+                tc.Column.of_names(c.reason, _REASON_NAMES),
+                comma,
+                tc.fixed(c.time_below_s, 1),
+            ],
+            end=b"\r\n",
+        )
+        self.f.write(line.decode("ascii"))
 
 
 class EmitWriter(_FileSink):
-    """The emitted frames as a ``candump -l`` log."""
+    """The emitted frames as a ``candump -l`` log (written with arrays, as ``candump_line`` writes)."""
 
     wants_frames = True
 
@@ -185,10 +197,10 @@ class EmitWriter(_FileSink):
         super().__init__(path)
         self.channel = channel
 
-    def frames(self, frames: Sequence[Frame]) -> None:
-        from cmcan.io.candump import candump_line
+    def frames(self, frames: FrameColumns) -> None:
+        from cmcan.io.candump import candump_lines
 
-        self.f.writelines(candump_line(f, self.channel) for f in frames)
+        self.f.write(candump_lines(frames, self.channel))
 
 
 @dataclass
@@ -207,7 +219,7 @@ class TimelineCollector:
     def ticks(self, chunk: TickColumns) -> None:
         self.chunks.append(chunk)
 
-    def frames(self, frames: Sequence[Frame]) -> None:
+    def frames(self, frames: FrameColumns) -> None:
         pass
 
     def close(self) -> None:
@@ -236,8 +248,8 @@ class FrameCollector:
     def ticks(self, chunk: TickColumns) -> None:
         pass
 
-    def frames(self, frames: Sequence[Frame]) -> None:
-        self.frames_out.extend(frames)
+    def frames(self, frames: FrameColumns) -> None:
+        self.frames_out.extend(frames.frames())
 
     def close(self) -> None:
         pass
@@ -277,8 +289,10 @@ def replay(monitor: Monitor, frames_in: Iterable[Frame], sinks: Sequence[Sink] =
                 s.ticks(chunk)
         if out:
             n_out += len(out)
+            cols = FrameColumns.from_frames(out)
             for s in sinks:
-                s.frames(out)
+                if s.wants_frames:
+                    s.frames(cols)
             out.clear()
 
     try:

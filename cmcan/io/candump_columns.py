@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 from cmcan.frame import FrameColumns
 from cmcan.io.candump import CAN_ERR_BUSERROR, CAN_ERR_FLAG, parse_candump_line
 
-CHUNK_BYTES = 8 << 20
+CHUNK_BYTES = 2 << 20
 _NIBBLE = np.full(256, 255, dtype=np.uint8)
 for _i, _c in enumerate(b"0123456789ABCDEF"):
     _NIBBLE[_c] = _i
@@ -81,15 +81,18 @@ def parse_chunk(text: bytes, path: Path, line0: int, channels: dict[bytes, int])
     """Frames of the complete lines in ``text`` (which ends with a newline). ``channels`` maps
     channel names to codes across chunks; ``line0`` is the number of the chunk's first line."""
     buf = np.frombuffer(text, dtype=np.uint8)
-    ends = np.flatnonzero(buf == 10)
-    n_lines = len(ends)
-    out = _Out(n_lines)
+    width = text.find(b"\n") + 1
+    n_lines = len(buf) // width
     slow: list[int] = []
-    width = int(ends[0]) + 1
-    if len(buf) == width * n_lines and (buf[width - 1 :: width] == 10).all():
+    if len(buf) == width * n_lines and (buf[width - 1 :: width] == 10).all() and np.count_nonzero(buf == 10) == n_lines:
         # every line equally long (the usual candump log): the chunk is a matrix as it is
+        ends = np.arange(width - 1, len(buf), width)
+        out = _Out(n_lines)
         slow += _parse_group(buf.reshape(n_lines, width)[:, :-1], np.arange(n_lines), out, channels)
     else:
+        ends = np.flatnonzero(buf == 10)
+        n_lines = len(ends)
+        out = _Out(n_lines)
         starts = np.empty_like(ends)
         starts[0] = 0
         starts[1:] = ends[:-1] + 1
@@ -148,11 +151,11 @@ class _Out:
             self.data[i, : len(f.data)] = np.frombuffer(f.data, dtype=np.uint8)
 
     def columns(self, channels: dict[bytes, int]) -> FrameColumns:
-        keep = self.present
+        keep = slice(None) if self.present.all() else self.present
         names = tuple(k.decode("ascii", errors="replace") for k in sorted(channels, key=channels.__getitem__))
         long = {}
         if self.long:
-            pos = np.cumsum(keep) - 1
+            pos = np.cumsum(self.present) - 1
             long = {int(pos[i]): v for i, v in self.long.items()}
         return FrameColumns(
             timestamp_s=self.t[keep],
@@ -209,14 +212,48 @@ def _parse_group(rows: NDArray[np.uint8], idx: NDArray[np.int64], out: _Out, cha
             todo = todo[1:]
             continue
         c, a, b, h = shape
-        r = rows[todo]
+        r = rows if len(todo) == len(rows) else rows[todo]  # (no copy on the first, usual, pass)
         match = (r[:, c] == ord(")")) & (r[:, a] == ord(" ")) & (r[:, b] == ord(" ")) & (r[:, h] == ord("#"))
-        match &= (r[:, a + 1 : b] != ord(" ")).all(axis=1)
-        sel = todo[match]
+        sel = todo if match.all() else todo[match]
         slow += _parse_shape(rows[sel], idx[sel], shape, out, channels)
         todo = todo[~match]
     slow += idx[todo].tolist()
     return slow
+
+
+# -- eight characters at a time (SWAR: one uint64 per row holds eight ASCII characters) ---------------
+
+_U = np.uint64
+
+
+def _u64(block: NDArray[np.uint8]) -> NDArray[np.uint64]:
+    """Rows of eight bytes as one little-endian uint64 each (first character in the lowest byte)."""
+    if block.strides[1] == 1:  # a (possibly unaligned) view of each row's eight bytes, then one copy
+        return block.view("<u8")[:, 0].copy()
+    return np.ascontiguousarray(block).view("<u8").ravel()
+
+
+def _digits8(x: NDArray[np.uint64]) -> tuple[NDArray[np.uint64], NDArray[np.bool_]]:
+    """Eight ASCII decimal digits -> their value; and whether all eight were digits."""
+    ok = ((x + _U(0x4646464646464646)) | (x - _U(0x3030303030303030))) & _U(0x8080808080808080) == 0
+    v = x - _U(0x3030303030303030)
+    v = ((v * _U(10)) + (v >> _U(8))) & _U(0x00FF00FF00FF00FF)
+    v = ((v * _U(100)) + (v >> _U(16))) & _U(0x0000FFFF0000FFFF)
+    v = ((v * _U(10000)) + (v >> _U(32))) & _U(0xFFFFFFFF)
+    return v, ok
+
+
+def _hex8(x: NDArray[np.uint64]) -> tuple[NDArray[np.uint64], NDArray[np.bool_]]:
+    """Eight ASCII hex digits (upper case, as candump writes them) -> four bytes (first pair in the
+    lowest byte); and whether they were exactly that (anything else takes the slow path)."""
+    n = (x & _U(0x0F0F0F0F0F0F0F0F)) + _U(9) * ((x >> _U(6)) & _U(0x0101010101010101))
+    # written back as upper-case hex, they must be the characters we read
+    back = n + _U(0x3030303030303030) + _U(7) * (((n + _U(0x0606060606060606)) >> _U(4)) & _U(0x0101010101010101))
+    ok = (back == x) & ((n & _U(0xF0F0F0F0F0F0F0F0)) == 0)
+    v = ((n << _U(4)) | (n >> _U(8))) & _U(0x00FF00FF00FF00FF)
+    v = (v | (v >> _U(8))) & _U(0x0000FFFF0000FFFF)
+    v = (v | (v >> _U(16))) & _U(0xFFFFFFFF)
+    return v, ok
 
 
 def _parse_shape(
@@ -237,6 +274,16 @@ def _parse_shape(
     t = np.zeros(n)
     if d < 0 or c - 2 > 19:  # no point or more digits than uint64 holds: the slow path decides
         good[:] = False
+    elif d == 10 and n_frac == 6:  # candump's own (SSSSSSSSSS.ffffff): two groups of eight digits
+        hi, ok_hi = _digits8(_u64(rows[:, 1:9]))
+        # the last two second digits and the six fraction digits: "S.ffffff" read as one word, the
+        # point checked, then replaced by the digit before it (the word shifted up one byte)
+        w = _u64(rows[:, 10:18])
+        good &= (w >> _U(8)) & _U(0xFF) == _U(ord("."))
+        lo, ok_lo = _digits8((w & _U(0xFFFFFFFFFFFF0000)) | ((w & _U(0xFF)) << _U(8)) | rows[:, 9].astype(_U))
+        num = hi * _U(100_000_000) + lo
+        good &= ok_hi & ok_lo & (num < _U(1 << 53))
+        t = num.astype(np.float64) / 1e6
     else:
         good &= rows[:, 1 + d] == ord(".")
         # digit columns, transposed to contiguous rows: a column of a row-major block is slow to walk
@@ -250,14 +297,23 @@ def _parse_shape(
         good &= num < np.uint64(1 << 53)  # below 2^53 the integer is exact as a float
         t = num.astype(np.float64) / float(10**n_frac)
     # identifier: 3 or 8 hex digits
-    nib = _NIBBLE[np.ascontiguousarray(rows[:, b + 1 : h].T)]
-    good &= nib.max(axis=0) != 255
-    cid = np.zeros(n, dtype=np.uint64)
-    four = np.uint64(4)
-    for col in nib:
-        cid <<= four
-        cid |= col
-    extended = h - b - 1 > 3
+    id_len = h - b - 1
+    if h >= 8:
+        # the eight characters before '#' as one word, those left of the identifier made '0'
+        x = _u64(rows[:, h - 8 : h])
+        keep = _U((1 << 64) - (1 << (8 * (8 - id_len))))
+        hexw, ok_id = _hex8((x & keep) | (_U(0x3030303030303030) & ~keep))
+        good &= ok_id
+        cid = hexw.astype("<u4").byteswap().astype(np.uint64)  # first pair in the highest byte
+    else:
+        nib = _NIBBLE[np.ascontiguousarray(rows[:, b + 1 : h].T)]
+        good &= nib.max(axis=0) != 255
+        cid = np.zeros(n, dtype=np.uint64)
+        four = np.uint64(4)
+        for col in nib:
+            cid <<= four
+            cid |= col
+    extended = id_len > 3
     # payload: after '#', hex pairs to the end of the line; '##f' is CAN FD, 'R' remote
     tail = rows[:, h + 1 :]
     n_tail = width - h - 1
@@ -269,6 +325,13 @@ def _parse_shape(
     data = np.zeros((len(rows), 8), dtype=np.uint8)
     dlc = np.zeros(len(rows), dtype=np.int16)
     long_rows: dict[int, bytes] = {}
+    if n_tail == 16 and classic.all():  # eight data bytes on every line: two groups of eight hex digits
+        lo, ok_lo = _hex8(_u64(tail[:, :8]))
+        hi, ok_hi = _hex8(_u64(tail[:, 8:]))
+        good &= ok_lo & ok_hi
+        data = (lo | (hi << _U(32))).astype("<u8").view(np.uint8).reshape(n, 8)
+        dlc[:] = 8
+        classic = np.zeros(n, dtype=bool)  # done
     for kind_mask, skip in ((classic, 0), (fd, 2)):
         if not kind_mask.any():
             continue
@@ -305,7 +368,28 @@ def _parse_shape(
         ch_inv = ch_inv.ravel()
         names = [bytes(r) for r in uniq_rows]
     codes = np.array([_code(channels, nm) for nm in names], dtype=np.int16)[ch_inv]
+    # a name with white space in it is not one field: such lines are for the reader of record
+    spaced = np.array([any(ch in nm for ch in (b" ", b"\t", b"\r")) for nm in names])
+    if spaced.any():
+        good &= ~spaced[ch_inv]
 
+    if good.all() and not (err.any() or remote.any() or fd.any() or long_rows):
+        # the usual chunk: every line a classic data frame
+        cid32 = (cid & np.uint64(0x1FFFFFFF)).astype(np.uint32)
+        if len(idx) == len(out.present):  # the whole chunk (the lines in order): the arrays as they are
+            out.present[:] = True
+            out.t, out.ch, out.cid, out.dlc, out.data = t, codes, cid32, dlc, data
+            out.ext[:] = extended
+            return []
+        lines = idx
+        out.present[lines] = True
+        out.t[lines] = t
+        out.ch[lines] = codes
+        out.cid[lines] = cid32
+        out.ext[lines] = extended
+        out.dlc[lines] = dlc
+        out.data[lines] = data
+        return []
     g = np.flatnonzero(good)
     lines = idx[g]
     out.present[lines] = True

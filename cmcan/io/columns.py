@@ -21,12 +21,15 @@ def column_chunks(
     python-can's readers a chunk at a time. ``progress(bytes_read, frames)`` after each chunk."""
     from cmcan.io.candump import iter_frames
     from cmcan.io.candump_columns import CHUNK_BYTES, iter_candump_columns
+    from cmcan.io.readahead import read_ahead
 
     p = Path(path)
     frames = 0
     if p.name.endswith((".log", ".log.gz")):
         done = [0]
-        for cols in iter_candump_columns(p, chunk_bytes or CHUNK_BYTES, lambda b: done.__setitem__(0, b)):
+        # the next chunk is parsed in a thread while this one is replayed
+        chunks = iter_candump_columns(p, chunk_bytes or CHUNK_BYTES, lambda b: done.__setitem__(0, b))
+        for cols in read_ahead(chunks):
             frames += len(cols)
             yield cols
             if progress is not None:

@@ -20,6 +20,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import IntEnum
 
+import numpy as np
+from numpy.typing import NDArray
+
 from cmcan.monitor.gating import EVALUATED, Gate
 
 
@@ -61,6 +64,8 @@ class Transition:
 _EPS = 1e-6
 
 _FAULT_GATES = {Gate.STALE_INPUT: Reason.INPUT_STALE, Gate.IMPLAUSIBLE_INPUT: Reason.INPUT_IMPLAUSIBLE}
+_FAULT_GATE_CODES = np.array(sorted(int(g) for g in _FAULT_GATES), dtype=np.int64)
+_EVALUATED_CODES = np.array(sorted(int(g) for g in EVALUATED), dtype=np.int64)
 
 
 @dataclass
@@ -143,3 +148,61 @@ class WarningMachine:
         self.condition = level
         self.condition_reason = reason
         self.below_s = self.above_s = self.inside_s = 0.0
+
+    # -- many ticks at once (the columnar replay) ---------------------------------------------------
+
+    def quiet(self, gates: NDArray[np.integer], ratios: NDArray[np.float64]) -> NDArray[np.bool_]:
+        """Per tick: could it leave the ok, unfaulted state? False when it could. A quiet tick has
+        input neither stale nor implausible and no ratio outside ``[low_pct, high_pct]``; ``ratios``
+        is NaN where a tick has none (not evaluated, filter not yet valid)."""
+        th = self.th
+        rated = _rated(gates, ratios)
+        with np.errstate(invalid="ignore"):
+            outside = rated & ((ratios < th.low_pct) | (ratios > th.high_pct))
+        return ~np.isin(gates, _FAULT_GATE_CODES) & ~outside
+
+    def can_skip(self) -> bool:
+        """Whether :meth:`skip` applies now: ok, no fault, and a debounce that takes time."""
+        return self.condition == Level.OK and self.fault_reason == Reason.NONE and self.th.debounce_s - _EPS > 0.0
+
+    def skip(self, gates: NDArray[np.integer], ratios: NDArray[np.float64], dt_s: float) -> NDArray[np.float64]:
+        """Advance over quiet ticks (see :meth:`quiet`) from the state :meth:`can_skip` accepts: the
+        accumulators end as ``step`` tick after tick leaves them, with the same float additions in
+        the same order, and no level changes. Returns ``time_below_s`` after each tick."""
+        th = self.th
+        n = len(gates)
+        below_after = np.full(n, self.time_below_s)
+        live = int(np.count_nonzero(gates != Gate.NO_INPUT))
+        if live:
+            self.good_input_s = add_repeat(self.good_input_s, dt_s, live)
+            self.bad_input_s = 0.0
+        rated = _rated(gates, ratios)
+        first = int(np.argmax(rated)) if n else 0
+        if n and rated[first]:
+            below_after[first:] = 0.0
+            self.below_s = self.above_s = self.time_below_s = 0.0
+            lo, hi = th.low_pct + th.hysteresis_pct, th.high_pct - th.hysteresis_pct
+            with np.errstate(invalid="ignore"):
+                inside = rated & (lo <= ratios) & (ratios <= hi)
+            adds = inside & (gates == Gate.EVALUATING)
+            breaks = np.flatnonzero(rated & ~inside)
+            if len(breaks):
+                self.inside_s = 0.0
+                adds = adds[breaks[-1] + 1 :]
+            self.inside_s = add_repeat(self.inside_s, dt_s, int(np.count_nonzero(adds)))
+        return below_after
+
+
+def _rated(gates: NDArray[np.integer], ratios: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """Ticks whose ratio the condition sees: evaluated, with a (finite) filtered ratio."""
+    return np.isin(gates, _EVALUATED_CODES) & ~np.isnan(ratios)
+
+
+def add_repeat(start: float, step: float, times: int) -> float:
+    """``start`` plus ``step``, ``times`` times, one addition after the other (as ``step`` adds)."""
+    if times <= 0:
+        return start
+    acc = np.empty(times + 1)
+    acc[0] = start
+    acc[1:] = step
+    return float(np.cumsum(acc)[-1])
