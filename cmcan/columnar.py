@@ -30,6 +30,7 @@ from cmcan import codec
 from cmcan.frame import Frame, FrameColumns
 from cmcan.monitor.clock import STEP_BACK_S
 from cmcan.monitor.core import _HIGH, _LOW, _WINDOW, Monitor
+from cmcan.monitor.exactsum import window_fsums
 from cmcan.monitor.gating import EVALUATED, Gate, gate_columns
 from cmcan.monitor.payloads import OutputMessage
 from cmcan.monitor.tick import LEVEL_NAMES, Tick
@@ -594,34 +595,14 @@ def _filter(
     done = np.searchsorted(e_idx, np.arange(n_ticks), side="right") + len(old_r)  # values up to each tick
     lo = np.maximum(done - size, 0)
     cnt = done - lo
-    sum_r = _exact_window_sums(all_r, lo, done)
-    sum_l = _exact_window_sums(all_l, lo, done)
+    sum_r = window_fsums(np.array(all_r), lo, done)
+    sum_l = window_fsums(np.array(all_l), lo, done)
     with np.errstate(invalid="ignore", divide="ignore"):
         filt = np.where(cnt > 0, sum_r / np.maximum(cnt, 1), 0.0)
         filt_leak = np.where(cnt > 0, sum_l / np.maximum(cnt, 1), 0.0)
     flt.ratios = deque(all_r[-size:], maxlen=size)
     flt.leaks = deque(all_l[-size:], maxlen=size)
     return filt, filt_leak, cnt
-
-
-def _exact_window_sums(values: list[float], lo: NDArray[np.int64], hi: NDArray[np.int64]) -> NDArray[np.float64]:
-    """math.fsum(values[lo:hi]) for each window: exact sums of the floats as integers scaled by a
-    power of two, rounded once (Python's int division is correctly rounded, as fsum is)."""
-    if not values:
-        return np.zeros(len(lo))
-    mant, expo = np.frexp(np.asarray(values, dtype=np.float64))
-    ints = (mant * float(1 << 53)).astype(np.int64)  # exact: value = ints * 2^(expo - 53)
-    shift = expo - 53
-    base = int(shift.min())
-    exact = np.empty(len(values) + 1, dtype=object)
-    exact[0] = 0
-    exact[1:] = [int(i) << int(s - base) for i, s in zip(ints.tolist(), shift.tolist(), strict=True)]
-    prefix = np.cumsum(exact)
-    sums = prefix[hi] - prefix[lo]
-    scale = 2 ** (-base) if base < 0 else None
-    if scale is None:
-        return np.array([float(s << base) for s in sums.tolist()])
-    return np.array([s / scale for s in sums.tolist()])
 
 
 class _RoleSamples:

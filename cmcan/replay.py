@@ -203,6 +203,76 @@ class EmitWriter(_FileSink):
         self.f.write(candump_lines(frames, self.channel))
 
 
+class SinkThread:
+    """Sinks driven from a thread of their own: formatting text and writing files (numpy and I/O,
+    which release the GIL) overlap the engine on a second core. Calls are queued in order (at most
+    ``depth`` chunks wait); a sink's error is raised in the engine at its next call or at close."""
+
+    def __init__(self, sinks: Sequence[Sink], depth: int = 4) -> None:
+        import queue
+        import threading
+
+        self.sinks = list(sinks)
+        self.wants_ticks = any(s.wants_ticks for s in self.sinks)
+        self.wants_frames = any(s.wants_frames for s in self.sinks)
+        self._q: queue.Queue[tuple[str, Any] | None] = queue.Queue(maxsize=max(1, depth))
+        self._error: BaseException | None = None
+        self._worker = threading.Thread(target=self._run, name="cmcan-sinks", daemon=True)
+        self._worker.start()
+
+    def _run(self) -> None:
+        while True:
+            item = self._q.get()
+            if item is None:
+                return
+            if self._error is not None:
+                continue  # after a failure: drain without writing
+            what, arg = item
+            try:
+                for s in self.sinks:
+                    if what == "start":
+                        s.start(arg)
+                    elif what == "ticks" and s.wants_ticks:
+                        s.ticks(arg)
+                    elif what == "frames" and s.wants_frames:
+                        s.frames(arg)
+            except BaseException as exc:  # raised in the engine's thread
+                self._error = exc
+
+    def _put(self, what: str, arg: Any) -> None:
+        if self._error is not None:
+            raise self._error
+        self._q.put((what, arg))
+
+    def _stop(self) -> None:
+        if self._worker.is_alive():
+            self._q.put(None)
+            self._worker.join()
+
+    def start(self, t0: float) -> None:
+        self._put("start", t0)
+
+    def ticks(self, chunk: TickColumns) -> None:
+        self._put("ticks", chunk)
+
+    def frames(self, frames: FrameColumns) -> None:
+        self._put("frames", frames)
+
+    def close(self) -> None:
+        self._stop()
+        if self._error is not None:
+            for s in self.sinks:
+                s.abort()
+            raise self._error
+        for s in self.sinks:
+            s.close()
+
+    def abort(self) -> None:
+        self._stop()
+        for s in self.sinks:
+            s.abort()
+
+
 @dataclass
 class TimelineCollector:
     """Keeps every tick (for a plot or a test): memory grows with the log."""
@@ -357,4 +427,6 @@ def replay_file(
     from cmcan.columnar import replay_columns
     from cmcan.io.columns import column_chunks
 
-    return replay_columns(monitor, column_chunks(path, progress=progress), sinks)
+    # the files are written from a thread of their own while the engine goes on
+    threaded: Sequence[Sink] = [SinkThread(sinks)] if sinks else ()
+    return replay_columns(monitor, column_chunks(path, progress=progress), threaded)
