@@ -160,12 +160,34 @@ def decode(msg: Message, data: NDArray[np.uint8], names: Sequence[str] | None = 
     return out
 
 
-def encode(msg: Message, values: Mapping[str, NDArray[np.float64]]) -> NDArray[np.uint8]:
-    """Frames (n, msg.length) of ``msg`` with each signal's physical values; missing signals are 0.
+def covered(msg: Message) -> bytes:
+    """The message's bytes with a 1 in every bit some signal occupies."""
+    size = frame_bytes(msg)
+    le = be = 0
+    for s in msg.signals:
+        lay = layout(msg, s.name)
+        if lay.big_endian:
+            be = insert(be, lay.mask, lay)
+        else:
+            le = insert(le, lay.mask, lay)
+    both = int.from_bytes(le.to_bytes(size, "little"), "big") | be
+    return both.to_bytes(size, "big")[: msg.length]
+
+
+def unused(msg: Message) -> bytes:
+    """The message's bytes with a 1 in every bit no signal occupies (J1939 sends those as 1)."""
+    return bytes(~b & 0xFF for b in covered(msg))
+
+
+def encode(msg: Message, values: Mapping[str, NDArray[np.float64]], fill_unused: bool = False) -> NDArray[np.uint8]:
+    """Frames (n, msg.length) of ``msg`` with each signal's physical values; missing signals are 0,
+    bits of no signal 0 (1 with ``fill_unused``, as J1939 wants).
 
     Values are clipped to the signal's range first (a saturated sensor), so encoding never fails.
     """
     n = len(next(iter(values.values()))) if values else 0
+    if fill_unused:
+        return encode(msg, values) | np.frombuffer(unused(msg), dtype=np.uint8)[None, :]
     if frame_bytes(msg) > 8:
         enc = compile_encoder(msg)
         rows = [enc({k: float(v[i]) for k, v in values.items()}) for i in range(n)]
@@ -228,12 +250,13 @@ def compile_checked_decoder(msg: Message, names: list[str]) -> Callable[[bytes],
     return decode
 
 
-def compile_encoder(msg: Message) -> Callable[[Mapping[str, float]], bytes]:
-    """One frame from physical values (missing signals 0, values saturated to the signal's range):
-    the monitor's output frames."""
+def compile_encoder(msg: Message, fill_unused: bool = False) -> Callable[[Mapping[str, float]], bytes]:
+    """One frame from physical values (missing signals 0, values saturated to the signal's range,
+    bits of no signal 0, or 1 with ``fill_unused``): the monitor's output frames."""
     size = frame_bytes(msg)
     lays = [layout(msg, s.name) for s in msg.signals]
     length = msg.length
+    fill = int.from_bytes(unused(msg).ljust(size, b"\0"), "big") if fill_unused else 0
 
     def encode(values: Mapping[str, float]) -> bytes:
         le = be = 0
@@ -246,7 +269,7 @@ def compile_encoder(msg: Message) -> Callable[[Mapping[str, float]], bytes]:
                 be = insert(be, raw, lay)
             else:
                 le = insert(le, raw, lay)
-        both = int.from_bytes(le.to_bytes(size, "little"), "big") | be
+        both = int.from_bytes(le.to_bytes(size, "little"), "big") | be | fill
         return both.to_bytes(size, "big")[:length]
 
     return encode

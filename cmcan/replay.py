@@ -91,21 +91,7 @@ def warnings_summary(monitor: Monitor, t0: float) -> list[dict[str, Any]]:
 
 
 def write_emitted(path: str | Path, frames: list[Frame], channel: str = "can0") -> None:
-    import numpy as np
+    """The frames the daemon would have sent, as a candump -l log (each on its own channel)."""
+    from cmcan.io.candump import write_frames
 
-    from cmcan.io.candump import write_candump
-
-    n = len(frames)
-    data = np.zeros((n, 8), dtype=np.uint8)
-    dlc = np.empty(n, dtype=np.int64)
-    for i, f in enumerate(frames):
-        data[i, : len(f.data)] = np.frombuffer(f.data, dtype=np.uint8)
-        dlc[i] = len(f.data)
-    write_candump(
-        path,
-        np.array([f.timestamp_s for f in frames]),
-        np.array([f.arbitration_id for f in frames]),
-        dlc,
-        data,
-        channel,
-    )
+    write_frames(path, frames, channel)

@@ -30,7 +30,7 @@ def frames():
 
 def test_daemon_on_a_virtual_bus_emits_exactly_what_replay_emits(frames, tmp_path):
     expected = [(f.arbitration_id, f.data) for f in replay(monitor(), as_frames(frames)).frames_out]
-    received, sent, processed = stream(frames, cfgmod.load(), tmp_path, f"eq-{os.getpid()}")
+    received, sent, processed, _ = stream(frames, cfgmod.load(), tmp_path, f"eq-{os.getpid()}")
     got = [(m.arbitration_id, m.data) for m in received]
     assert processed == sent == len(frames)
     assert len(expected) > 10_000
