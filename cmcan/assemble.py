@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -18,13 +18,14 @@ from cmcan import checksums, codec
 from cmcan.config import Config
 from cmcan.dbc import DbcError, load_dbc
 from cmcan.errors import Kind
+from cmcan.frame import Frame
 from cmcan.j1939 import dm1 as j1939_dm1
 from cmcan.j1939 import ids
 from cmcan.model import GrayBoxModel, ModelError, default_model_path, load_model
 from cmcan.monitor.core import DpFromHighLow, InputMessage, Monitor, MonitorParams
 from cmcan.monitor.diagnostics import Dm1Params
 from cmcan.monitor.health import HealthSpec
-from cmcan.monitor.inputs import Channels, overlap
+from cmcan.monitor.inputs import MEMO_MAX, Channels, Matcher, overlap
 from cmcan.monitor.payloads import OutputMessage, Outputs
 from cmcan.monitor.totals import Totals
 from cmcan.monitor.windows import Affine, dp_affine, role_affine
@@ -332,6 +333,30 @@ def input_messages(cfg: Config, db: Database) -> list[InputMessage]:
             )
         )
     return out
+
+
+def frame_matcher(
+    cfg: Config, db: Database, log_aliases: Mapping[str, str] | None = None
+) -> Callable[[Frame], str | None]:
+    """Which mapped input message a frame of a log is, by the monitor's matching rules (channels, CAN
+    FD, 11/29-bit identifiers, J1939 PGN and source addresses), for readers of whole logs (training,
+    gap diagnosis). They decode every matched frame; the health checks are the monitor's alone."""
+    chans = channels(cfg, log_aliases)
+    matcher = Matcher(input_messages(cfg, db), chans)
+    memo: dict[tuple[str, int, bool, bool], str | None] = {}
+
+    def match(f: Frame) -> str | None:
+        key = (f.channel, f.arbitration_id, f.extended, f.fd)
+        if key in memo:
+            return memo[key]
+        i = chans.resolve(f.channel)
+        spec = None if i is None or (f.fd and not chans.fd[i]) else matcher.match(i, f.arbitration_id, f.extended)
+        name = spec.name if spec is not None else None
+        if len(memo) < MEMO_MAX:
+            memo[key] = name
+        return name
+
+    return match
 
 
 def bus_plan(cfg: Config, db: Database) -> BusPlan:

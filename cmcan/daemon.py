@@ -73,6 +73,7 @@ class RateLimitedLog:
         log.log(level, msg + (f" (and {n} more since the last report)" if n else ""), *args, exc_info=exc_info)
 
 
+DRAIN = 256  # frames read from one bus before the others get their turn
 J1939_PGN_MASK = 0x03FFFF00  # EDP, DP, PF, PS: the priority and the source address left out
 # A filter no real frame matches: a channel that only carries cmcan's outputs receives nothing.
 NOTHING = {"can_id": 0, "can_mask": 0x1FFFFFFF, "extended": True}
@@ -176,6 +177,7 @@ class Daemon:
         self.ratelog = RateLimitedLog(clock=clock)
         self.save_every_s = cfg.state.save_every_s
         self._selectable: bool | None = None
+        self._held: dict[str, list[tuple[Link, can.Message]]] = {}  # read, not yet handed on (several buses)
 
     @property
     def bus(self) -> can.BusABC | None:
@@ -271,8 +273,8 @@ class Daemon:
         return [x for x in self.links if x.bus is not None]
 
     def _receive(self, live: list[Link], timeout: float) -> list[tuple[Link, can.Message]]:
-        """The frames received within ``timeout``: from one bus as it comes, from several in order of
-        their timestamps within what arrived together."""
+        """The frames received within ``timeout``: from one bus as it comes, from several merged in
+        order of their timestamps."""
         if len(live) == 1:
             x = live[0]
             try:
@@ -284,23 +286,42 @@ class Daemon:
         if self._selectable is None:
             self._selectable = all(_fileno(x.bus) is not None for x in live)
         ready = live
-        if self._selectable:
+        if self._selectable and not any(self._held.get(x.name) for x in live):
             try:
                 fds = {_fileno(x.bus): x for x in live}
                 r, _, _ = select.select(list(fds), [], [], timeout)
                 ready = [fds[fd] for fd in r]
             except (OSError, ValueError):
                 ready = live
-        batch: list[tuple[Link, can.Message]] = []
+        # Read what each bus has (at most DRAIN per bus), then hand on, in timestamp order, the frames
+        # up to the newest one read from a bus that may hold more: a frame still queued on another
+        # bus is never older than what goes ahead of it, so none becomes late for being read later.
+        horizon = math.inf
         for x in ready:
+            held = self._held.setdefault(x.name, [])
+            n = 0
             try:
-                for _ in range(256):
+                while n < DRAIN:
                     msg = x.bus.recv(timeout=0)  # type: ignore[union-attr]
                     if msg is None:
                         break
-                    batch.append((x, msg))
+                    held.append((x, msg))
+                    n += 1
             except (can.CanError, OSError, ValueError) as exc:
                 self._bus_failed(x, "receive", exc)
+            if n == DRAIN:
+                horizon = min(horizon, held[-1][1].timestamp)
+        batch: list[tuple[Link, can.Message]] = []
+        for name, held in self._held.items():
+            if not held:
+                continue
+            cut = (
+                len(held)
+                if horizon == math.inf
+                else next((i for i, (_, m) in enumerate(held) if m.timestamp > horizon), len(held))
+            )
+            batch += held[:cut]
+            self._held[name] = held[cut:]
         if not batch and not self._selectable:
             self.stop_event.wait(min(timeout, 0.002))  # buses without a file descriptor: poll
         batch.sort(key=lambda p: p[1].timestamp)

@@ -209,3 +209,31 @@ def test_corrupt_state_is_kept_aside_not_lost(tmp_path):
     totals = StateStore(tmp_path).load()
     assert totals == Totals()
     assert (tmp_path / "state.json.corrupt-1").read_text() == "{ half a docu"
+
+
+def test_two_channels_daemon_emits_what_replay_emits(tmp_path):
+    """Inputs split over two buses: the daemon merges them in time order, as the log has them."""
+    from dataclasses import replace
+
+    from cmcan.assemble import bus_plan, dbc_for
+    from cmcan.sim import scenario as scn
+    from cmcan.sim.frames import frames_from_run
+    from cmcan.sim.run import simulate
+
+    base = cfgmod.load()
+    cfg = replace(
+        base,
+        channels=replace(base.channels, extra=(cfgmod.ChannelConfig("can1"),)),
+        messages={n: cfgmod.MessageConfig(channel="can1") for n in ("MOTOR_STATUS", "OIL_STATUS")},
+    )
+    db = dbc_for(cfg)
+    plan = bus_plan(cfg, db)
+    s = scn.load(scn.shipped("two_set_validation")).with_overrides(duration_h=0.03)
+    frames = frames_from_run(simulate(s, db, plan.mapping), db, plan=plan)
+    assert set(frames.channels("can0")) == {"can0", "can1"}
+    expected = replay(monitor(cfg=cfg), frames.to_frames()).frames_out
+    received, sent, processed, _ = stream(frames, cfg, tmp_path, f"two-{os.getpid()}")
+    assert processed == sent == len(frames)
+    got = [(m.arbitration_id, m.data) for m in received]
+    assert len(expected) > 1000
+    assert got[: len(expected)] == [(f.arbitration_id, f.data) for f in expected]

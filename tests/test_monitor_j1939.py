@@ -147,7 +147,8 @@ def freeze_counter(frames: Frames, cfg, plan, message: str, from_s: float) -> Fr
     """The sender's task hangs: ``message`` keeps its counter from ``from_s`` on (checksums still right)."""
     db = dbc_for(cfg)
     msg = db.get_message_by_name(message)
-    rows = (frames.arbitration_id == msg.frame_id) & (frames.timestamp_s >= from_s)
+    same = ids.pgn(frames.arbitration_id) == ids.pgn(msg.frame_id)  # whatever address it sends from
+    rows = same & frames.is_extended() & (frames.timestamp_s >= from_s)
     data = frames.data.copy()
     data[rows, 7] = (data[rows, 7] & 0xF0) | 5
     sig, algorithm = plan.checksum[message]
@@ -403,3 +404,18 @@ def test_check_refuses_source_addresses_on_an_11_bit_machine(tmp_path):
     path.write_text(yaml.safe_dump(raw))
     r = run_cli("check", "--config", str(path))
     assert r.returncode == 78 and "messages.PUMP_STATUS.source_addresses: source addresses are J1939's" in r.stderr
+
+
+def test_training_and_diagnosis_read_j1939_logs_by_the_same_matching(leak, tmp_path):
+    from cmcan.assemble import frame_matcher
+    from cmcan.model.features import DataError, load_operating_points
+
+    cfg, frames, _ = leak
+    log = tmp_path / "j.log"
+    write_frames(log, frames.to_frames())
+    db = dbc_for(cfg)
+    op = load_operating_points(log, cfg.gate_limits, db, cfg.signals, cfg.rate_hz, frame_matcher(cfg, db))
+    mon, _ = run_monitor(cfg, frames.to_frames())
+    assert op.steady.sum() == pytest.approx(mon.counters["evaluated"], rel=0.05)
+    with pytest.raises(DataError, match="no frames for"):  # by identifier alone, 29-bit frames are not read
+        load_operating_points(log, cfg.gate_limits, db, cfg.signals, cfg.rate_hz)

@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 from cmcan import config as cfgmod
-from cmcan.assemble import check_against_dbc, dbc_for, load_model_for
+from cmcan.assemble import check_against_dbc, dbc_for, frame_matcher, load_model_for
 from cmcan.preflight import load_config as _load_config
 
 
@@ -20,7 +20,8 @@ def load_config(path: str | None, check_dbc: bool = True) -> cfgmod.Config:
 def load_points(path: str, cfg: cfgmod.Config) -> Any:
     from cmcan.model.features import load_operating_points
 
-    return load_operating_points(path, cfg.gate_limits, dbc_for(cfg), cfg.signals, cfg.rate_hz)
+    db = dbc_for(cfg)
+    return load_operating_points(path, cfg.gate_limits, db, cfg.signals, cfg.rate_hz, frame_matcher(cfg, db))
 
 
 def load_model(cfg: cfgmod.Config, path: str | None = None) -> Any:

@@ -95,7 +95,7 @@ def load_drive(path: str | None):
 
 def run_diagnose(args: argparse.Namespace) -> int:
     _need_scipy()
-    from cmcan.assemble import dbc_for
+    from cmcan.assemble import dbc_for, frame_matcher
     from cmcan.cli.common import load_config
     from cmcan.gap import data as gapdata
     from cmcan.gap import report as rep
@@ -110,7 +110,8 @@ def run_diagnose(args: argparse.Namespace) -> int:
     p = load_drive(args.drive)
     cfg = load_config(args.config)
     try:
-        d = gapdata.load(args.real, args.quantity, cfg.gate_limits, dbc_for(cfg), cfg.signals)
+        db = dbc_for(cfg)
+        d = gapdata.load(args.real, args.quantity, cfg.gate_limits, db, cfg.signals, frame_matcher(cfg, db))
     except DataError as exc:
         raise CmcanError(str(exc), Kind.DATA) from None
     try:

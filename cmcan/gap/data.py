@@ -83,6 +83,7 @@ def load(
     limits: GateLimits | None = None,
     db: Any = None,
     mapping: Any = None,
+    match: Any = None,
 ) -> GapData:
     """REAL as a run CSV (columns as ``cmcan simulate`` writes them; extra columns ignored) or a CAN log."""
     p = Path(path)
@@ -94,7 +95,7 @@ def load(
             from cmcan.dbc import load_dbc
 
             db = load_dbc()
-        series = series_from_log(p, db, mapping)
+        series = series_from_log(p, db, mapping, match)
         if quantity == "flow_lpm":
             raise DataError(f"{p}: flow_lpm needs a CSV with a measured flow_lpm column")
         return from_series(series, quantity, limits, str(p))

@@ -7,7 +7,7 @@ statistics at the evaluation rate, then the monitor's gate.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 
 from cmcan import codec
 from cmcan.errors import CmcanError, Kind
+from cmcan.frame import Frame
 from cmcan.io.candump import iter_frames
 from cmcan.io.runcsv import read_run_csv
 from cmcan.monitor.gating import Gate, GateLimits, WindowStats, eval_times, gate, window_stats
@@ -105,19 +106,29 @@ def _affine(db: Database, ref: SignalRef) -> Any:
     return role_affine(db.get_message_by_name(ref.message), ref.signal, ref.scale, ref.offset)
 
 
-def series_from_log(path: str | Path, db: Database, mapping: Mapping[str, Any] | None = None) -> Series:
+def series_from_log(
+    path: str | Path,
+    db: Database,
+    mapping: Mapping[str, Any] | None = None,
+    match: Callable[[Frame], str | None] | None = None,
+) -> Series:
     """Decode a CAN log into per-role series (vectorized per message), in each role's unit; dp from
-    high and low pressure is formed as the monitor forms it."""
+    high and low pressure is formed as the monitor forms it. ``match`` says which mapped message a
+    frame is (the monitor's rules: channels, 29-bit and J1939 identifiers; see
+    :func:`cmcan.assemble.frame_matcher`); by default a standard frame with the message's identifier."""
     refs = as_refs(mapping)
-    wanted = {db.get_message_by_name(r.message).frame_id: db.get_message_by_name(r.message) for r in refs.values()}
-    stamps: dict[int, list[float]] = {i: [] for i in wanted}
-    payloads: dict[int, list[bytes]] = {i: [] for i in wanted}
+    by_name = {r.message: db.get_message_by_name(r.message) for r in refs.values()}
+    by_id = {m.frame_id: name for name, m in by_name.items() if not m.is_extended_frame}
+    stamps: dict[str, list[float]] = {n: [] for n in by_name}
+    payloads: dict[str, list[bytes]] = {n: [] for n in by_name}
     try:
         for f in iter_frames(path):
-            fid = f.arbitration_id
-            if fid in wanted and not (f.extended or f.remote or f.error) and len(f.data) >= wanted[fid].length:
-                stamps[fid].append(f.timestamp_s)
-                payloads[fid].append(f.data[:8].ljust(8, b"\0"))
+            if f.remote or f.error:
+                continue
+            name = match(f) if match is not None else (None if f.extended else by_id.get(f.arbitration_id))
+            if name is not None and len(f.data) >= by_name[name].length:
+                stamps[name].append(f.timestamp_s)
+                payloads[name].append(f.data[:8].ljust(8, b"\0"))
     except FileNotFoundError as exc:
         raise DataError(str(exc), Kind.NO_INPUT) from None
     except (ValueError, OSError) as exc:
@@ -126,10 +137,10 @@ def series_from_log(path: str | Path, db: Database, mapping: Mapping[str, Any] |
     series: Series = {}
     for role, ref in refs.items():
         m = db.get_message_by_name(ref.message)
-        ts = np.asarray(stamps[m.frame_id], dtype=float)
+        ts = np.asarray(stamps[m.name], dtype=float)
         if len(ts) == 0:
             continue
-        data = np.frombuffer(b"".join(payloads[m.frame_id]), dtype=np.uint8).reshape(-1, 8)
+        data = np.frombuffer(b"".join(payloads[m.name]), dtype=np.uint8).reshape(-1, 8)
         order = np.argsort(ts, kind="stable")
         raw = codec.decode_raw(m, data[order], [ref.signal])[ref.signal]
         raws[role] = (ts[order], raw)
@@ -183,6 +194,7 @@ def load_operating_points(
     db: Database | None = None,
     mapping: Mapping[str, Any] | None = None,
     rate_hz: float = 10.0,
+    match: Callable[[Frame], str | None] | None = None,
 ) -> OperatingPoints:
     """Operating points of a run CSV or a CAN log (chosen by the file's extension)."""
     p = Path(path)
@@ -193,6 +205,6 @@ def load_operating_points(
             from cmcan.dbc import load_dbc
 
             db = load_dbc()
-        return operating_points(series_from_log(p, db, mapping), limits, rate_hz)
+        return operating_points(series_from_log(p, db, mapping, match), limits, rate_hz)
     series, truth = series_from_csv(p)
     return operating_points(series, limits, rate_hz, truth=truth)
