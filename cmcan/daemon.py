@@ -21,6 +21,7 @@ import socket
 import struct
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -29,7 +30,7 @@ import can
 
 from cmcan.config import ChannelConfig, Config
 from cmcan.frame import Frame, from_message, to_message_kwargs
-from cmcan.j1939 import ids
+from cmcan.j1939 import ids, transport
 from cmcan.monitor.core import Monitor
 from cmcan.monitor.inputs import InputMessage
 from cmcan.sdnotify import Notifier
@@ -178,6 +179,10 @@ class Daemon:
         self.save_every_s = cfg.state.save_every_s
         self._selectable: bool | None = None
         self._held: dict[str, list[tuple[Link, can.Message]]] = {}  # read, not yet handed on (several buses)
+        # Transport packets wait until the configured gap after the packet before has gone out.
+        self._tp_gap_s = cfg.j1939.bam_packet_gap_ms / 1000.0
+        self._tp_last_sent = -math.inf
+        self._tp_waiting: deque[Frame] = deque()
 
     @property
     def bus(self) -> can.BusABC | None:
@@ -222,6 +227,8 @@ class Daemon:
             timeout = opt.recv_timeout_s
             if last_rx_wall is not None:
                 timeout = max(0.0, min(timeout, self.monitor.next_due_t - frame_now))
+            if self._tp_waiting:
+                timeout = max(0.0, min(timeout, self._tp_last_sent + self._tp_gap_s - now))
             batch = self._receive(live, timeout)
 
             now = self.clock()
@@ -251,7 +258,7 @@ class Daemon:
                         out += self.monitor.due(frame_now)
                 except Exception:
                     self._internal_error()
-            if out:
+            if out or self._tp_waiting:
                 self._send(out)
         self._shutdown()
 
@@ -365,23 +372,35 @@ class Daemon:
         x.retry_at = self.clock() + x.backoff_s
 
     def _send(self, frames: list[Frame]) -> None:
-        first = self.links[0]
+        """Send each frame on its channel. A J1939 transport packet (TP.CM, TP.DT) goes out at its frame
+        time but never sooner than ``bam_packet_gap_ms`` after the one before: when a tick was late, the
+        rest of its session moves with it, so the packets keep J1939-21's spacing on the wire."""
+        now = self.clock()
         for f in frames:
-            x = self._link_of.get(f.channel, first) if f.channel else first
-            if x.bus is None:
-                self.stats["tx_dropped"] += 1
-                continue
-            msg = can.Message(**to_message_kwargs(f._replace(channel=x.name)))
-            try:
-                x.bus.send(msg, timeout=self.opt.send_timeout_s)
-                self.stats["tx_frames"] += 1
-            except (can.CanError, OSError) as exc:
-                self.stats["tx_dropped"] += 1
-                code = getattr(exc, "error_code", None) or getattr(exc, "errno", None)
-                if code in (errno.ENETDOWN, errno.ENODEV, errno.EBADF):
-                    self._bus_failed(x, "send", exc)
-                else:  # ENOBUFS, a full queue, bus-off while restarting: drop this frame, keep going
-                    self.ratelog(logging.WARNING, "tx", "cannot send 0x%X: %s; frame dropped", f.arbitration_id, exc)
+            if _is_transport(f):
+                self._tp_waiting.append(f)
+            else:
+                self._send_one(f)
+        while self._tp_waiting and now >= self._tp_last_sent + self._tp_gap_s:
+            self._send_one(self._tp_waiting.popleft())
+            self._tp_last_sent = now = self.clock()
+
+    def _send_one(self, f: Frame) -> None:
+        x = self._link_of.get(f.channel, self.links[0]) if f.channel else self.links[0]
+        if x.bus is None:
+            self.stats["tx_dropped"] += 1
+            return
+        msg = can.Message(**to_message_kwargs(f._replace(channel=x.name)))
+        try:
+            x.bus.send(msg, timeout=self.opt.send_timeout_s)
+            self.stats["tx_frames"] += 1
+        except (can.CanError, OSError) as exc:
+            self.stats["tx_dropped"] += 1
+            code = getattr(exc, "error_code", None) or getattr(exc, "errno", None)
+            if code in (errno.ENETDOWN, errno.ENODEV, errno.EBADF):
+                self._bus_failed(x, "send", exc)
+            else:  # ENOBUFS, a full queue, bus-off while restarting: drop this frame, keep going
+                self.ratelog(logging.WARNING, "tx", "cannot send 0x%X: %s; frame dropped", f.arbitration_id, exc)
 
     # -- state and status ------------------------------------------------------------------------------
 
@@ -433,6 +452,10 @@ class Daemon:
             self.stats["tx_frames"],
             self.stats["tx_dropped"],
         )
+
+
+def _is_transport(f: Frame) -> bool:
+    return f.extended and ids.pdu_format(f.arbitration_id) in (transport.PGN_TP_CM >> 8, transport.PGN_TP_DT >> 8)
 
 
 def _fileno(bus: Any) -> int | None:

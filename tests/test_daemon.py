@@ -12,6 +12,7 @@ import threading
 import time
 
 import can
+import numpy as np
 import pytest
 
 from cmcan import config as cfgmod
@@ -237,3 +238,36 @@ def test_two_channels_daemon_emits_what_replay_emits(tmp_path):
     got = [(m.arbitration_id, m.data) for m in received]
     assert len(expected) > 1000
     assert got[: len(expected)] == [(f.arbitration_id, f.data) for f in expected]
+
+
+def test_transport_packets_keep_their_spacing_on_the_wire_when_frames_come_fast():
+    """A J1939 BAM from a log played much faster than real time: the daemon sends every frame replay
+    emits, and its transport packets at least the configured gap apart in wall time."""
+    from collections import Counter
+
+    from cmcan.j1939 import ids
+    from tests.test_monitor_j1939 import freeze_counter, j1939_cfg, machine_frames
+
+    cfg = j1939_cfg()
+    frames, plan = machine_frames(cfg, 40.0)
+    frames = freeze_counter(frames, cfg, plan, "HST_MOTOR", float(frames.timestamp_s[0]) + 25.0)
+    expected = replay(monitor(cfg=cfg), frames.to_frames()).frames_out
+    n_tp = sum(ids.pdu_format(f.arbitration_id) in (0xEC, 0xEB) for f in expected)
+    assert n_tp >= 9
+    source = [
+        can.Message(timestamp=f.timestamp_s, arbitration_id=f.arbitration_id, is_extended_id=True, data=f.data)
+        for f in frames.to_frames()
+    ]
+    sent_at = []
+
+    class Recording(ScriptedBus):
+        def send(self, msg, timeout=None):
+            sent_at.append((time.monotonic(), msg))
+
+    mon = monitor(cfg=cfg)
+    d = Daemon(cfg, mon, None, lambda: Recording(list(source)), options=DaemonOptions(idle_after_s=3600))
+    run_daemon_until(d, lambda: len(sent_at) >= len(expected), timeout=60)
+    got = Counter((m.arbitration_id, bytes(m.data)) for _, m in sent_at)
+    assert got == Counter((f.arbitration_id, f.data) for f in expected)
+    tp = [t for t, m in sent_at if ids.pdu_format(m.arbitration_id) in (0xEC, 0xEB)]
+    assert len(tp) == n_tp and min(np.diff(tp)) >= cfg.j1939.bam_packet_gap_ms / 1000 - 1e-3
