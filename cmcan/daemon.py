@@ -75,6 +75,7 @@ class RateLimitedLog:
 
 
 DRAIN = 256  # frames read from one bus before the others get their turn
+MAX_BATCH = 4096  # several buses: frames read before some go on
 J1939_PGN_MASK = 0x03FFFF00  # EDP, DP, PF, PS: the priority and the source address left out
 # A filter no real frame matches: a channel that only carries cmcan's outputs receives nothing.
 NOTHING = {"can_id": 0, "can_mask": 0x1FFFFFFF, "extended": True}
@@ -178,11 +179,14 @@ class Daemon:
         self.ratelog = RateLimitedLog(clock=clock)
         self.save_every_s = cfg.state.save_every_s
         self._selectable: bool | None = None
-        self._held: dict[str, list[tuple[Link, can.Message]]] = {}  # read, not yet handed on (several buses)
+        self._merge: list[tuple[Link, can.Message]] = []  # several buses: read, not yet handed on
+        self._mark: dict[str, float] = {}  # per bus, the timestamp of the last frame read
+        self._input_channels = {m.channel or cfg.bus.channel for m in monitor.inputs}
         # Transport packets wait until the configured gap after the packet before has gone out.
         self._tp_gap_s = cfg.j1939.bam_packet_gap_ms / 1000.0
         self._tp_last_sent = -math.inf
         self._tp_waiting: deque[Frame] = deque()
+        self._live: list[Link] = []  # the links whose bus is open
 
     @property
     def bus(self) -> can.BusABC | None:
@@ -217,22 +221,28 @@ class Daemon:
                 self._save()
                 last_save, saved_ticks = now, ticks
 
-            live = self._open_due(now)
-            if not live:
-                waits = [x.retry_at - now for x in self.links]
-                self.stop_event.wait(max(0.0, min(min(waits), opt.backoff_max_s)))
-                continue
-            # The bus's time now, in frame time: the last frame's plus the wall time since.
-            frame_now = last_frame_t + (now - last_rx_wall) if last_rx_wall is not None else -math.inf
+            live = self._live
+            if len(live) < len(self.links):
+                live = self._open_due(now)
+                if not live:
+                    waits = [x.retry_at - now for x in self.links]
+                    self.stop_event.wait(max(0.0, min(min(waits), opt.backoff_max_s)))
+                    continue
             timeout = opt.recv_timeout_s
-            if last_rx_wall is not None:
-                timeout = max(0.0, min(timeout, self.monitor.next_due_t - frame_now))
             if self._tp_waiting:
                 timeout = max(0.0, min(timeout, self._tp_last_sent + self._tp_gap_s - now))
-            batch = self._receive(live, timeout)
+            if len(live) == 1:  # one bus: as it comes
+                x = live[0]
+                try:
+                    msg = x.bus.recv(timeout=timeout)  # type: ignore[union-attr]
+                except (can.CanError, OSError, ValueError) as exc:
+                    self._bus_failed(x, "receive", exc)
+                    continue
+                batch: Sequence[tuple[Link, can.Message]] = ((x, msg),) if msg is not None else ()
+            else:
+                batch = self._receive(live, timeout)
 
             now = self.clock()
-            out: list[Frame] = []
             for link, msg in batch:
                 if msg.is_error_frame:
                     self.ratelog(
@@ -244,22 +254,26 @@ class Daemon:
                         bytes(msg.data).hex(),
                     )
                 try:
-                    out += self.monitor.feed(from_message(msg)._replace(channel=link.name))
+                    out = self.monitor.feed(from_message(msg, link.name))
+                    if out and self.monitor.next_due_t != math.inf:  # a transport session's packets: spaced here
+                        out += self.monitor.due(math.inf)
                 except Exception:  # the core must never take the daemon down: log, count, go on
                     self._internal_error()
+                    out = []
+                if out or self._tp_waiting:
+                    self._send(out)
                 last_rx_wall = now
                 last_frame_t = msg.timestamp
-            if not batch and last_rx_wall is not None:
-                frame_now = last_frame_t + (now - last_rx_wall)
-                try:
-                    if now - last_rx_wall >= opt.idle_after_s:
-                        out += self.monitor.advance(frame_now)
-                    else:
-                        out += self.monitor.due(frame_now)
-                except Exception:
-                    self._internal_error()
-            if out or self._tp_waiting:
-                self._send(out)
+            if not batch:
+                out = []
+                if last_rx_wall is not None and now - last_rx_wall >= opt.idle_after_s:
+                    try:
+                        out = self.monitor.advance(last_frame_t + (now - last_rx_wall))
+                        out += self.monitor.due(math.inf)
+                    except Exception:
+                        self._internal_error()
+                if out or self._tp_waiting:
+                    self._send(out)
         self._shutdown()
 
     def stop(self) -> None:
@@ -277,62 +291,62 @@ class Daemon:
             if x.bus is None and now >= x.retry_at and not self._open(x):
                 x.backoff_s = min(max(x.backoff_s * 2, self.opt.backoff_min_s), self.opt.backoff_max_s)
                 x.retry_at = now + x.backoff_s
-        return [x for x in self.links if x.bus is not None]
+        self._live = [x for x in self.links if x.bus is not None]
+        return self._live
 
     def _receive(self, live: list[Link], timeout: float) -> list[tuple[Link, can.Message]]:
-        """The frames received within ``timeout``: from one bus as it comes, from several merged in
-        order of their timestamps."""
-        if len(live) == 1:
-            x = live[0]
-            try:
-                msg = x.bus.recv(timeout=timeout)  # type: ignore[union-attr]
-            except (can.CanError, OSError, ValueError) as exc:
-                self._bus_failed(x, "receive", exc)
-                return []
-            return [(x, msg)] if msg is not None else []
-        if self._selectable is None:
-            self._selectable = all(_fileno(x.bus) is not None for x in live)
-        ready = live
-        if self._selectable and not any(self._held.get(x.name) for x in live):
-            try:
-                fds = {_fileno(x.bus): x for x in live}
-                r, _, _ = select.select(list(fds), [], [], timeout)
-                ready = [fds[fd] for fd in r]
-            except (OSError, ValueError):
-                ready = live
-        # Read what each bus has (at most DRAIN per bus), then hand on, in timestamp order, the frames
-        # up to the newest one read from a bus that may hold more: a frame still queued on another
-        # bus is never older than what goes ahead of it, so none becomes late for being read later.
-        horizon = math.inf
-        for x in ready:
-            held = self._held.setdefault(x.name, [])
+        """The frames several buses received, merged in order of their timestamps.
+
+        The buses are read in turns until a whole turn finds every one empty: a frame still to come
+        then arrived after all those read, so none becomes late because another bus was read first.
+        Under a backlog (MAX_BATCH frames read) only the frames up to the newest one read from each
+        bus that carries inputs go on; the rest wait for the next call."""
+        held = self._merge
+        if not held:
+            if self._selectable is None:
+                self._selectable = all(_fileno(x.bus) is not None for x in live)
+            if self._selectable:
+                try:
+                    r, _, _ = select.select([_fileno(x.bus) for x in live], [], [], timeout)
+                except (OSError, ValueError):
+                    r = [1]
+                if not r:
+                    return []
+        total, capped = 0, False
+        while True:
             n = 0
-            try:
-                while n < DRAIN:
-                    msg = x.bus.recv(timeout=0)  # type: ignore[union-attr]
-                    if msg is None:
-                        break
-                    held.append((x, msg))
-                    n += 1
-            except (can.CanError, OSError, ValueError) as exc:
-                self._bus_failed(x, "receive", exc)
-            if n == DRAIN:
-                horizon = min(horizon, held[-1][1].timestamp)
-        batch: list[tuple[Link, can.Message]] = []
-        for name, held in self._held.items():
-            if not held:
-                continue
-            cut = (
-                len(held)
-                if horizon == math.inf
-                else next((i for i, (_, m) in enumerate(held) if m.timestamp > horizon), len(held))
-            )
-            batch += held[:cut]
-            self._held[name] = held[cut:]
-        if not batch and not self._selectable:
-            self.stop_event.wait(min(timeout, 0.002))  # buses without a file descriptor: poll
-        batch.sort(key=lambda p: p[1].timestamp)
-        return batch
+            for x in live:
+                if x.bus is None:
+                    continue
+                try:
+                    for _ in range(DRAIN):
+                        msg = x.bus.recv(timeout=0)
+                        if msg is None:
+                            break
+                        held.append((x, msg))
+                        self._mark[x.name] = msg.timestamp
+                        n += 1
+                except (can.CanError, OSError, ValueError) as exc:
+                    self._bus_failed(x, "receive", exc)
+            total += n
+            if n == 0:
+                break
+            if total >= MAX_BATCH:
+                capped = True
+                break
+        if not held:
+            if not self._selectable:
+                self.stop_event.wait(min(timeout, 0.002))  # buses without a file descriptor: poll
+            return []
+        held.sort(key=lambda p: p[1].timestamp)
+        if not capped:
+            self._merge = []
+            return held
+        marks = [self._mark.get(x.name, math.inf) for x in live if x.name in self._input_channels]
+        horizon = min(marks) if marks else math.inf
+        cut = next((i for i, (_, m) in enumerate(held) if m.timestamp > horizon), len(held))
+        self._merge = held[cut:]
+        return held[:cut]
 
     def _open(self, x: Link) -> bool:
         try:
@@ -358,6 +372,7 @@ class Daemon:
                 log.debug("bus shutdown: %s", exc)
             x.bus = None
             self._selectable = None
+            self._live = [y for y in self.links if y.bus is not None]
 
     def _bus_failed(self, x: Link, what: str, exc: BaseException) -> None:
         self.stats["bus_errors"] += 1

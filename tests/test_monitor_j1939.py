@@ -9,6 +9,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from cmcan import checksums, codec
 from cmcan import config as cfgmod
@@ -419,3 +421,66 @@ def test_training_and_diagnosis_read_j1939_logs_by_the_same_matching(leak, tmp_p
     assert op.steady.sum() == pytest.approx(mon.counters["evaluated"], rel=0.05)
     with pytest.raises(DataError, match="no frames for"):  # by identifier alone, 29-bit frames are not read
         load_operating_points(log, cfg.gate_limits, db, cfg.signals, cfg.rate_hz)
+
+
+SEEN_DM1: set[str] = set()
+
+
+@given(
+    st.lists(
+        st.tuples(
+            st.sampled_from([Level.OK, Level.LOW, Level.HIGH]),
+            st.sampled_from([Reason.NONE] * 3 + [Reason.INPUT_STALE, Reason.INPUT_IMPLAUSIBLE]),
+            st.one_of(st.none(), st.floats(90.0, 110.0)),
+            st.integers(1, 4),  # ticks on: the warning state holds that long
+        ),
+        min_size=1,
+        max_size=30,
+    )
+)
+@settings(max_examples=150, deadline=None)
+def check_dm1_producer(steps):
+    totals = Totals()
+    d = Dm1Producer(p(), totals)
+    k = 0
+    prev_keys: list[str] = []
+    counts: dict[str, int] = {}
+    session_end = -1.0
+    for cond, fault, ratio, hold in steps:
+        for _ in range(hold):
+            k += 1
+            t = k * 0.1
+            frames = d.step(k, t, cond, fault, ratio)
+            keys = [f"{s}:{f}" for s, f in d.dtcs(cond, fault)]
+            for key in keys:
+                if key not in prev_keys:
+                    counts[key] = counts.get(key, 0) + 1
+            prev_keys = keys
+            assert totals.dtc_active == keys and totals.dtc_occurrences == counts
+            if not frames:
+                if k % 10 == 0:
+                    SEEN_DM1.add("periodic deferred by a BAM")
+                continue
+            assert frames[0].timestamp_s == t > session_end  # one BAM at a time
+            if len(frames) == 1:
+                lamps, dtcs = dm1.decode(frames[0].data)
+                assert len(frames[0].data) == 8 and len(keys) <= 1
+                SEEN_DM1.add("single frame" if keys else "no DTC")
+            else:
+                assert len(keys) == 2 and len(frames) == 3
+                r = transport.BamReceiver()
+                payload = [r.feed(f.arbitration_id, f.data) for f in frames][-1][2]
+                lamps, dtcs = dm1.decode(payload)
+                session_end = frames[-1].timestamp_s
+                SEEN_DM1.add("BAM")
+            assert [f"{x.spn}:{x.fmi}" for x in dtcs] == keys
+            assert [x.occurrence for x in dtcs] == [counts[key] for key in keys]
+            assert lamps.amber_warning == (dm1.Lamp.ON if cond != Level.OK else dm1.Lamp.OFF)
+            if any(key.endswith((":18", ":16")) for key in keys):
+                SEEN_DM1.add("moderately severe")
+
+
+def test_dm1_producer_keeps_its_rules_and_reaches_every_case():
+    SEEN_DM1.clear()
+    check_dm1_producer()
+    assert {"no DTC", "single frame", "BAM", "moderately severe", "periodic deferred by a BAM"} <= SEEN_DM1, SEEN_DM1
