@@ -591,4 +591,4 @@ def test_two_vcan_channels_with_inputs_split(j1939_run):
     assert run["delta"]["accepted"] == parts.monitor.counters["accepted"]
     assert parts.monitor.channels_seen() == {"can0": IFACE, "can1": IFACE1}
     assert "unknown channel" not in run["status"] and "bad fd" not in run["status"]
-    assert "can1" not in run["stderr"]
+    assert "Traceback" not in run["stderr"] and "failed" not in run["stderr"], run["stderr"]
