@@ -316,6 +316,7 @@ def input_messages(cfg: Config, db: Database) -> list[InputMessage]:
             timeout_s=timeout_s(cfg, msg),
             nbytes=codec.frame_bytes(msg),
             checksum_name=f"{integ.checksum} ({integ.algorithm})" if check is not None else "",
+            algorithm=integ.algorithm or "",
         )
         out.append(
             InputMessage(

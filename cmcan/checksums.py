@@ -71,6 +71,15 @@ def problem(algorithm: str, length: int, checksum: Layout, counter: Layout | Non
     return f"unknown checksum algorithm {algorithm!r}; known: {', '.join(ALGORITHMS)}"
 
 
+# The TSC1 fold of every sum a frame can give (7 bytes, a 4-bit counter, 4 identifier bytes).
+TSC1_FOLD = [(((s >> 6) & 3) + (s >> 3) + s) & 7 for s in range(11 * 255 + 16)]
+
+
+def id_sum(can_id: int) -> int:
+    """The four bytes of a 29-bit identifier summed (the identifier's share of the TSC1 checksum)."""
+    return (can_id & 0xFF) + ((can_id >> 8) & 0xFF) + ((can_id >> 16) & 0xFF) + ((can_id >> 24) & 0xFF)
+
+
 def _tsc1(can_id: int, data: bytes) -> int:
     s = sum(data[:7]) + (data[7] & 0x0F)
     s += (can_id & 0xFF) + ((can_id >> 8) & 0xFF) + ((can_id >> 16) & 0xFF) + ((can_id >> 24) & 0xFF)
@@ -80,9 +89,13 @@ def _tsc1(can_id: int, data: bytes) -> int:
 def verifier(algorithm: str, length: int, checksum: Layout) -> Callable[[int, bytes], bool]:
     """``check(can_id, data) -> bool`` for one message (``problem`` must have said None)."""
     if algorithm == "j1939_tsc1":
+        fold = TSC1_FOLD
 
         def check_tsc1(can_id: int, data: bytes) -> bool:
-            return len(data) >= 8 and data[7] >> 4 == _tsc1(can_id, data)
+            if len(data) < 8:
+                return False
+            c = data[7]  # bytes 1-7, the counter and the identifier: _tsc1 without a slice
+            return c >> 4 == fold[sum(data) - (c & 0xF0) + id_sum(can_id)]
 
         return check_tsc1
     nbytes = max(8, length)

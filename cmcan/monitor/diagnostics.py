@@ -50,7 +50,17 @@ _FAULT_FMI = {Reason.INPUT_STALE: Fmi.ABNORMAL_UPDATE_RATE, Reason.INPUT_IMPLAUS
 
 
 class Dm1Producer:
-    __slots__ = ("active", "busy_until", "changed", "frame_id", "high_severe", "low_severe", "p", "totals")
+    __slots__ = (
+        "_last",
+        "active",
+        "busy_until",
+        "changed",
+        "frame_id",
+        "high_severe",
+        "low_severe",
+        "p",
+        "totals",
+    )
 
     def __init__(self, p: Dm1Params, totals: Totals) -> None:
         self.p = p
@@ -61,6 +71,7 @@ class Dm1Producer:
         self.high_severe = f"{p.spn}:{int(Fmi.ABOVE_NORMAL_MODERATE)}" in self.active
         self.busy_until = -1e300
         self.changed = False
+        self._last: tuple[int, int, bool, bool] | None = None  # the inputs of the last DTC list
 
     def _severity(self, ratio_pct: float | None) -> None:
         p = self.p
@@ -90,6 +101,11 @@ class Dm1Producer:
     def step(self, k: int, t: float, condition: Level, fault: Reason, ratio_pct: float | None) -> list[Frame]:
         """One tick: update the active DTCs and counts; the DM1 frames due (times >= ``t``)."""
         self._severity(ratio_pct)
+        state = (int(condition), int(fault), self.low_severe, self.high_severe)
+        due = k % self.p.every_ticks == 0 or self.changed
+        if state == self._last and not due:  # nothing changed, nothing to send: the common tick
+            return []
+        self._last = state
         now = self.dtcs(condition, fault)
         keys = [f"{s}:{f}" for s, f in now]
         counts = self.totals.dtc_occurrences

@@ -38,6 +38,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from cmcan.checksums import TSC1_FOLD, id_sum
 from cmcan.codec import Layout, extract
 
 OK, CHECKSUM, COUNTER_FROZEN, COUNTER_JUMP, OUT_OF_RANGE = 0, 1, 2, 3, 4
@@ -55,7 +56,8 @@ class HealthSpec:
     checksum: Callable[[int, bytes], bool] | None = None
     timeout_s: float = math.inf
     nbytes: int = 8  # the frame as an integer, for the counter's extraction
-    checksum_name: str = ""  # the checksum's algorithm, for people
+    checksum_name: str = ""  # the checksum's signal and algorithm, for people
+    algorithm: str = ""  # the checksum's algorithm (j1939_tsc1 is checked inline, the common J1939 case)
 
     @property
     def modulo(self) -> int:
@@ -80,6 +82,8 @@ class Stream:
 
     __slots__ = (
         "_at",
+        "_id",
+        "_id_sum",
         "_mask",
         "_read",
         "_shift",
@@ -94,11 +98,18 @@ class Stream:
         "spec",
         "timed_out",
         "timeout_s",
+        "tsc1",
     )
 
     def __init__(self, spec: HealthSpec) -> None:
         self.spec = spec
         self.checksum = spec.checksum
+        # J1939-71's TSC1 checksum with its counter in byte 8: checked here without a call (the hot path)
+        self.tsc1 = spec.algorithm == "j1939_tsc1"
+        if self.tsc1:
+            self.checksum = None
+        self._id = -1
+        self._id_sum = 0
         self._read = counter_reader(spec.counter, spec.nbytes) if spec.counter is not None else None
         # the common case, a counter within one byte of an Intel layout, read inline
         lay = spec.counter
@@ -121,7 +132,15 @@ class Stream:
 
     def check(self, t: float, can_id: int, data: bytes) -> int:
         """Steps 1 and 2 for a frame at ``t``: OK, CHECKSUM, COUNTER_FROZEN or COUNTER_JUMP."""
-        if self.checksum is not None and not self.checksum(can_id, data):
+        if self.tsc1:
+            if len(data) < 8:
+                return CHECKSUM
+            if can_id != self._id:
+                self._id, self._id_sum = can_id, id_sum(can_id)
+            c8 = data[7]
+            if c8 >> 4 != TSC1_FOLD[sum(data) - (c8 & 0xF0) + self._id_sum]:
+                return CHECKSUM
+        elif self.checksum is not None and not self.checksum(can_id, data):
             return CHECKSUM
         at = self._at
         if at >= 0:
