@@ -225,12 +225,46 @@ def compile_raw_decoder(msg: Message, names: list[str]) -> Callable[[bytes], tup
     return decode
 
 
+def raw_bounds(lay: Layout) -> tuple[int, int]:
+    """The raw values r whose physical value ``r * scale + offset`` (in floating point, as cantools and
+    the decoder compute it) lies in the signal's range, as an interval [lo, hi] (empty when lo > hi).
+    ``r * scale + offset`` is monotonic in r in floating point too, so each bound is a binary search."""
+    r_min = -(1 << (lay.length - 1)) if lay.signed else 0
+    r_max = (1 << (lay.length - 1)) - 1 if lay.signed else lay.mask
+    if lay.scale == 0:
+        ok = lay.minimum <= lay.offset <= lay.maximum
+        return (r_min, r_max) if ok else (1, 0)
+
+    def first(pred: Callable[[int], bool]) -> int:
+        """The smallest r in [r_min, r_max + 1] from which ``pred`` holds (it holds from some r on)."""
+        lo, hi = r_min, r_max + 1
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if pred(mid):
+                hi = mid
+            else:
+                lo = mid + 1
+        return lo
+
+    def phys(r: int) -> float:
+        return r * lay.scale + lay.offset
+
+    if lay.scale > 0:  # in range from the first r above the minimum to the last r below the maximum
+        return first(lambda r: phys(r) >= lay.minimum), first(lambda r: phys(r) > lay.maximum) - 1
+    return first(lambda r: phys(r) <= lay.maximum), first(lambda r: phys(r) < lay.minimum) - 1
+
+
 def compile_checked_decoder(msg: Message, names: list[str]) -> Callable[[bytes], tuple[int, ...] | None]:
     """Like :func:`compile_raw_decoder`, or None when a value's physical value (raw * scale +
-    offset) is outside its DBC range: an implausible frame."""
+    offset) is outside its DBC range: an implausible frame. The range is checked on the raw value
+    against :func:`raw_bounds` (the same verdict without floating point per frame), and the bits are
+    read with :func:`extract`'s arithmetic inline: this is the monitor's per-frame path."""
     size = frame_bytes(msg)
     lays = [layout(msg, n) for n in names]
-    specs = [(x, x.scale, x.offset, x.minimum, x.maximum, x.big_endian) for x in lays]
+    specs = []
+    for x in lays:
+        lo, hi = raw_bounds(x)
+        specs.append((x.shift, x.mask, 1 << (x.length - 1) if x.signed else 0, x.big_endian, lo, hi))
     need_be = any(x.big_endian for x in lays)
     from_bytes = int.from_bytes
 
@@ -240,9 +274,11 @@ def compile_checked_decoder(msg: Message, names: list[str]) -> Callable[[bytes],
         le = from_bytes(data, "little")
         be = from_bytes(data, "big") if need_be else 0
         out = []
-        for lay, scale, offset, lo, hi, big in specs:
-            raw = extract(be if big else le, lay)
-            if not (lo <= raw * scale + offset <= hi):
+        for shift, mask, sign, big, lo, hi in specs:
+            raw = ((be if big else le) >> shift) & mask
+            if raw & sign:
+                raw -= sign << 1
+            if not lo <= raw <= hi:
                 return None
             out.append(raw)
         return tuple(out)

@@ -132,23 +132,23 @@ class Stream:
 
     def check(self, t: float, can_id: int, data: bytes) -> int:
         """Steps 1 and 2 for a frame at ``t``: OK, CHECKSUM, COUNTER_FROZEN or COUNTER_JUMP."""
-        if self.tsc1:
-            if len(data) < 8:
-                return CHECKSUM
+        if self.tsc1:  # 8 bytes (the message's length, checked before): counter and checksum in byte 8
             if can_id != self._id:
                 self._id, self._id_sum = can_id, id_sum(can_id)
-            c8 = data[7]
-            if c8 >> 4 != TSC1_FOLD[sum(data) - (c8 & 0xF0) + self._id_sum]:
+            c = data[7]
+            if c >> 4 != TSC1_FOLD[sum(data) - (c & 0xF0) + self._id_sum]:
                 return CHECKSUM
-        elif self.checksum is not None and not self.checksum(can_id, data):
-            return CHECKSUM
-        at = self._at
-        if at >= 0:
-            c = (data[at] >> self._shift) & self._mask if len(data) > at else 0
-        elif self._read is None:
-            return OK
+            c &= 0x0F
         else:
-            c = self._read(data)
+            if self.checksum is not None and not self.checksum(can_id, data):
+                return CHECKSUM
+            at = self._at
+            if at >= 0:
+                c = (data[at] >> self._shift) & self._mask if len(data) > at else 0
+            elif self._read is None:
+                return OK
+            else:
+                c = self._read(data)
         p = self.prev
         verdict = OK
         if p is not None and t - self.prev_t <= self.timeout_s:
