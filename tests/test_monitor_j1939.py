@@ -19,6 +19,7 @@ from cmcan.frame import Frame
 from cmcan.io.candump import iter_frames, write_candump, write_frames
 from cmcan.j1939 import dm1, ids, transport
 from cmcan.monitor.diagnostics import Dm1Params, Dm1Producer
+from cmcan.monitor.gating import Gate
 from cmcan.monitor.totals import Totals
 from cmcan.monitor.warnings import Level, Reason
 from cmcan.replay import replay
@@ -484,3 +485,18 @@ def test_dm1_producer_keeps_its_rules_and_reaches_every_case():
     SEEN_DM1.clear()
     check_dm1_producer()
     assert {"no DTC", "single frame", "BAM", "moderately severe", "periodic deferred by a BAM"} <= SEEN_DM1, SEEN_DM1
+
+
+def test_a_wrong_checksum_is_refused_and_makes_the_point_implausible(leak):
+    cfg, frames, _ = leak
+    db = dbc_for(cfg)
+    t0 = float(frames.timestamp_s[0])
+    pump = (frames.arbitration_id == db.get_message_by_name("HST_PUMP").frame_id) & (
+        np.abs(frames.timestamp_s - (t0 + 8.0)) < 0.5
+    )
+    data = frames.data.copy()
+    data[pump, 2] ^= 0x01  # one bit of the displacement, checksum left as it was
+    mon, _ = run_monitor(cfg, replace(frames, data=data).to_frames())
+    assert mon.counters["checksum"] == int(pump.sum()) == mon.snapshot()["inputs"]["HST_PUMP"]["checksum"]
+    gates = {round(tk.t_s - t0, 1): tk.gate for tk in mon.timeline}
+    assert gates[8.0] == Gate.IMPLAUSIBLE_INPUT and gates[10.0] != Gate.IMPLAUSIBLE_INPUT
