@@ -271,3 +271,31 @@ def test_transport_packets_keep_their_spacing_on_the_wire_when_frames_come_fast(
     assert got == Counter((f.arbitration_id, f.data) for f in expected)
     tp = [t for t, m in sent_at if ids.pdu_format(m.arbitration_id) in (0xEC, 0xEB)]
     assert len(tp) == n_tp and min(np.diff(tp)) >= cfg.j1939.bam_packet_gap_ms / 1000 - 1e-3
+
+
+def test_can_fd_frames_count_the_same_in_the_daemon_and_the_replay():
+    """On a classic channel CAN FD frames are counted bad_fd and unused, on an FD channel they are
+    inputs; the daemon asks python-can for an FD bus exactly when the configuration says FD."""
+    from dataclasses import replace
+
+    from cmcan.daemon import bus_kwargs
+
+    frames = sim_frames("two_set_validation", duration_h=0.01)[1]
+    fd_msgs = [
+        can.Message(
+            timestamp=m.timestamp, arbitration_id=m.arbitration_id, data=m.data, is_extended_id=False, is_fd=True
+        )
+        for m in messages(frames)
+    ]
+    for fd in (False, True):
+        base = cfgmod.load()
+        cfg = replace(base, frames=replace(base.frames, fd=fd))
+        assert bus_kwargs(cfg, cfg.channel_list[0], monitor(cfg=cfg).inputs).get("fd", False) == fd
+        offline = monitor(cfg=cfg)
+        replay(offline, [f._replace(fd=True) for f in as_frames(frames)])
+        mon = monitor(cfg=cfg)
+        d = Daemon(cfg, mon, None, lambda: ScriptedBus(list(fd_msgs)))
+        run_daemon_until(d, lambda m=mon: m.counters["frames_total"] == len(fd_msgs))
+        for key in ("accepted", "bad_fd"):
+            assert mon.counters[key] == offline.counters[key]
+        assert mon.counters["accepted" if fd else "bad_fd"] == len(fd_msgs)
