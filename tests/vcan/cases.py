@@ -570,6 +570,9 @@ def test_dm1_reaches_the_kernel_j1939_stack_single_frame_and_bam(j1939_run):
     assert cm
     for i in cm:
         session = tp[i : i + 3]
+        if len(session) < 3 and i == cm[-1]:
+            continue  # the recording stopped during the last session
+
         assert [ids.pgn(f.arbitration_id) for f in session] == [0xEC00, 0xEB00, 0xEB00]
         gaps = np.diff([f.timestamp_s for f in session])
         assert np.all((gaps >= 0.05) & (gaps <= 0.2)), gaps
