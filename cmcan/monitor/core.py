@@ -31,7 +31,7 @@ from cmcan.monitor.diagnostics import Dm1Params, Dm1Producer
 from cmcan.monitor.filter import RatioFilter
 from cmcan.monitor.gating import Gate, GateLimits, gate_point
 from cmcan.monitor.health import OK, OUT_OF_RANGE, REASONS, Stream
-from cmcan.monitor.inputs import EXTENDED_KEY, MEMO_MAX, Channels, InputMessage, Matcher
+from cmcan.monitor.inputs import MEMO_MAX, Channels, InputMessage, Matcher
 from cmcan.monitor.payloads import Outputs, Payloads
 from cmcan.monitor.tick import LEVEL_NAMES, Tick
 from cmcan.monitor.totals import HISTORY_MAX, Totals
@@ -107,12 +107,13 @@ class _Channel:
     """A channel name as frames carry it: its configured channel (index -1: none), FD or not, and
     the input of each identifier seen on it so far (a cache of the pure matching function)."""
 
-    __slots__ = ("fd", "index", "memo")
+    __slots__ = ("ext", "fd", "index", "std")
 
     def __init__(self, index: int, fd: bool) -> None:
         self.index = index
         self.fd = fd
-        self.memo: dict[int, _Input | None] = {}
+        self.std: dict[int, _Input | None] = {}  # by 11-bit identifier
+        self.ext: dict[int, _Input | None] = {}  # by 29-bit identifier
 
 
 _MISS = object()
@@ -188,10 +189,9 @@ class Monitor:
         if fd and not ch.fd:
             c["bad_fd"] += 1
             return []
-        key = fid | EXTENDED_KEY if extended else fid
-        inp = ch.memo.get(key, _MISS)
+        inp = (ch.ext if extended else ch.std).get(fid, _MISS)
         if inp is _MISS:
-            inp = self._lookup(ch, key, fid, extended)
+            inp = self._lookup(ch, fid, extended)
         if inp is None:
             c["unknown_id"] += 1
             return []
@@ -249,11 +249,12 @@ class Monitor:
             self._chans[name] = ch
         return ch
 
-    def _lookup(self, ch: _Channel, key: int, fid: int, extended: bool) -> _Input | None:
+    def _lookup(self, ch: _Channel, fid: int, extended: bool) -> _Input | None:
         spec = self._matcher.match(ch.index, fid, extended)
         inp = self._inputs[id(spec)] if spec is not None else None
-        if len(ch.memo) < MEMO_MAX:
-            ch.memo[key] = inp
+        memo = ch.ext if extended else ch.std
+        if len(memo) < MEMO_MAX:
+            memo[fid] = inp
         return inp
 
     def advance(self, t: float) -> list[Frame]:

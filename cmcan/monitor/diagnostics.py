@@ -52,6 +52,7 @@ _FAULT_FMI = {Reason.INPUT_STALE: Fmi.ABNORMAL_UPDATE_RATE, Reason.INPUT_IMPLAUS
 class Dm1Producer:
     __slots__ = (
         "_last",
+        "_payload",
         "active",
         "busy_until",
         "changed",
@@ -72,6 +73,7 @@ class Dm1Producer:
         self.busy_until = -1e300
         self.changed = False
         self._last: tuple[int, int, bool, bool] | None = None  # the inputs of the last DTC list
+        self._payload: tuple[tuple[int, ...], bytes] | None = None  # the last DM1 payload and what made it
 
     def _severity(self, ratio_pct: float | None) -> None:
         p = self.p
@@ -120,8 +122,14 @@ class Dm1Producer:
         if not due or t <= self.busy_until:
             return []
         self.changed = False
-        lamps = Lamps(amber_warning=Lamp.ON if condition in (Level.LOW, Level.HIGH) else Lamp.OFF)
-        payload = dm1.encode(lamps, [Dtc(s, f, counts.get(f"{s}:{f}", 0)) for s, f in now])
+        amber = condition in (Level.LOW, Level.HIGH)
+        made_of = (amber, *(x for s, f in now for x in (s, f, counts.get(f"{s}:{f}", 0))))
+        if self._payload is not None and self._payload[0] == made_of:  # the same DM1 as a second ago
+            payload = self._payload[1]
+        else:
+            lamps = Lamps(amber_warning=Lamp.ON if amber else Lamp.OFF)
+            payload = dm1.encode(lamps, [Dtc(s, f, counts.get(f"{s}:{f}", 0)) for s, f in now])
+            self._payload = (made_of, payload)
         if len(payload) <= 8:
             return [Frame(t, self.p.channel, self.frame_id, True, False, False, False, payload)]
         frames = transport.bam_frames(t, self.p.bam_gap_s, dm1.PGN_DM1, payload, self.p.source, self.p.channel)

@@ -23,7 +23,6 @@ from dataclasses import dataclass, field
 from cmcan.j1939 import ids
 from cmcan.monitor.health import HealthSpec
 
-EXTENDED_KEY = 1 << 30  # a memo key: identifier | EXTENDED_KEY for 29-bit frames
 MEMO_MAX = 1 << 16  # identifiers remembered per channel (a flood of random ones is looked up anew)
 
 
