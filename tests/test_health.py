@@ -55,7 +55,7 @@ SEEN: set[str] = set()
 
 
 @given(steps, st.integers(1, 3))
-@settings(max_examples=300)
+@settings(max_examples=300, deadline=None)
 def check_stream_against_the_rules(seq, max_step):
     s = Stream(spec(max_step))
     t, c, events = 100.0, 3, []
