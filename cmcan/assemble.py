@@ -6,17 +6,26 @@ daemon, the replay, the demo and the tests build their monitors here.
 
 from __future__ import annotations
 
+import math
+import re
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
 from cantools.database.can import Database, Message
 
-from cmcan import codec
+from cmcan import checksums, codec
 from cmcan.config import Config
 from cmcan.dbc import DbcError, load_dbc
 from cmcan.errors import Kind
+from cmcan.frame import Frame
+from cmcan.j1939 import dm1 as j1939_dm1
+from cmcan.j1939 import ids
 from cmcan.model import GrayBoxModel, ModelError, default_model_path, load_model
 from cmcan.monitor.core import DpFromHighLow, InputMessage, Monitor, MonitorParams
+from cmcan.monitor.diagnostics import Dm1Params
+from cmcan.monitor.health import HealthSpec
+from cmcan.monitor.inputs import MEMO_MAX, Channels, Matcher, overlap
 from cmcan.monitor.payloads import OutputMessage, Outputs
 from cmcan.monitor.totals import Totals
 from cmcan.monitor.windows import Affine, dp_affine, role_affine
@@ -31,6 +40,7 @@ from cmcan.roles import (
     gated_roles,
 )
 from cmcan.schema import SchemaError
+from cmcan.sim.frames import BusPlan
 
 
 def dbc_for(cfg: Config) -> Database:
@@ -106,27 +116,283 @@ def check_against_dbc(cfg: Config, db: Database) -> None:
                 f"its resolution ({low.a:g} bar) and high_pressure_bar's ({high.a:g} bar) are not in a small "
                 "integer ratio, so dp cannot be formed exactly; map dp_bar or use the same resolution",
             )
+    check_bus(cfg, db)
+
+
+# -- the machine's buses: channels, identifier formats, J1939, input health (issue 11) --------------------
+
+# Signal names that mark an alive counter or a checksum when the configuration does not name them.
+COUNTER_NAME = re.compile(r"(^|_)(alive_?|rolling_?|msg_?|message_?)?(counter|cnt|ctr)$|alivecounter$", re.I)
+CHECKSUM_NAME = re.compile(r"(^|_)(checksum|chksum|crc8?)$", re.I)
+
+
+def _first_role(cfg: Config, message: str) -> str:
+    return next(role for role, ref in cfg.signals.items() if ref.message == message)
+
+
+def _input_names(cfg: Config) -> list[str]:
+    return list(dict.fromkeys(ref.message for ref in cfg.signals.values()))
+
+
+def _channel_fd(cfg: Config) -> dict[str, bool]:
+    return {c.name: c.fd for c in cfg.channel_list}
+
+
+def _j1939_matched(cfg: Config, msg: Message) -> bool:
+    return cfg.j1939.enabled and bool(msg.is_extended_frame)
+
+
+@dataclass(frozen=True)
+class Integrity:
+    """A message's alive counter and checksum signals as resolved from configuration and DBC."""
+
+    counter: str | None
+    checksum: str | None
+    algorithm: str | None
+
+
+def integrity(cfg: Config, msg: Message) -> Integrity:
+    """The counter and checksum of an input message; SchemaError names the field when unclear."""
+    mc = cfg.message(msg.name)
+    names = [s.name for s in msg.signals]
+    where = f"messages.{msg.name}"
+
+    def pick(given: str | None, pattern: re.Pattern[str], what: str, key: str) -> str | None:
+        if given == "none":
+            return None
+        if given is not None:
+            if given not in names:
+                raise SchemaError(
+                    cfg.source,
+                    f"{where}.{key}",
+                    f"message {msg.name} has no signal {given!r}; it has {', '.join(names)}",
+                )
+            return given
+        found = [n for n in names if pattern.search(n)]
+        if len(found) > 1:
+            raise SchemaError(
+                cfg.source,
+                f"{where}.{key}",
+                f"message {msg.name} has several {what} signals ({', '.join(found)}): name one",
+            )
+        return found[0] if found else None
+
+    counter = pick(mc.counter, COUNTER_NAME, "alive counter", "counter")
+    checksum = pick(mc.checksum_signal, CHECKSUM_NAME, "checksum", "checksum_signal")
+    mapped = {ref.signal: role for role, ref in cfg.signals.items() if ref.message == msg.name}
+    for key, sig_name in (("counter", counter), ("checksum_signal", checksum)):
+        if sig_name in mapped:
+            raise SchemaError(
+                cfg.source, f"{where}.{key}", f"{sig_name} carries {mapped[sig_name]}; it cannot also be the {key}"
+            )
+    if counter is not None:
+        sig = msg.get_signal_by_name(counter)
+        if sig.is_signed or sig.is_float or sig.length > 16:
+            raise SchemaError(cfg.source, f"{where}.counter", f"{counter} is not an unsigned counter of up to 16 bits")
+    algorithm = mc.checksum if mc.checksum is not None else cfg.input_health.checksum
+    if algorithm == "none":
+        return Integrity(counter, None, None)
+    if checksum is not None and algorithm is None:
+        raise SchemaError(
+            cfg.source,
+            f"{where}.checksum",
+            f"message {msg.name} has the checksum signal {checksum}: name its algorithm "
+            f"({', '.join(checksums.ALGORITHMS)}) or none, here or in input_health.checksum",
+        )
+    if checksum is None and mc.checksum is not None:
+        raise SchemaError(cfg.source, f"{where}.checksum", f"message {msg.name} has no checksum signal to check")
+    if checksum is None:
+        return Integrity(counter, None, None)
+    assert algorithm is not None
+    lay = codec.layout(msg, checksum)
+    problem = checksums.problem(algorithm, msg.length, lay, codec.layout(msg, counter) if counter is not None else None)
+    if problem:
+        raise SchemaError(cfg.source, f"{where}.checksum", f"{problem} (message {msg.name})")
+    return Integrity(counter, checksum, algorithm)
+
+
+def timeout_s(cfg: Config, msg: Message) -> float:
+    """How long a message may be missing before it is stale: timeout_cycles DBC cycle times."""
+    return cfg.input_health.timeout_cycles * msg.cycle_time / 1000.0 if msg.cycle_time else math.inf
+
+
+def check_bus(cfg: Config, db: Database) -> None:
+    """Every mapped input can be received and matched, every output sent: identifier formats, FD,
+    channels, J1939 matching without ambiguity, counters and checksums. SchemaError names the field."""
+    fd = _channel_fd(cfg)
+    for name in _input_names(cfg):
+        msg = db.get_message_by_name(name)
+        field = f"signals.{_first_role(cfg, name)}.message"
+        chan = cfg.message_channel(name)
+        if msg.is_extended_frame and not cfg.frames.extended_ids:
+            raise SchemaError(
+                cfg.source,
+                field,
+                f"message {name} has a 29-bit identifier (0x{msg.frame_id:08X}) but 29-bit identifiers are off: "
+                "set frames.extended_ids: true (and j1939.enabled for a J1939 machine)",
+            )
+        if msg.length > 8 and not fd[chan]:
+            raise SchemaError(
+                cfg.source,
+                field,
+                f"message {name} is a CAN FD message ({msg.length} bytes) but channel {chan} is not a CAN FD bus "
+                "(frames.fd for bus.channel, fd: true in channels.extra)",
+            )
+        mc = cfg.message(name)
+        if mc.source_addresses_set and not _j1939_matched(cfg, msg):
+            why = "j1939.enabled is false" if not cfg.j1939.enabled else f"{name} has an 11-bit identifier"
+            raise SchemaError(
+                cfg.source, f"messages.{name}.source_addresses", f"source addresses are J1939's, but {why}"
+            )
+        integrity(cfg, msg)
+    ins = input_messages(cfg, db)
+    for i, a in enumerate(ins):
+        for b in ins[:i]:
+            if a.channel == b.channel and overlap(a, b):
+                raise SchemaError(
+                    cfg.source,
+                    f"signals.{_first_role(cfg, a.name)}.message",
+                    f"a frame of {a.name} could also be one of {b.name} on channel {a.channel} "
+                    "(same identifier, or same PGN with overlapping source addresses): map one, or give "
+                    "messages.NAME.source_addresses",
+                )
+    out_chan = cfg.output_channel
+    for key, out in cfg.outputs.items(cfg.quantity):
+        msg = db.get_message_by_name(out.message)
+        if msg.is_extended_frame and not cfg.frames.extended_ids:
+            raise SchemaError(
+                cfg.source,
+                f"outputs.{key}.message",
+                f"message {out.message} has a 29-bit identifier but 29-bit identifiers are off (frames.extended_ids)",
+            )
+        if msg.length > 8 and not fd[out_chan]:
+            raise SchemaError(
+                cfg.source,
+                f"outputs.{key}.message",
+                f"message {out.message} is a CAN FD message but the output channel {out_chan} is not a CAN FD bus",
+            )
+        fid = output_id(cfg, msg)
+        for m in ins:
+            if m.channel == out_chan and m.matches(fid, bool(msg.is_extended_frame)):
+                raise SchemaError(
+                    cfg.source,
+                    f"outputs.{key}.message",
+                    f"cmcan would send {out.message} as 0x{fid:X}, which is also input {m.name} on {out_chan}",
+                )
+
+
+def output_id(cfg: Config, msg: Message) -> int:
+    """The identifier cmcan sends a message with: on a J1939 machine from its own source address,
+    with the DBC's priority and PGN."""
+    if _j1939_matched(cfg, msg):
+        assert cfg.j1939.source_address is not None
+        return int(ids.with_source(msg.frame_id, cfg.j1939.source_address))
+    return int(msg.frame_id)
+
+
+def channels(cfg: Config, log_aliases: Mapping[str, str] | None = None) -> Channels:
+    """The configured channels, FD flags and log-channel aliases (the configuration's, then the
+    command line's)."""
+    chans = cfg.channel_list
+    aliases = {**cfg.channels.from_log, **(log_aliases or {})}
+    return Channels(tuple(c.name for c in chans), tuple(c.fd for c in chans), aliases)
 
 
 def _affine(db: Database, ref: SignalRef) -> Affine:
     return role_affine(db.get_message_by_name(ref.message), ref.signal, ref.scale, ref.offset)
 
 
-def input_messages(cfg: Config, db: Database) -> dict[int, InputMessage]:
+def input_messages(cfg: Config, db: Database) -> list[InputMessage]:
+    """The mapped input messages: decoders, roles, channel, matching and health checks."""
     by_msg: dict[str, list[tuple[str, SignalRef]]] = {}
     for role, ref in cfg.signals.items():
         by_msg.setdefault(ref.message, []).append((role, ref))
-    frames = {}
+    out = []
     for name, items in by_msg.items():
         msg = db.get_message_by_name(name)
-        frames[msg.frame_id] = InputMessage(
-            frame_id=msg.frame_id,
-            length=msg.length,
-            layouts=codec.message_layouts(msg, [ref.signal for _, ref in items]),
-            size=codec.frame_bytes(msg),
-            roles=tuple(role for role, _ in items),
+        mc = cfg.message(name)
+        j1939 = _j1939_matched(cfg, msg)
+        sources = mc.source_addresses if mc.source_addresses_set else cfg.j1939.source_addresses
+        pgn = int(ids.pgn(msg.frame_id)) if j1939 else None
+        integ = integrity(cfg, msg)
+        check = (
+            checksums.verifier(integ.algorithm, msg.length, codec.layout(msg, integ.checksum))
+            if integ.checksum is not None and integ.algorithm is not None
+            else None
         )
-    return frames
+        health = HealthSpec(
+            counter=codec.layout(msg, integ.counter) if integ.counter is not None else None,
+            max_step=cfg.input_health.max_counter_step,
+            checksum=check,
+            timeout_s=timeout_s(cfg, msg),
+            nbytes=codec.frame_bytes(msg),
+            checksum_name=f"{integ.checksum} ({integ.algorithm})" if check is not None else "",
+            algorithm=integ.algorithm or "",
+        )
+        out.append(
+            InputMessage(
+                frame_id=msg.frame_id,
+                length=msg.length,
+                layouts=codec.message_layouts(msg, [ref.signal for _, ref in items]),
+                size=codec.frame_bytes(msg),
+                roles=tuple(role for role, _ in items),
+                name=name,
+                channel=cfg.message_channel(name),
+                extended=bool(msg.is_extended_frame),
+                pgn=pgn,
+                sources=frozenset(sources) if j1939 and sources is not None else None,
+                destinations=frozenset({int(ids.pdu_specific(msg.frame_id))}) if pgn is not None else frozenset(),
+                health=health,
+            )
+        )
+    return out
+
+
+def frame_matcher(
+    cfg: Config, db: Database, log_aliases: Mapping[str, str] | None = None
+) -> Callable[[Frame], str | None]:
+    """Which mapped input message a frame of a log is, by the monitor's matching rules (channels, CAN
+    FD, 11/29-bit identifiers, J1939 PGN and source addresses), for readers of whole logs (training,
+    gap diagnosis). They decode every matched frame; the health checks are the monitor's alone."""
+    chans = channels(cfg, log_aliases)
+    matcher = Matcher(input_messages(cfg, db), chans)
+    memo: dict[tuple[str, int, bool, bool], str | None] = {}
+
+    def match(f: Frame) -> str | None:
+        key = (f.channel, f.arbitration_id, f.extended, f.fd)
+        if key in memo:
+            return memo[key]
+        i = chans.resolve(f.channel)
+        spec = None if i is None or (f.fd and not chans.fd[i]) else matcher.match(i, f.arbitration_id, f.extended)
+        name = spec.name if spec is not None else None
+        if len(memo) < MEMO_MAX:
+            memo[key] = name
+        return name
+
+    return match
+
+
+def bus_plan(cfg: Config, db: Database) -> BusPlan:
+    """How the simulator puts a run on this machine's bus: the mapping, each message's channel (bus.channel's
+    as "", the default), its counter and checksum, J1939's padding with 1s."""
+    counters, sums, chans = {}, {}, {}
+    for name in _input_names(cfg):
+        msg = db.get_message_by_name(name)
+        integ = integrity(cfg, msg)
+        if integ.counter is not None:
+            counters[name] = integ.counter
+        if integ.checksum is not None and integ.algorithm is not None:
+            sums[name] = (integ.checksum, integ.algorithm)
+        chan = cfg.message_channel(name)
+        if chan != cfg.bus.channel:  # bus.channel's messages carry "": the default channel
+            chans[name] = chan
+    return BusPlan(
+        mapping={r: (ref.message, ref.signal, ref.scale, ref.offset) for r, ref in cfg.signals.items()},
+        channel=chans,
+        counter=counters,
+        checksum=sums,
+        fill_unused=cfg.j1939.enabled,
+    )
 
 
 def role_affines(cfg: Config, db: Database) -> tuple[dict[str, Affine], DpFromHighLow | None]:
@@ -148,12 +414,14 @@ def outputs(cfg: Config, db: Database) -> Outputs:
         out = dict(cfg.outputs.items(cfg.quantity))[key]
         msg = _message(cfg, db, out.message, f"outputs.{key}.message")
         return OutputMessage(
-            frame_id=msg.frame_id,
+            frame_id=output_id(cfg, msg),
             extended=bool(msg.is_extended_frame),
             layouts=codec.message_layouts(msg),
             size=codec.frame_bytes(msg),
             length=msg.length,
             every_ticks=max(1, round(out.period_ms / period_ms)),
+            # J1939 sends the bits of no signal as 1
+            fill=codec.unused(msg) if _j1939_matched(cfg, msg) else b"",
         )
 
     q = cfg.quantity
@@ -161,6 +429,7 @@ def outputs(cfg: Config, db: Database) -> Outputs:
         ratio=message("cm_ratio"),
         quantity=message(QUANTITY_OUTPUT[q]),
         warning=message("warning"),
+        channel=cfg.output_channel,
         quantity_signals=QUANTITY_SIGNALS[q],
     )
 
@@ -172,13 +441,58 @@ def envelope_for(cfg: Config, envelope: dict[str, tuple[float, float]]) -> dict[
     return {k: (lo - margin * (hi - lo), hi + margin * (hi - lo)) for k, (lo, hi) in envelope.items()}
 
 
+def dm1_params(cfg: Config, db: Database) -> Dm1Params | None:
+    """DM1 where the configuration enables it; priority from a DM1 message in the DBC, else 6."""
+    d = cfg.j1939.dm1
+    if not d.enabled:
+        return None
+    assert cfg.j1939.source_address is not None
+    prio = next(
+        (
+            int(ids.priority(m.frame_id))
+            for m in db.messages
+            if m.is_extended_frame and ids.pgn(m.frame_id) == j1939_dm1.PGN_DM1
+        ),
+        j1939_dm1.DM1_PRIORITY,
+    )
+    th = cfg.thresholds
+    return Dm1Params(
+        spn=d.spn,
+        input_spn=d.input_spn,
+        low_pct=th.low_pct,
+        high_pct=th.high_pct,
+        low_severe_pct=d.low_severe_pct,
+        high_severe_pct=d.high_severe_pct,
+        hysteresis_pct=th.hysteresis_pct,
+        every_ticks=max(1, round(d.period_ms / (1000.0 / cfg.rate_hz))),
+        source=cfg.j1939.source_address,
+        priority=prio,
+        bam_gap_s=cfg.j1939.bam_packet_gap_ms / 1000.0,
+        channel=cfg.output_channel,
+    )
+
+
+def max_ages(cfg: Config, db: Database) -> dict[str, float]:
+    """Each gated role's largest sample age: the configured one, at most its message's timeout (a
+    role the machine holds constant has no message)."""
+    roles = gated_roles(cfg.quantity)
+    ages = {r: cfg.max_age_s(r) for r in roles}
+    msg_of = {r: ref.message for r, ref in cfg.signals.items()}
+    if DP not in msg_of and HIGH_PRESSURE in msg_of:
+        msg_of[DP] = msg_of[HIGH_PRESSURE]  # dp is formed at each high-pressure frame
+    for r in roles:
+        if r in msg_of:
+            ages[r] = min(ages[r], timeout_s(cfg, db.get_message_by_name(msg_of[r])))
+    return ages
+
+
 def monitor_params(cfg: Config, db: Database, envelope: dict[str, tuple[float, float]] | None) -> MonitorParams:
     env = None if envelope is None else envelope_for(cfg, envelope)
     affine, dp = role_affines(cfg, db)
     return MonitorParams(
         rate_hz=cfg.rate_hz,
         limits=cfg.gate_limits,
-        max_age_s={r: cfg.max_age_s(r) for r in gated_roles(cfg.quantity)},
+        max_age_s=max_ages(cfg, db),
         envelope=env,
         filter_samples=cfg.filter.samples,
         filter_min_samples=cfg.filter.min_samples,
@@ -196,8 +510,10 @@ def build_monitor(
     model: GrayBoxModel,
     totals: Totals | None = None,
     keep_timeline: bool = False,
+    log_aliases: Mapping[str, str] | None = None,
 ) -> Monitor:
-    """A monitor for the configuration, its DBC and a loaded model (its envelope gates the points)."""
+    """A monitor for the configuration, its DBC and a loaded model (its envelope gates the points);
+    ``log_aliases`` map a log's channel names to configured channels (replay's --channel-map)."""
     check_against_dbc(cfg, db)
     return Monitor(
         monitor_params(cfg, db, model.envelope),
@@ -206,6 +522,8 @@ def build_monitor(
         outputs(cfg, db),
         totals or Totals(),
         keep_timeline,
+        channels(cfg, log_aliases),
+        dm1_params(cfg, db),
     )
 
 
@@ -218,11 +536,15 @@ class Assembled:
 
 
 def assemble(
-    cfg: Config, model_path: str | Path | None = None, totals: Totals | None = None, keep_timeline: bool = False
+    cfg: Config,
+    model_path: str | Path | None = None,
+    totals: Totals | None = None,
+    keep_timeline: bool = False,
+    log_aliases: Mapping[str, str] | None = None,
 ) -> Assembled:
     """DBC and model loaded and checked against the configuration, and the monitor built. Raises
     DbcError, SchemaError or ModelError naming the file and field (kinds: configuration, no input)."""
     db = dbc_for(cfg)
     check_against_dbc(cfg, db)
     model = load_model_for(cfg, model_path)
-    return Assembled(cfg, db, model, build_monitor(cfg, db, model, totals, keep_timeline))
+    return Assembled(cfg, db, model, build_monitor(cfg, db, model, totals, keep_timeline, log_aliases))

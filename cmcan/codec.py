@@ -171,6 +171,25 @@ def decode(msg: Message, data: NDArray[np.uint8], names: Sequence[str] | None = 
     return out
 
 
+def covered(msg: Message) -> bytes:
+    """The message's bytes with a 1 in every bit some signal occupies."""
+    size = frame_bytes(msg)
+    le = be = 0
+    for s in msg.signals:
+        lay = layout(msg, s.name)
+        if lay.big_endian:
+            be = insert(be, lay.mask, lay)
+        else:
+            le = insert(le, lay.mask, lay)
+    both = int.from_bytes(le.to_bytes(size, "little"), "big") | be
+    return both.to_bytes(size, "big")[: msg.length]
+
+
+def unused(msg: Message) -> bytes:
+    """The message's bytes with a 1 in every bit no signal occupies (J1939 sends those as 1)."""
+    return bytes(~b & 0xFF for b in covered(msg))
+
+
 def encode_all(
     lays: Sequence[Layout], size: int, length: int, values: Mapping[str, NDArray[np.float64]]
 ) -> NDArray[np.uint8]:
@@ -194,12 +213,16 @@ def encode_all(
     return out[:, :length].copy()
 
 
-def encode(msg: Message, values: Mapping[str, NDArray[np.float64]]) -> NDArray[np.uint8]:
-    """Frames (n, msg.length) of ``msg`` with each signal's physical values; missing signals are 0.
+def encode(msg: Message, values: Mapping[str, NDArray[np.float64]], fill_unused: bool = False) -> NDArray[np.uint8]:
+    """Frames (n, msg.length) of ``msg`` with each signal's physical values; missing signals are 0,
+    bits of no signal 0 (1 with ``fill_unused``, as J1939 wants).
 
     Values are clipped to the signal's range first (a saturated sensor), so encoding never fails.
     """
-    return encode_all(message_layouts(msg), frame_bytes(msg), msg.length, values)
+    out = encode_all(message_layouts(msg), frame_bytes(msg), msg.length, values)
+    if fill_unused:
+        out |= np.frombuffer(unused(msg), dtype=np.uint8)[None, :]
+    return out
 
 
 # -- one frame (the monitor's per-frame path) ---------------------------------------------------------
@@ -220,10 +243,45 @@ def compile_raw_decoder(msg: Message, names: list[str]) -> Callable[[bytes], tup
     return decode
 
 
+def raw_bounds(lay: Layout) -> tuple[int, int]:
+    """The raw values r whose physical value ``r * scale + offset`` (in floating point, as cantools and
+    the decoder compute it) lies in the signal's range, as an interval [lo, hi] (empty when lo > hi).
+    ``r * scale + offset`` is monotonic in r in floating point too, so each bound is a binary search."""
+    r_min = -(1 << (lay.length - 1)) if lay.signed else 0
+    r_max = (1 << (lay.length - 1)) - 1 if lay.signed else lay.mask
+    if lay.scale == 0:
+        ok = lay.minimum <= lay.offset <= lay.maximum
+        return (r_min, r_max) if ok else (1, 0)
+
+    def first(pred: Callable[[int], bool]) -> int:
+        """The smallest r in [r_min, r_max + 1] from which ``pred`` holds (it holds from some r on)."""
+        lo, hi = r_min, r_max + 1
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if pred(mid):
+                hi = mid
+            else:
+                lo = mid + 1
+        return lo
+
+    def phys(r: int) -> float:
+        return r * lay.scale + lay.offset
+
+    if lay.scale > 0:  # in range from the first r above the minimum to the last r below the maximum
+        return first(lambda r: phys(r) >= lay.minimum), first(lambda r: phys(r) > lay.maximum) - 1
+    return first(lambda r: phys(r) <= lay.maximum), first(lambda r: phys(r) < lay.minimum) - 1
+
+
 def checked_decoder(lays: Sequence[Layout], size: int) -> Callable[[bytes], tuple[int, ...] | None]:
     """Raw values of one frame (a message read as ``size`` bytes), or None when a value's physical
-    value (raw * scale + offset) is outside its DBC range: an implausible frame."""
-    specs = [(x, x.scale, x.offset, x.minimum, x.maximum, x.big_endian) for x in lays]
+    value (raw * scale + offset) is outside its DBC range: an implausible frame. The range is checked
+    on the raw value against :func:`raw_bounds` (the same verdict without floating point per frame),
+    and the bits are read with :func:`extract`'s arithmetic inline: this is the monitor's per-frame
+    path."""
+    specs = []
+    for x in lays:
+        lo, hi = raw_bounds(x)
+        specs.append((x.shift, x.mask, 1 << (x.length - 1) if x.signed else 0, x.big_endian, lo, hi))
     need_be = any(x.big_endian for x in lays)
     from_bytes = int.from_bytes
 
@@ -233,9 +291,11 @@ def checked_decoder(lays: Sequence[Layout], size: int) -> Callable[[bytes], tupl
         le = from_bytes(data, "little")
         be = from_bytes(data, "big") if need_be else 0
         out = []
-        for lay, scale, offset, lo, hi, big in specs:
-            raw = extract(be if big else le, lay)
-            if not (lo <= raw * scale + offset <= hi):
+        for shift, mask, sign, big, lo, hi in specs:
+            raw = ((be if big else le) >> shift) & mask
+            if raw & sign:
+                raw -= sign << 1
+            if not lo <= raw <= hi:
                 return None
             out.append(raw)
         return tuple(out)
@@ -248,7 +308,11 @@ def compile_checked_decoder(msg: Message, names: list[str]) -> Callable[[bytes],
     return checked_decoder(message_layouts(msg, names), frame_bytes(msg))
 
 
-def frame_encoder(lays: Sequence[Layout], size: int, length: int) -> Callable[[Mapping[str, float]], bytes]:
+def frame_encoder(
+    lays: Sequence[Layout], size: int, length: int, fill: int = 0
+) -> Callable[[Mapping[str, float]], bytes]:
+    """One frame from physical values; ``fill`` (the frame as a big-endian integer) ORed in."""
+
     def encode(values: Mapping[str, float]) -> bytes:
         le = be = 0
         for lay in lays:
@@ -260,13 +324,15 @@ def frame_encoder(lays: Sequence[Layout], size: int, length: int) -> Callable[[M
                 be = insert(be, raw, lay)
             else:
                 le = insert(le, raw, lay)
-        both = int.from_bytes(le.to_bytes(size, "little"), "big") | be
+        both = int.from_bytes(le.to_bytes(size, "little"), "big") | be | fill
         return both.to_bytes(size, "big")[:length]
 
     return encode
 
 
-def compile_encoder(msg: Message) -> Callable[[Mapping[str, float]], bytes]:
-    """One frame from physical values (missing signals 0, values saturated to the signal's range):
-    the monitor's output frames."""
-    return frame_encoder(message_layouts(msg), frame_bytes(msg), msg.length)
+def compile_encoder(msg: Message, fill_unused: bool = False) -> Callable[[Mapping[str, float]], bytes]:
+    """One frame from physical values (missing signals 0, values saturated to the signal's range,
+    bits of no signal 0, or 1 with ``fill_unused``): the monitor's output frames."""
+    size = frame_bytes(msg)
+    fill = int.from_bytes(unused(msg).ljust(size, b"\0"), "big") if fill_unused else 0
+    return frame_encoder(message_layouts(msg), size, msg.length, fill)

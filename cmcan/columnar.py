@@ -27,11 +27,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cmcan import codec
+from cmcan.checksums import TSC1_FOLD
 from cmcan.frame import Frame, FrameColumns
 from cmcan.monitor.clock import STEP_BACK_S
-from cmcan.monitor.core import _HIGH, _LOW, _WINDOW, Monitor
+from cmcan.monitor.core import _HIGH, _LOW, _MISS, _WINDOW, Monitor
 from cmcan.monitor.exactsum import window_fsums
 from cmcan.monitor.gating import EVALUATED, Gate, gate_columns
+from cmcan.monitor.health import CHECKSUM, COUNTER_FROZEN, COUNTER_JUMP, OK, OUT_OF_RANGE, REASONS, Stream
 from cmcan.monitor.payloads import OutputMessage
 from cmcan.monitor.tick import LEVEL_NAMES, Tick
 from cmcan.monitor.warnings import Level, Reason, add_repeat
@@ -42,6 +44,9 @@ from cmcan.roles import DP, MODEL_INPUTS
 _EVALUATED = np.array(sorted(int(g) for g in EVALUATED), dtype=np.int8)
 
 _I64_SAFE = 1 << 20  # raw values below this: window sums and n*S2 - S1^2 stay exact in int64
+_TSC1_FOLD = np.array(TSC1_FOLD, dtype=np.int64)
+# why a frame matched no input message (``_Engine._match``); 0 and up: the message's index
+_UNKNOWN_ID, _UNKNOWN_CHANNEL, _BAD_FD, _NOT_DATA = -1, -2, -3, -4
 
 
 # -- the engine ---------------------------------------------------------------------------------------
@@ -82,11 +87,20 @@ class _Engine:
         monitor.keep_timeline = self.want_ticks
         self.n_frames_out = 0
         self.pending_frames: list[FrameColumns] = []  # in order: scalar pieces and stretches
-        # per input message: (role or None, kind) of each decoded value, as the core routes them
-        self.targets: dict[int, list[tuple[str | None, int]]] = {}
+        # the mapped input messages as the core holds them, and per message the (role or None, kind)
+        # of each decoded value as the core routes them, and each value's raw range
+        self.inps = list(monitor._inputs.values())
         roles_of = {id(w): r for r, w in monitor.windows.items()}
-        for fid, plan in monitor._plans.items():
-            self.targets[fid] = [(roles_of.get(id(win)) if win is not None else None, kind) for win, kind in plan]
+        self.targets = [[(roles_of.get(id(w)) if w is not None else None, k) for w, k in x.plan] for x in self.inps]
+        self.bounds = [[codec.raw_bounds(lay) for lay in x.spec.layouts] for x in self.inps]
+        self._index = {id(x): j for j, x in enumerate(self.inps)}
+        # matching results of the log so far: sorted keys (channel, format, identifier) and codes
+        self._m_keys = np.empty(0, dtype=np.int64)
+        self._m_codes = np.empty(0, dtype=np.int64)
+        self._m_names: tuple[str, ...] = ()
+        # DM1 with its transport sessions is stateful per tick in ways not done with arrays here: such
+        # a machine's frames go through the core one by one.
+        self.plain = monitor._dm1 is None
         self._low_after: int | None = None
 
     # -- output plumbing ------------------------------------------------------------------------------
@@ -129,41 +143,93 @@ class _Engine:
         m = self.m
         c = m.counters
         n = len(cols)
-        err, rtr, ext = cols.error, cols.remote, cols.extended
-        fid = cols.arbitration_id.astype(np.int64)
-        known = np.zeros(n, dtype=bool)
-        need_len = np.zeros(n, dtype=np.int64)
-        for f, spec in m.inputs.items():
-            hit = fid == f
-            known |= hit
-            need_len[hit] = spec.length
-        plain = ~(err | rtr | ext)
-        known &= plain
-        good_len = known & (cols.dlc >= need_len)
+        if not self.plain:
+            for i in range(n):
+                self._scalar(cols, i)
+            return
+        err, rtr = cols.error, cols.remote
+        live = ~(err | rtr)
+        which = self._match(cols, live)
+        mapped = which >= 0
+        need_len = np.array([x.length for x in self.inps], dtype=np.int64)[np.where(mapped, which, 0)]
+        good_len = mapped & (cols.dlc >= need_len)
+        short = mapped & ~good_len
         # frames that never reach the clock: counted in bulk (their order does not matter)
         c["frames_total"] += int(n - good_len.sum())
         c["error_frame"] += int(err.sum())
         c["remote_frame"] += int((rtr & ~err).sum())
-        c["unknown_id"] += int((ext & ~err & ~rtr).sum() + (plain & ~known).sum())
-        c["bad_length"] += int((known & ~good_len).sum())
+        c["unknown_channel"] += int(np.count_nonzero(which == _UNKNOWN_CHANNEL))
+        c["bad_fd"] += int(np.count_nonzero(which == _BAD_FD))
+        c["unknown_id"] += int(np.count_nonzero(which == _UNKNOWN_ID))
+        if short.any():
+            c["bad_length"] += int(short.sum())
+            for j, cnt in enumerate(np.bincount(which[short], minlength=len(self.inps)).tolist()):
+                if cnt:
+                    self.inps[j].stream.counts["bad_length"] += cnt
         idx = np.flatnonzero(good_len)
         if not len(idx):
             return
         t = cols.timestamp_s[idx]
-        ids = fid[idx]
+        ids = which[idx]
         raws, ok, row = self._decode(cols, idx, ids)
+        ctr, cs_ok = self._integrity(cols, idx, ids)
         pos = 0
         while pos < len(idx):
             if m.clock.next_k is None or not math.isfinite(t[pos]):
                 self._scalar(cols, int(idx[pos]))
                 pos += 1
                 continue
-            end = self._stretch(t, ids, raws, row, ok, pos)
+            end = self._stretch(t, ids, raws, row, ok, ctr, cs_ok, pos)
             if end == pos:  # the first frame is irregular: the streaming core takes it
                 self._scalar(cols, int(idx[pos]))
                 pos += 1
             else:
                 pos = end
+
+    def _match(self, cols: FrameColumns, live: NDArray[np.bool_]) -> NDArray[np.int64]:
+        """Each frame's input message (its index in ``inps``) or why none (a negative code), by the
+        core's own matching (:mod:`cmcan.monitor.inputs`, memoized in the monitor as ``feed`` does):
+        a pure function of channel, identifier, format and FD flag, so asked once per combination.
+        Error and remote frames are left unmatched (the core counts them before matching)."""
+        which = np.full(len(cols), _NOT_DATA, dtype=np.int64)
+        sel = np.flatnonzero(live)
+        if not len(sel):
+            return which
+        key = (
+            cols.arbitration_id[sel].astype(np.int64)
+            | (cols.extended[sel].astype(np.int64) << 29)
+            | (cols.fd[sel].astype(np.int64) << 30)
+            | (cols.channel[sel].astype(np.int64) << 31)
+        )
+        names = cols.channel_names
+        if names[: len(self._m_names)] != self._m_names:  # channel codes mean other names now
+            self._m_keys, self._m_codes = np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
+        self._m_names = names
+        at = np.searchsorted(self._m_keys, key)
+        hit = at < len(self._m_keys)
+        hit[hit] = self._m_keys[at[hit]] == key[hit]
+        if not hit.all():  # combinations not seen before in this log: ask the core's matching
+            new = np.unique(key[~hit])
+            codes = np.array([self._code(k, names) for k in new.tolist()], dtype=np.int64)
+            keys = np.concatenate([self._m_keys, new])
+            order = np.argsort(keys, kind="stable")
+            self._m_keys, self._m_codes = keys[order], np.concatenate([self._m_codes, codes])[order]
+            at = np.searchsorted(self._m_keys, key)
+        which[sel] = self._m_codes[at]
+        return which
+
+    def _code(self, key: int, names: tuple[str, ...]) -> int:
+        m = self.m
+        fid, ext, fd, name = key & 0x1FFFFFFF, bool(key >> 29 & 1), bool(key >> 30 & 1), names[key >> 31]
+        ch = m._chans.get(name) or m._channel(name)
+        if ch.index < 0:
+            return _UNKNOWN_CHANNEL
+        if fd and not ch.fd:
+            return _BAD_FD
+        inp = (ch.ext if ext else ch.std).get(fid, _MISS)
+        if inp is _MISS:
+            inp = m._lookup(ch, fid, ext)
+        return _UNKNOWN_ID if inp is None else self._index[id(inp)]
 
     def _scalar(self, cols: FrameColumns, i: int) -> None:
         self.drain_timeline()
@@ -172,26 +238,65 @@ class _Engine:
     def _decode(
         self, cols: FrameColumns, idx: NDArray[np.int64], ids: NDArray[np.int64]
     ) -> tuple[dict[int, NDArray[np.int64]], NDArray[np.bool_], NDArray[np.int64]]:
-        """Per message id the raw values (its frames x its values), the DBC range check per frame,
-        and each frame's row in its message's array."""
+        """Per input message the raw values (its frames x its values), the DBC range check per frame
+        (on the raw values, as the core's decoder checks them), and each frame's row in its message's
+        array. ``ids`` are the frames' input message indices."""
         ok = np.ones(len(idx), dtype=bool)
         row = np.zeros(len(idx), dtype=np.int64)
         raws: dict[int, NDArray[np.int64]] = {}
-        for f, spec in self.m.inputs.items():
-            sel = np.flatnonzero(ids == f)
+        for j, x in enumerate(self.inps):
+            sel = np.flatnonzero(ids == j)
             if not len(sel):
                 continue
+            spec = x.spec
             data = self._payloads(cols, idx[sel], spec.size)
             vals = codec.extract_all(data, spec.layouts, spec.size)
             arr = np.stack(vals, axis=1) if vals else np.zeros((len(sel), 0), dtype=np.int64)
             good = np.ones(len(sel), dtype=bool)
-            for j, lay in enumerate(spec.layouts):
-                phys = arr[:, j] * lay.scale + lay.offset
-                good &= (lay.minimum <= phys) & (phys <= lay.maximum)
+            for v, (lo, hi) in enumerate(self.bounds[j]):
+                good &= (lo <= arr[:, v]) & (arr[:, v] <= hi)
             ok[sel] = good
             row[sel] = np.arange(len(sel))
-            raws[f] = arr
+            raws[j] = arr
         return raws, ok, row
+
+    def _integrity(
+        self, cols: FrameColumns, idx: NDArray[np.int64], ids: NDArray[np.int64]
+    ) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
+        """Per frame its message counter (0 where none) and whether its checksum holds (True where
+        none): pure functions of one frame, as :meth:`cmcan.monitor.health.Stream.check` reads them."""
+        ctr = np.zeros(len(idx), dtype=np.int64)
+        cs_ok = np.ones(len(idx), dtype=bool)
+        for j, x in enumerate(self.inps):
+            if not x.checked:
+                continue
+            sel = np.flatnonzero(ids == j)
+            if not len(sel):
+                continue
+            rows = idx[sel]
+            st, spec = x.stream, x.spec.health
+            if st.tsc1 and bool((cols.dlc[rows] == 8).all()):
+                # J1939-71's TSC1 layout: counter and checksum in byte 8, the sum over the frame and the id
+                data = cols.data[rows].astype(np.int64)
+                d7 = data[:, 7]
+                cid = cols.arbitration_id[rows].astype(np.int64)
+                ids_sum = (cid & 0xFF) + ((cid >> 8) & 0xFF) + ((cid >> 16) & 0xFF) + ((cid >> 24) & 0xFF)
+                cs_ok[sel] = (d7 >> 4) == _TSC1_FOLD[data.sum(axis=1) - (d7 & 0xF0) + ids_sum]
+                ctr[sel] = d7 & 0x0F
+                continue
+            if st.tsc1 or st.checksum is not None:  # any other checksum: the stream's own check, per frame
+                probe = Stream(spec)
+                for s_i, r in zip(sel.tolist(), rows.tolist(), strict=True):
+                    f = cols.frame(r)
+                    probe.prev = None
+                    verdict = probe.check(0.0, f.arbitration_id, f.data)
+                    cs_ok[s_i] = verdict != CHECKSUM
+                    ctr[s_i] = probe.prev if probe.prev is not None else 0
+                continue
+            if spec.counter is not None:
+                data = self._payloads(cols, rows, spec.nbytes)
+                ctr[sel] = codec.extract_all(data, [spec.counter], spec.nbytes)[0]
+        return ctr, cs_ok
 
     @staticmethod
     def _payloads(cols: FrameColumns, rows: NDArray[np.int64], size: int) -> NDArray[np.uint8]:
@@ -212,6 +317,8 @@ class _Engine:
         raws_all: dict[int, NDArray[np.int64]],
         row_all: NDArray[np.int64],
         ok_all: NDArray[np.bool_],
+        ctr_all: NDArray[np.int64],
+        cs_all: NDArray[np.bool_],
         pos: int,
     ) -> int:
         """Process the regular stretch of clocked frames starting at ``pos``; returns its end."""
@@ -238,7 +345,10 @@ class _Engine:
         due_t = k_prev * P + eps
         late = t < late_t
         advances = t > due_t
-        accepted = ok & ~late
+        # the health checks of the frames that reach them (not late), then the DBC range
+        checks = self._counter_checks(t, ids_all[pos:], ~late, ctr_all[pos:], cs_all[pos:])
+        verdict = np.where(checks != OK, checks, np.where(ok, OK, OUT_OF_RANGE)).astype(np.int8)
+        accepted = (verdict == OK) & ~late
         lf = np.maximum.accumulate(np.concatenate([[lf0], np.where(accepted, t, -np.inf)]))
         lf_prev = lf[:-1]
         gap = advances & (t - lf_prev > clock.max_gap_s)
@@ -250,21 +360,25 @@ class _Engine:
         if stop == 0:
             return pos
         sl = slice(0, stop)
-        t, ok, late, accepted = t[sl], ok[sl], late[sl], accepted[sl]
+        t, late, accepted, verdict = t[sl], late[sl], accepted[sl], verdict[sl]
         k_after = np.where(late, k_prev[sl], np.maximum(k_prev[sl], g[sl])).astype(np.int64)
         k_end = int(k_after[-1])
         ids = ids_all[pos : pos + stop]
         c = m.counters
         c["frames_total"] += stop
         c["late"] += int(late.sum())
-        c["out_of_range"] += int((~ok & ~late).sum())
+        reached_v = verdict[~late]
+        for code in (CHECKSUM, COUNTER_FROZEN, COUNTER_JUMP, OUT_OF_RANGE):
+            c[REASONS[code]] += int(np.count_nonzero(reached_v == code))
         c["accepted"] += int(accepted.sum())
+        self._write_counters(stop)
         # samples per role, in arrival order, from the accepted frames
         samples = self._samples(t, ids, raws_all, row_all[pos : pos + stop], accepted)
         ticks_k = np.arange(k0, k_end, dtype=np.int64)
         trig = np.searchsorted(k_after, ticks_k, side="right")  # index of the frame that completes each tick
+        erratic = self._health(t, ids, ~late, verdict, trig, ticks_k.astype(np.float64) * P)
         if len(ticks_k):
-            self._evaluate(ticks_k, trig, samples)
+            self._evaluate(ticks_k, trig, samples, erratic)
         # write the state back
         clock.resume(k_end, float(lf[stop]))
         for role, smp in samples.items():
@@ -286,7 +400,7 @@ class _Engine:
         per_role: dict[str, list[tuple[NDArray[np.int64], NDArray[np.int64]]]] = {r: [] for r in m.windows}
         high_rows: list[tuple[NDArray[np.int64], NDArray[np.int64]]] = []
         low_rows: list[tuple[NDArray[np.int64], NDArray[np.int64]]] = []
-        for f, targets in self.targets.items():
+        for f, targets in enumerate(self.targets):
             mine = np.flatnonzero((ids == f) & accepted)
             if not len(mine):
                 continue
@@ -333,7 +447,121 @@ class _Engine:
             out[role] = _RoleSamples(m.windows[role], fi, t[fi], rv, n)
         return out
 
-    def _evaluate(self, ks: NDArray[np.int64], trig: NDArray[np.int64], samples: dict[str, _RoleSamples]) -> None:
+    def _counter_checks(
+        self,
+        t: NDArray[np.float64],
+        ids: NDArray[np.int64],
+        reached: NDArray[np.bool_],
+        ctr: NDArray[np.int64],
+        cs_ok: NDArray[np.bool_],
+    ) -> NDArray[np.int8]:
+        """Steps 1 and 2 of :mod:`cmcan.monitor.health` for the frames that reach them, in arrival
+        order per stream: a failed checksum, else the counter against the previous frame that passed
+        the checksum (within the timeout). Keeps each stream's passing frames for the write-back."""
+        out = np.zeros(len(t), dtype=np.int8)
+        self._passing: list[tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]] | None] = []
+        for j, x in enumerate(self.inps):
+            st = x.stream
+            if not x.checked:
+                self._passing.append(None)
+                continue
+            mine = reached & (ids == j)
+            out[mine & ~cs_ok] = CHECKSUM
+            if not (st.tsc1 or st._at >= 0 or st._read is not None):  # a checksum and no counter
+                self._passing.append(None)
+                continue
+            p = np.flatnonzero(mine & cs_ok)
+            self._passing.append((p, ctr[p], t[p]))
+            if not len(p):
+                continue
+            c = ctr[p]
+            tp = t[p]
+            prev_c = np.concatenate([[st.prev if st.prev is not None else 0], c[:-1]])
+            prev_t = np.concatenate([[st.prev_t], tp[:-1]])
+            has_prev = np.ones(len(p), dtype=bool)
+            has_prev[0] = st.prev is not None
+            within = has_prev & (tp - prev_t <= st.timeout_s)
+            d = (c - prev_c) % st.modulo
+            out[p] = np.where(within & (d == 0), COUNTER_FROZEN, np.where(within & (d > st.max_step), COUNTER_JUMP, OK))
+        return out
+
+    def _write_counters(self, stop: int) -> None:
+        """Each stream's previous counter and its time as the core leaves them after ``stop`` frames."""
+        for x, passing in zip(self.inps, self._passing, strict=True):
+            if passing is None:
+                continue
+            p, c, tp = passing
+            n = int(np.searchsorted(p, stop))
+            if n:
+                x.stream.prev = int(c[n - 1])
+                x.stream.prev_t = float(tp[n - 1])
+
+    def _health(
+        self,
+        t: NDArray[np.float64],
+        ids: NDArray[np.int64],
+        reached: NDArray[np.bool_],
+        verdict: NDArray[np.int8],
+        trig: NDArray[np.int64],
+        t_k: NDArray[np.float64],
+    ) -> NDArray[np.bool_]:
+        """Input health over a stretch (:mod:`cmcan.monitor.health`): each message stream's newest frame
+        and its verdict at every tick (the frames before the one that completes the tick), whether
+        some stream is erratic there, the timeouts counted at the ticks where some stream is alive;
+        the streams' state and counts written back. ``reached``: the frames that got to the checks
+        (not late); ``verdict``: theirs (OK, or why a frame was rejected)."""
+        n_ticks = len(t_k)
+        erratic = np.zeros(n_ticks, dtype=bool)
+        alive = np.zeros(n_ticks, dtype=bool)
+        outs = []
+        ends = []
+        for j, x in enumerate(self.inps):
+            st = x.stream
+            f = np.flatnonzero(reached & (ids == j))  # this stream's frames, in arrival order
+            if len(f):
+                tf, vf = t[f], verdict[f]
+                # newest_t before each of its frames, and the frames that set it (t >= newest_t: later
+                # ones win ties); a tick sees the frames before the one that completes it
+                run = np.maximum.accumulate(np.concatenate([[st.newest_t], tf]))
+                upd = tf >= run[:-1]
+                last = np.maximum.accumulate(np.where(upd, np.arange(len(f)), -1))
+                ok_after = np.where(last >= 0, vf[np.maximum(last, 0)] == OK, st.newest_ok)
+                seen = np.searchsorted(f, trig)
+                nt = run[seen]
+                ok_t = np.where(seen > 0, ok_after[np.maximum(seen - 1, 0)], st.newest_ok)
+                for code in (CHECKSUM, COUNTER_FROZEN, COUNTER_JUMP, OUT_OF_RANGE):
+                    st.counts[REASONS[code]] += int(np.count_nonzero(vf == code))
+                ends.append((float(run[-1]), bool(ok_after[-1])))
+            else:
+                nt = np.full(n_ticks, st.newest_t)
+                ok_t = np.full(n_ticks, st.newest_ok)
+                ends.append((st.newest_t, st.newest_ok))
+            tmo = st.timeout_s
+            with np.errstate(invalid="ignore"):
+                age = t_k - nt
+                erratic |= ~ok_t & (nt <= t_k) & (age <= tmo)
+                silent = (nt == -np.inf) | (age > tmo)
+            if tmo < math.inf:
+                alive |= ~silent
+            outs.append((nt > -np.inf) & silent)
+        live = np.flatnonzero(alive)
+        for (x, out), (nt_end, ok_end) in zip(zip(self.inps, outs, strict=True), ends, strict=True):
+            st = x.stream
+            if len(live):
+                o = out[live]
+                prev = np.concatenate([[st.timed_out], o[:-1]])
+                st.counts["timeout"] += int(np.count_nonzero(o & ~prev))
+                st.timed_out = bool(o[-1])
+            st.newest_t, st.newest_ok = nt_end, ok_end
+        return erratic
+
+    def _evaluate(
+        self,
+        ks: NDArray[np.int64],
+        trig: NDArray[np.int64],
+        samples: dict[str, _RoleSamples],
+        erratic: NDArray[np.bool_],
+    ) -> None:
         m = self.m
         p = m.params
         P = m.period
@@ -348,6 +576,7 @@ class _Engine:
             mean[role], std[role] = np.full(n, value), np.zeros(n)
             count[role], age[role] = np.full(n, p.limits.min_samples, dtype=np.int64), np.zeros(n)
         gates = gate_columns(mean, std, count, age, p.limits, p.max_age_s, p.envelope)
+        gates[erratic] = Gate.IMPLAUSIBLE_INPUT  # an erratic input message (Monitor._health_gate)
         out = p.output_role
         meas = np.where(count[out] > 0, mean[out], 0.0)
         pred = np.zeros(n)
@@ -579,7 +808,10 @@ def _encode(
     """Payloads of ``msg`` for the tick rows (n, length), as its per-frame encoder gives them."""
     if msg.length > 8:
         raise ValueError("an output message longer than 8 bytes: the columnar replay writes classic frames")
-    return rows, codec.encode_all(msg.layouts, msg.size, msg.length, {k: v[rows] for k, v in values.items()})
+    data = codec.encode_all(msg.layouts, msg.size, msg.length, {k: v[rows] for k, v in values.items()})
+    if msg.fill:  # J1939: the bits of no signal sent as 1
+        data |= np.frombuffer(msg.fill, dtype=np.uint8)[None, : msg.length]
+    return rows, data
 
 
 def _filter(

@@ -8,11 +8,14 @@ model live in :mod:`cmcan.assemble`.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from cmcan.checksums import ALGORITHMS
 from cmcan.io.points import Condition, PointsError, PointSpec
+from cmcan.j1939.dm1 import PROPRIETARY_SPNS
 from cmcan.monitor.gating import REFERENCE_PUMP_DISP_CC, REFERENCE_PUMP_SPEED_RPM, GateLimits, scaled
 from cmcan.monitor.warnings import Thresholds
 from cmcan.oil import Oil, oil_from_grade
@@ -27,7 +30,7 @@ from cmcan.roles import (
     QUANTITY_OUTPUT,
     SignalRef,
 )
-from cmcan.schema import Num, Obj, SchemaError, Seq, Str, load_yaml
+from cmcan.schema import Bool, Either, Num, Obj, SchemaError, Seq, Str, load_yaml
 from cmcan.uplink.config import UPLINK, UplinkSettings
 
 _SIGNAL = Obj(
@@ -215,6 +218,91 @@ _CONFIG = Obj(
 )
 
 
+# -- machine buses: channels, frame formats, per-message matching and health, J1939 (issue 11) -----------
+
+_ADDRESS = Num(0, 253, integer=True)  # J1939 unicast source addresses (254 null, 255 global)
+_SOURCES = Either((Str(choices=("any",)), Seq(_ADDRESS, min_len=1)), default=None)
+_SPN = Num(PROPRIETARY_SPNS.start, PROPRIETARY_SPNS.stop - 1, integer=True)
+
+
+def _j1939_rule(j: dict[str, Any]) -> tuple[str, str] | None:
+    if j["enabled"] and j["source_address"] is None:
+        return "source_address", "missing; a J1939 node sends from its own source address (0..253)"
+    if j["dm1"]["enabled"] and not j["enabled"]:
+        return "dm1.enabled", "DM1 is a J1939 message: set j1939.enabled: true as well"
+    if j["dm1"]["spn"] == j["dm1"]["input_spn"]:
+        return "dm1.input_spn", "must differ from dm1.spn (the inputs' faults are another DTC than the condition)"
+    return None
+
+
+_BUS_SECTIONS = {
+    "frames": Obj(
+        {"extended_ids": Bool(default=False), "fd": Bool(default=False)},
+        default={},
+    ),
+    "channels": Obj(
+        {
+            "extra": Seq(
+                Obj(
+                    {
+                        "channel": Str(),
+                        "bitrate": Num(10_000, 1_000_000, "bit/s", default=None, integer=True),
+                        "fd": Bool(default=False),
+                    }
+                ),
+                default=[],
+            ),
+            "outputs": Str(default=None),
+            "from_log": Obj({}, extra=Str(), default={}),
+        },
+        default={},
+    ),
+    "messages": Obj(
+        {},
+        extra=Obj(
+            {
+                "channel": Str(default=None),
+                "source_addresses": _SOURCES,
+                "counter": Str(default=None),
+                "checksum_signal": Str(default=None),
+                "checksum": Str(choices=(*ALGORITHMS, "none"), default=None),
+            }
+        ),
+        default={},
+    ),
+    "input_health": Obj(
+        {
+            "timeout_cycles": Num(1, 1000, "cycles", default=10.0),
+            "max_counter_step": Num(1, 1000, integer=True, default=2),
+            "checksum": Str(choices=(*ALGORITHMS, "none"), default=None),
+        },
+        default={},
+    ),
+    "j1939": Obj(
+        {
+            "enabled": Bool(default=False),
+            "source_address": Num(0, 253, integer=True, default=None),
+            "source_addresses": Either((Str(choices=("any",)), Seq(_ADDRESS, min_len=1)), default="any"),
+            "bam_packet_gap_ms": Num(50, 200, "ms", default=100.0),
+            "dm1": Obj(
+                {
+                    "enabled": Bool(default=False),
+                    "spn": Num(PROPRIETARY_SPNS.start, PROPRIETARY_SPNS.stop - 1, integer=True, default=520192),
+                    "input_spn": Num(PROPRIETARY_SPNS.start, PROPRIETARY_SPNS.stop - 1, integer=True, default=520193),
+                    "low_severe_pct": Num(50, 100, "%", default=96.0),
+                    "high_severe_pct": Num(100, 200, "%", default=104.0),
+                    "period_ms": Num(100, 60000, "ms", default=1000, integer=True),
+                },
+                default={},
+            ),
+        },
+        default={},
+        rule=_j1939_rule,
+    ),
+}
+_CONFIG = replace(_CONFIG, fields={**_CONFIG.fields, **_BUS_SECTIONS})  # the rules stay
+
+
 @dataclass(frozen=True)
 class BusConfig:
     interface: str  # a python-can interface: socketcan, virtual, pcan, ...
@@ -298,6 +386,66 @@ class StateConfig:
 
 
 @dataclass(frozen=True)
+class ChannelConfig:
+    """One bus cmcan opens: its channel name, bitrate (None: as bus.bitrate) and whether it is CAN FD."""
+
+    name: str
+    bitrate: int | None = None
+    fd: bool = False
+
+
+@dataclass(frozen=True)
+class FramesConfig:
+    extended_ids: bool = False  # 29-bit identifiers in the mapping and the outputs
+    fd: bool = False  # bus.channel is a CAN FD bus
+
+
+@dataclass(frozen=True)
+class ChannelsConfig:
+    extra: tuple[ChannelConfig, ...] = ()  # buses besides bus.channel, on bus.interface
+    outputs: str | None = None  # where cmcan sends (None: bus.channel)
+    from_log: dict[str, str] = field(default_factory=dict)  # a log's channel names -> configured channels
+
+
+@dataclass(frozen=True)
+class MessageConfig:
+    """Per input message: its channel, J1939 source addresses, and how its health is checked."""
+
+    channel: str | None = None  # None: bus.channel
+    source_addresses: tuple[int, ...] | None = None  # None: j1939.source_addresses
+    source_addresses_set: bool = False  # given here (not the default)
+    counter: str | None = None  # a signal name, "none", or None: found by name in the DBC
+    checksum_signal: str | None = None  # None: found by name in the DBC
+    checksum: str | None = None  # an algorithm, "none", or None: input_health.checksum
+
+
+@dataclass(frozen=True)
+class HealthConfig:
+    timeout_cycles: float = 10.0  # a message missing this many DBC cycle times is stale
+    max_counter_step: int = 2  # an alive counter advancing by more has jumped
+    checksum: str | None = None  # the algorithm of checksum signals found in the DBC
+
+
+@dataclass(frozen=True)
+class Dm1Config:
+    enabled: bool = False
+    spn: int = 520192
+    input_spn: int = 520193
+    low_severe_pct: float = 96.0
+    high_severe_pct: float = 104.0
+    period_ms: int = 1000
+
+
+@dataclass(frozen=True)
+class J1939Config:
+    enabled: bool = False
+    source_address: int | None = None  # cmcan's own
+    source_addresses: tuple[int, ...] | None = None  # senders accepted by default; None: any
+    bam_packet_gap_ms: float = 100.0
+    dm1: Dm1Config = field(default_factory=Dm1Config)
+
+
+@dataclass(frozen=True)
 class Config:
     source: str  # the file it came from, for messages
     bus: BusConfig
@@ -316,6 +464,26 @@ class Config:
     uplink: UplinkSettings  # the telematics uplink (disabled by default); its outbox in the state directory
     # How an operating-point table's columns map onto roles (cmcan train/score --points).
     points: PointSpec = field(default_factory=PointSpec)
+    frames: FramesConfig = field(default_factory=FramesConfig)
+    channels: ChannelsConfig = field(default_factory=ChannelsConfig)
+    messages: dict[str, MessageConfig] = field(default_factory=dict)
+    input_health: HealthConfig = field(default_factory=HealthConfig)
+    j1939: J1939Config = field(default_factory=J1939Config)
+
+    @property
+    def channel_list(self) -> tuple[ChannelConfig, ...]:
+        """Every bus cmcan opens, bus.channel first."""
+        return (ChannelConfig(self.bus.channel, self.bus.bitrate, self.frames.fd), *self.channels.extra)
+
+    @property
+    def output_channel(self) -> str:
+        return self.channels.outputs or self.bus.channel
+
+    def message(self, name: str) -> MessageConfig:
+        return self.messages.get(name, MessageConfig())
+
+    def message_channel(self, name: str) -> str:
+        return self.message(name).channel or self.bus.channel
 
     @property
     def motor_disp_cc(self) -> float | None:
@@ -408,7 +576,7 @@ def from_dict(data: Any, source: str, base_dir: Path) -> Config:
     ages = raw["max_signal_age_s"]
     th = raw["thresholds"]
     out = raw["outputs"]
-    return Config(
+    cfg = Config(
         source=source,
         bus=BusConfig(**raw["bus"]),
         dbc_path=_path(base_dir, raw["dbc"]),
@@ -428,6 +596,84 @@ def from_dict(data: Any, source: str, base_dir: Path) -> Config:
         uplink=UplinkSettings.from_raw(raw["uplink"], raw["state"]["directory"], base_dir, source),
         points=_points(raw, drive, source),
     )
+    return _with_bus_sections(cfg, raw, source)
+
+
+def _sources(v: Any) -> tuple[int, ...] | None:
+    return None if v is None or v == "any" else tuple(int(x) for x in v)
+
+
+def _with_bus_sections(cfg: Config, raw: dict[str, Any], source: str) -> Config:
+    """The sections of issue 11 (channels, frame formats, messages, health, J1939), checked across."""
+    ch = raw["channels"]
+    names = [cfg.bus.channel]
+    extra = []
+    for i, e in enumerate(ch["extra"]):
+        if e["channel"] in names:
+            raise SchemaError(source, f"channels.extra[{i}].channel", f"{e['channel']!r} is already a channel")
+        names.append(e["channel"])
+        extra.append(ChannelConfig(e["channel"], e["bitrate"], e["fd"]))
+    known = f"configured channels: {', '.join(names)}"
+    if ch["outputs"] is not None and ch["outputs"] not in names:
+        raise SchemaError(source, "channels.outputs", f"{ch['outputs']!r} is not a configured channel ({known})")
+    for log_name, target in ch["from_log"].items():
+        if target not in names:
+            raise SchemaError(
+                source, f"channels.from_log.{log_name}", f"{target!r} is not a configured channel ({known})"
+            )
+    messages = {}
+    for name, m in raw["messages"].items():
+        if m["channel"] is not None and m["channel"] not in names:
+            raise SchemaError(
+                source, f"messages.{name}.channel", f"{m['channel']!r} is not a configured channel ({known})"
+            )
+        messages[name] = MessageConfig(
+            m["channel"],
+            _sources(m["source_addresses"]),
+            m["source_addresses"] is not None,
+            m["counter"],
+            m["checksum_signal"],
+            m["checksum"],
+        )
+    inputs = {v["message"] for v in raw["signals"].values() if v is not None}
+    for name in messages:
+        if name not in inputs:
+            raise SchemaError(
+                source, f"messages.{name}", f"not an input message of signals: (they are {', '.join(sorted(inputs))})"
+            )
+    h = raw["input_health"]
+    j = raw["j1939"]
+    if j["enabled"] and not raw["frames"]["extended_ids"]:
+        raise SchemaError(source, "frames.extended_ids", "J1939 needs 29-bit identifiers: set it to true")
+    d = j["dm1"]
+    th = cfg.thresholds
+    if d["enabled"] and d["low_severe_pct"] >= th.low_pct:
+        raise SchemaError(
+            source,
+            "j1939.dm1.low_severe_pct",
+            f"must be below thresholds.low_pct ({th.low_pct:g}), got {d['low_severe_pct']:g}",
+        )
+    if d["enabled"] and d["high_severe_pct"] <= th.high_pct:
+        raise SchemaError(
+            source,
+            "j1939.dm1.high_severe_pct",
+            f"must be above thresholds.high_pct ({th.high_pct:g}), got {d['high_severe_pct']:g}",
+        )
+    own = j["source_address"]
+    for name, m in messages.items():
+        if own is not None and m.source_addresses is not None and own in m.source_addresses:
+            raise SchemaError(source, f"messages.{name}.source_addresses", f"includes cmcan's own address {own}")
+    default_sources = _sources(j["source_addresses"])
+    if own is not None and default_sources is not None and own in default_sources:
+        raise SchemaError(source, "j1939.source_addresses", f"includes cmcan's own address {own}")
+    return replace(
+        cfg,
+        frames=FramesConfig(**raw["frames"]),
+        channels=ChannelsConfig(tuple(extra), ch["outputs"], dict(ch["from_log"])),
+        messages=messages,
+        input_health=HealthConfig(float(h["timeout_cycles"]), h["max_counter_step"], h["checksum"]),
+        j1939=J1939Config(j["enabled"], own, default_sources, float(j["bam_packet_gap_ms"]), Dm1Config(**d)),
+    )
 
 
 def load(path: str | Path | None = None) -> Config:
@@ -436,11 +682,34 @@ def load(path: str | Path | None = None) -> Config:
     return from_dict(load_yaml(p), str(p), p.resolve().parent)
 
 
+def rename_channels(cfg: Config, names: Mapping[str, str]) -> Config:
+    """The configuration with channels renamed (``old: new``) wherever it names them."""
+
+    def ren(name: str | None) -> str | None:
+        return names.get(name, name) if name is not None else None
+
+    return replace(
+        cfg,
+        bus=replace(cfg.bus, channel=names.get(cfg.bus.channel, cfg.bus.channel)),
+        channels=replace(
+            cfg.channels,
+            extra=tuple(replace(c, name=names.get(c.name, c.name)) for c in cfg.channels.extra),
+            outputs=ren(cfg.channels.outputs),
+            from_log={k: names.get(v, v) for k, v in cfg.channels.from_log.items()},
+        ),
+        messages={k: replace(m, channel=ren(m.channel)) for k, m in cfg.messages.items()},
+    )
+
+
 def with_overrides(
     cfg: Config, interface: str | None = None, channel: str | None = None, state_dir: str | None = None
 ) -> Config:
-    """The command line's overrides of bus and state directory."""
-    bus = replace(cfg.bus, **{k: v for k, v in (("interface", interface), ("channel", channel)) if v})
+    """The command line's overrides of bus and state directory. A new bus.channel takes the old one's
+    place wherever the configuration names it (messages, outputs, log channel names); the uplink's
+    outbox moves with the state directory when it lives there."""
+    if channel and channel != cfg.bus.channel:
+        cfg = rename_channels(cfg, {cfg.bus.channel: channel})
+    bus = replace(cfg.bus, **({"interface": interface} if interface else {}))
     if not state_dir:
         return replace(cfg, bus=bus)
     state = replace(cfg.state, directory=Path(state_dir))
@@ -451,4 +720,13 @@ def with_overrides(
     return replace(cfg, bus=bus, state=state, uplink=uplink)
 
 
-__all__ = ["Config", "SchemaError", "SignalRef", "default_config_path", "from_dict", "load", "with_overrides"]
+__all__ = [
+    "Config",
+    "SchemaError",
+    "SignalRef",
+    "default_config_path",
+    "from_dict",
+    "load",
+    "rename_channels",
+    "with_overrides",
+]

@@ -1,10 +1,14 @@
-"""The daemon: the imperative shell around the monitor core on a live bus.
+"""The daemon: the imperative shell around the monitor core on live buses.
 
 It owns its receive loop (python-can's Notifier thread would stop for good on the first receive
-error), asks the kernel to filter the input identifiers, feeds every frame to the core and sends what
-the core returns. Bus errors (network down, a full transmit queue, bus-off) are logged with rate
-limits and recovered from by reopening the bus with a growing back-off; no frame and no bus error
-stops it. Under systemd it reports READY, WATCHDOG and STATUS; SIGTERM and SIGINT stop it cleanly.
+error), opens one python-can bus per configured channel, asks the kernel to filter the input
+identifiers (11-bit exactly, J1939 on PGN and source address), feeds every frame to the core stamped
+with the channel it came from, and sends what the core returns on the channel each frame names, at
+the frame's time (a J1939 transport session's packets are spaced in frame time; the daemon sends each
+when the bus's time reaches it). Bus errors (network down, a full transmit queue, bus-off) are logged
+with rate limits and recovered from by reopening that bus with a growing back-off while the others go
+on; no frame and no bus error stops it. Under systemd it reports READY, WATCHDOG and STATUS; SIGTERM
+and SIGINT stop it cleanly.
 """
 
 from __future__ import annotations
@@ -12,19 +16,24 @@ from __future__ import annotations
 import errno
 import logging
 import math
+import select
 import socket
 import struct
 import threading
 import time
-from collections.abc import Callable
+from collections import deque
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import can
 
-from cmcan.config import BusConfig, Config
+from cmcan.config import ChannelConfig, Config
 from cmcan.frame import Frame, from_message, to_message_kwargs
+from cmcan.j1939 import ids, transport
+from cmcan.monitor.clock import STEP_BACK_S
 from cmcan.monitor.core import Monitor
+from cmcan.monitor.inputs import InputMessage
 from cmcan.ratelog import RateLimitedLog
 from cmcan.sdnotify import Notifier
 from cmcan.statefile import StateStore
@@ -58,14 +67,50 @@ class DaemonOptions:
     send_timeout_s: float = 0.005
 
 
-def bus_kwargs(b: BusConfig, input_ids: list[int]) -> dict[str, Any]:
+DRAIN = 256  # frames read from one bus before the others get their turn
+MAX_BATCH = 4096  # several buses: frames read before some go on
+J1939_PGN_MASK = 0x03FFFF00  # EDP, DP, PF, PS: the priority and the source address left out
+# A filter no real frame matches: a channel that only carries cmcan's outputs receives nothing.
+NOTHING = {"can_id": 0, "can_mask": 0x1FFFFFFF, "extended": True}
+
+
+def can_filters(inputs: Sequence[InputMessage], channel: str) -> list[dict[str, Any]]:
+    """Kernel filters for the input messages on ``channel``: 11-bit identifiers exactly; 29-bit ones
+    exactly, or for J1939 on the PGN (the priority ignored) and the listed source addresses (or any),
+    with the DBC's destination for a PDU1 PGN."""
+    out: list[dict[str, Any]] = []
+    for m in inputs:
+        if m.channel != channel:
+            continue
+        if not m.extended:
+            out.append({"can_id": m.frame_id, "can_mask": 0x7FF, "extended": False})
+        elif m.pgn is None:
+            out.append({"can_id": m.frame_id, "can_mask": ids.MAX_ID, "extended": True})
+        else:
+            dests = sorted(m.destinations) if ids.is_pdu1(m.pgn) else [0]
+            for da in dests:
+                base = (m.pgn | da) << 8
+                if m.sources is None:
+                    out.append({"can_id": base, "can_mask": J1939_PGN_MASK, "extended": True})
+                else:
+                    out += [
+                        {"can_id": base | sa, "can_mask": J1939_PGN_MASK | 0xFF, "extended": True}
+                        for sa in sorted(m.sources)
+                    ]
+    return out or [NOTHING]
+
+
+def bus_kwargs(cfg: Config, channel: ChannelConfig, inputs: Sequence[InputMessage]) -> dict[str, Any]:
+    """python-can's ``Bus`` arguments for one configured channel (``fd=True`` on a CAN FD bus)."""
     kw: dict[str, Any] = {
-        "interface": b.interface,
-        "channel": b.channel,
-        "bitrate": b.bitrate,
-        "can_filters": [{"can_id": i, "can_mask": 0x7FF, "extended": False} for i in sorted(input_ids)],
+        "interface": cfg.bus.interface,
+        "channel": channel.name,
+        "bitrate": channel.bitrate or cfg.bus.bitrate,
+        "can_filters": can_filters(inputs, channel.name),
         "receive_own_messages": False,
     }
+    if channel.fd:
+        kw["fd"] = True
     return kw
 
 
@@ -88,13 +133,27 @@ def tune_socketcan(bus: can.BusABC, rcvbuf: int) -> None:
         log.debug("cannot subscribe to error frames: %s", exc)
 
 
+class Link:
+    """One bus the daemon keeps open: its channel name, how to open it, and its back-off."""
+
+    def __init__(self, name: str, open_bus: Callable[[], can.BusABC]) -> None:
+        self.name = name
+        self.open_bus = open_bus
+        self.bus: can.BusABC | None = None
+        self.retry_at = -math.inf
+        self.backoff_s = 0.0
+
+
 class Daemon:
+    """``open_bus`` opens the configured bus.channel; a mapping of channel name to opener opens each
+    configured channel (the first entry is where frames without a channel go)."""
+
     def __init__(
         self,
         cfg: Config,
         monitor: Monitor,
         store: StateStore | None,
-        open_bus: Callable[[], can.BusABC],
+        open_bus: Callable[[], can.BusABC] | Mapping[str, Callable[[], can.BusABC]],
         notifier: Notifier | None = None,
         options: DaemonOptions | None = None,
         clock: Callable[[], float] = time.monotonic,
@@ -104,12 +163,13 @@ class Daemon:
         self.cfg = cfg
         self.monitor = monitor
         self.store = store
-        self.open_bus = open_bus
+        opens = dict(open_bus) if isinstance(open_bus, Mapping) else {cfg.bus.channel: open_bus}
+        self.links = [Link(name, fn) for name, fn in opens.items()]
+        self._link_of = {x.name: x for x in self.links}
         self.notifier = notifier or Notifier(env={})
         self.opt = options or DaemonOptions()
         self.clock = clock
         self.stop_event = threading.Event()
-        self.bus: can.BusABC | None = None
         self.stats = {"bus_opens": 0, "bus_errors": 0, "tx_frames": 0, "tx_dropped": 0, "internal_errors": 0}
         self.ratelog = RateLimitedLog(clock=clock)
         self.save_every_s = cfg.state.save_every_s
@@ -118,19 +178,33 @@ class Daemon:
         # difference is the wall clock stepping (the kernel stamps frames with the wall clock).
         self.boot_clock = boot_clock or _boot_time
         self._wall_minus_boot: float | None = None
+        self._last_stamp: float | None = None
+        self._selectable: bool | None = None
+        self._merge: list[tuple[Link, can.Message]] = []  # several buses: read, not yet handed on
+        self._mark: dict[str, float] = {}  # per bus, the timestamp of the last frame read
+        self._input_channels = {m.channel or cfg.bus.channel for m in monitor.inputs}
+        # Transport packets wait until the configured gap after the packet before has gone out.
+        self._tp_gap_s = cfg.j1939.bam_packet_gap_ms / 1000.0
+        self._tp_last_sent = -math.inf
+        self._tp_waiting: deque[Frame] = deque()
+        self._live: list[Link] = []  # the links whose bus is open
+
+    @property
+    def bus(self) -> can.BusABC | None:
+        """The first channel's bus (None while it is closed)."""
+        return self.links[0].bus
 
     # -- the loop --------------------------------------------------------------------------------------
 
     def run(self) -> None:
         opt = self.opt
-        backoff = opt.backoff_min_s
         last_rx_wall: float | None = None
         last_frame_t = math.nan
         next_wd = next_status = self.clock()
         last_save = self.clock()
         saved_ticks = -1
         self.notifier.ready(self._status_text())
-        log.info("cmcan running on %s %s", self.cfg.bus.interface, self.cfg.bus.channel)
+        log.info("cmcan running on %s %s", self.cfg.bus.interface, ", ".join(x.name for x in self.links))
         while not self.stop_event.is_set():
             now = self.clock()
             if self.notifier.watchdog_interval_s is not None and now >= next_wd:
@@ -148,112 +222,234 @@ class Daemon:
                 self._save()
                 last_save, saved_ticks = now, ticks
 
-            if self.bus is None:
-                if not self._open():
-                    self.stop_event.wait(backoff)
-                    backoff = min(backoff * 2, opt.backoff_max_s)
+            live = self._live
+            if len(live) < len(self.links):
+                live = self._open_due(now)
+                if not live:
+                    waits = [x.retry_at - now for x in self.links]
+                    self.stop_event.wait(max(0.0, min(min(waits), opt.backoff_max_s)))
                     continue
-                backoff = opt.backoff_min_s
-            try:
-                msg = self.bus.recv(timeout=opt.recv_timeout_s)
-            except (can.CanError, OSError, ValueError) as exc:
-                self._bus_failed("receive", exc)
-                self.stop_event.wait(backoff)
-                backoff = min(backoff * 2, opt.backoff_max_s)
-                continue
+            timeout = opt.recv_timeout_s
+            if self._tp_waiting:
+                timeout = max(0.0, min(timeout, self._tp_last_sent + self._tp_gap_s - now))
+            if len(live) == 1:  # one bus: as it comes
+                x = live[0]
+                try:
+                    msg = x.bus.recv(timeout=timeout)  # type: ignore[union-attr]
+                except (can.CanError, OSError, ValueError) as exc:
+                    self._bus_failed(x, "receive", exc)
+                    continue
+                batch: Sequence[tuple[Link, can.Message]] = ((x, msg),) if msg is not None else ()
+            else:
+                batch = self._receive(live, timeout)
 
             now = self.clock()
-            try:
-                if msg is not None:
-                    if msg.is_error_frame:
-                        self.ratelog(
-                            logging.WARNING,
-                            "errframe",
-                            "error frame on the bus: id 0x%X data %s",
-                            msg.arbitration_id,
-                            bytes(msg.data).hex(),
-                        )
+            for link, msg in batch:
+                if msg.is_error_frame:
+                    self.ratelog(
+                        logging.WARNING,
+                        "errframe",
+                        "error frame on %s: id 0x%X data %s",
+                        link.name,
+                        msg.arbitration_id,
+                        bytes(msg.data).hex(),
+                    )
+                try:
                     self._watch_wall_clock(msg.timestamp)
-                    out = self.monitor.feed(from_message(msg))
-                    last_rx_wall = now
-                    last_frame_t = msg.timestamp
-                elif last_rx_wall is not None and now - last_rx_wall >= opt.idle_after_s:
-                    out = self.monitor.advance(last_frame_t + (now - last_rx_wall))
-                else:
+                    out = self.monitor.feed(from_message(msg, link.name))
+                    if out and self.monitor.next_due_t != math.inf:  # a transport session's packets: spaced here
+                        out += self.monitor.due(math.inf)
+                except Exception:  # the core must never take the daemon down: log, count, go on
+                    self._internal_error()
                     out = []
-            except Exception:  # the core must never take the daemon down: log, count, go on
-                self.stats["internal_errors"] += 1
-                self.ratelog(logging.ERROR, "internal", "internal error processing a frame", exc_info=True)
+                if out or self._tp_waiting:
+                    self._send(out)
+                self._observe()
+                last_rx_wall = now
+                last_frame_t = msg.timestamp
+            if not batch:
                 out = []
-            if self.uplink is not None:  # issue 15: after each step of the core (cheap unless a tick completed)
-                self.uplink.observe(self.monitor, self.stats)
-            if out:
-                self._send(out)
+                if last_rx_wall is not None and now - last_rx_wall >= opt.idle_after_s:
+                    try:
+                        out = self.monitor.advance(last_frame_t + (now - last_rx_wall))
+                        out += self.monitor.due(math.inf)
+                    except Exception:
+                        self._internal_error()
+                    self._observe()
+                if out or self._tp_waiting:
+                    self._send(out)
         self._shutdown()
+
+    def _observe(self) -> None:
+        """Issue 15: the uplink looks at the core after each step (cheap unless a tick completed)."""
+        if self.uplink is None:
+            return
+        try:
+            self.uplink.observe(self.monitor, self.stats)
+        except Exception:  # the uplink must not take the daemon down either
+            self._internal_error()
 
     def _watch_wall_clock(self, frame_t: float) -> None:
         """A step of the wall clock forward moves the monitor onto the new time base (a step back the
-        core finds by itself); otherwise it would look like the machine had been off that long."""
+        core finds by itself); otherwise it would look like the machine had been off that long.
+
+        Frame time minus boot time is steady while frames are handled as they come; frames handled
+        late (a backlog after a stall) make it dip and then come back, never rise above where it
+        was. So a step is a rise above the highest value seen since the last step back of the frames'
+        own time (where the core re-bases and the reference starts anew)."""
         diff = frame_t - self.boot_clock()
-        prev = self._wall_minus_boot
-        self._wall_minus_boot = diff
-        if prev is not None and diff - prev > WALL_STEP_S and math.isfinite(diff):
-            log.warning(
-                "the wall clock stepped forward by %.3f s; monitoring goes on on the new time base", diff - prev
-            )
-            self.monitor.shift_time(diff - prev)
+        if not math.isfinite(diff):
+            return
+        ref, last = self._wall_minus_boot, self._last_stamp
+        self._last_stamp = frame_t
+        if ref is None or (last is not None and frame_t < last - STEP_BACK_S):
+            self._wall_minus_boot = diff
+            return
+        if diff - ref > WALL_STEP_S:
+            log.warning("the wall clock stepped forward by %.3f s; monitoring goes on on the new time base", diff - ref)
+            self.monitor.shift_time(diff - ref)
+        self._wall_minus_boot = max(ref, diff)
 
     def stop(self) -> None:
         self.stop_event.set()
 
+    def _internal_error(self) -> None:
+        self.stats["internal_errors"] += 1
+        self.ratelog(logging.ERROR, "internal", "internal error processing a frame", exc_info=True)
+
     # -- bus handling ----------------------------------------------------------------------------------
 
-    def _open(self) -> bool:
+    def _open_due(self, now: float) -> list[Link]:
+        """The open links, after trying to open those whose back-off has passed."""
+        for x in self.links:
+            if x.bus is None and now >= x.retry_at and not self._open(x):
+                x.backoff_s = min(max(x.backoff_s * 2, self.opt.backoff_min_s), self.opt.backoff_max_s)
+                x.retry_at = now + x.backoff_s
+        self._live = [x for x in self.links if x.bus is not None]
+        return self._live
+
+    def _receive(self, live: list[Link], timeout: float) -> list[tuple[Link, can.Message]]:
+        """The frames several buses received, merged in order of their timestamps.
+
+        The buses are read in turns until a whole turn finds every one empty: a frame still to come
+        then arrived after all those read, so none becomes late because another bus was read first.
+        Under a backlog (MAX_BATCH frames read) only the frames up to the newest one read from each
+        bus that carries inputs go on; the rest wait for the next call."""
+        held = self._merge
+        if not held:
+            if self._selectable is None:
+                self._selectable = all(_fileno(x.bus) is not None for x in live)
+            if self._selectable:
+                try:
+                    r, _, _ = select.select([_fileno(x.bus) for x in live], [], [], timeout)
+                except (OSError, ValueError):
+                    r = [1]
+                if not r:
+                    return []
+        total, capped = 0, False
+        while True:
+            n = 0
+            for x in live:
+                if x.bus is None:
+                    continue
+                try:
+                    for _ in range(DRAIN):
+                        msg = x.bus.recv(timeout=0)
+                        if msg is None:
+                            break
+                        held.append((x, msg))
+                        self._mark[x.name] = msg.timestamp
+                        n += 1
+                except (can.CanError, OSError, ValueError) as exc:
+                    self._bus_failed(x, "receive", exc)
+            total += n
+            if n == 0:
+                break
+            if total >= MAX_BATCH:
+                capped = True
+                break
+        if not held:
+            if not self._selectable:
+                self.stop_event.wait(min(timeout, 0.002))  # buses without a file descriptor: poll
+            return []
+        held.sort(key=lambda p: p[1].timestamp)
+        if not capped:
+            self._merge = []
+            return held
+        marks = [self._mark.get(x.name, math.inf) for x in live if x.name in self._input_channels]
+        horizon = min(marks) if marks else math.inf
+        cut = next((i for i, (_, m) in enumerate(held) if m.timestamp > horizon), len(held))
+        self._merge = held[cut:]
+        return held[:cut]
+
+    def _open(self, x: Link) -> bool:
         try:
-            self.bus = self.open_bus()
+            x.bus = x.open_bus()
         except (can.CanError, OSError, ValueError) as exc:
             self.stats["bus_errors"] += 1
-            self.ratelog(logging.WARNING, "open", "cannot open the bus (%s); retrying", exc)
-            self.notifier.status(f"bus unavailable: {exc}")
+            self.ratelog(logging.WARNING, f"open-{x.name}", "cannot open the bus %s (%s); retrying", x.name, exc)
+            self.notifier.status(f"bus {x.name} unavailable: {exc}")
             return False
         self.stats["bus_opens"] += 1
-        if self.stats["bus_opens"] > 1:
-            log.info("bus reopened")
+        self._selectable = None
+        x.backoff_s = 0.0
+        if self.stats["bus_opens"] > len(self.links):
+            log.info("bus %s reopened", x.name)
         self.notifier.status(self._status_text())
         return True
 
-    def _close(self) -> None:
-        if self.bus is not None:
+    def _close(self, x: Link) -> None:
+        if x.bus is not None:
             try:
-                self.bus.shutdown()
+                x.bus.shutdown()
             except Exception as exc:  # a failing shutdown of a dead bus is expected
                 log.debug("bus shutdown: %s", exc)
-            self.bus = None
+            x.bus = None
+            self._selectable = None
+            self._live = [y for y in self.links if y.bus is not None]
 
-    def _bus_failed(self, what: str, exc: BaseException) -> None:
+    def _bus_failed(self, x: Link, what: str, exc: BaseException) -> None:
         self.stats["bus_errors"] += 1
         code = getattr(exc, "error_code", None) or getattr(exc, "errno", None)
         hint = " (network down)" if code == errno.ENETDOWN else ""
-        self.ratelog(logging.WARNING, f"fail-{what}", "bus %s failed%s: %s; reopening", what, hint, exc)
-        self.notifier.status(f"bus {what} failed: {exc}")
-        self._close()
+        self.ratelog(
+            logging.WARNING, f"fail-{what}-{x.name}", "bus %s %s failed%s: %s; reopening", x.name, what, hint, exc
+        )
+        self.notifier.status(f"bus {x.name} {what} failed: {exc}")
+        self._close(x)
+        x.backoff_s = min(max(x.backoff_s * 2, self.opt.backoff_min_s), self.opt.backoff_max_s)
+        x.retry_at = self.clock() + x.backoff_s
 
     def _send(self, frames: list[Frame]) -> None:
+        """Send each frame on its channel. A J1939 transport packet (TP.CM, TP.DT) goes out at its frame
+        time but never sooner than ``bam_packet_gap_ms`` after the one before: when a tick was late, the
+        rest of its session moves with it, so the packets keep J1939-21's spacing on the wire."""
+        now = self.clock()
         for f in frames:
-            if self.bus is None:
-                self.stats["tx_dropped"] += 1
-                continue
-            msg = can.Message(**to_message_kwargs(f))
-            try:
-                self.bus.send(msg, timeout=self.opt.send_timeout_s)
-                self.stats["tx_frames"] += 1
-            except (can.CanError, OSError) as exc:
-                self.stats["tx_dropped"] += 1
-                code = getattr(exc, "error_code", None) or getattr(exc, "errno", None)
-                if code in (errno.ENETDOWN, errno.ENODEV, errno.EBADF):
-                    self._bus_failed("send", exc)
-                else:  # ENOBUFS, a full queue, bus-off while restarting: drop this frame, keep going
-                    self.ratelog(logging.WARNING, "tx", "cannot send 0x%X: %s; frame dropped", f.arbitration_id, exc)
+            if _is_transport(f):
+                self._tp_waiting.append(f)
+            else:
+                self._send_one(f)
+        while self._tp_waiting and now >= self._tp_last_sent + self._tp_gap_s:
+            self._send_one(self._tp_waiting.popleft())
+            self._tp_last_sent = now = self.clock()
+
+    def _send_one(self, f: Frame) -> None:
+        x = self._link_of.get(f.channel, self.links[0]) if f.channel else self.links[0]
+        if x.bus is None:
+            self.stats["tx_dropped"] += 1
+            return
+        msg = can.Message(**to_message_kwargs(f._replace(channel=x.name)))
+        try:
+            x.bus.send(msg, timeout=self.opt.send_timeout_s)
+            self.stats["tx_frames"] += 1
+        except (can.CanError, OSError) as exc:
+            self.stats["tx_dropped"] += 1
+            code = getattr(exc, "error_code", None) or getattr(exc, "errno", None)
+            if code in (errno.ENETDOWN, errno.ENODEV, errno.EBADF):
+                self._bus_failed(x, "send", exc)
+            else:  # ENOBUFS, a full queue, bus-off while restarting: drop this frame, keep going
+                self.ratelog(logging.WARNING, "tx", "cannot send 0x%X: %s; frame dropped", f.arbitration_id, exc)
 
     # -- state and status ------------------------------------------------------------------------------
 
@@ -268,11 +464,19 @@ class Daemon:
         s = self.monitor.snapshot()
         c = s["counters"]
         ratio = f"{s['ratio_filt_pct']:.2f} %" if s["ratio_filt_pct"] is not None else "n/a"
-        bus = "bus up" if self.bus is not None else "bus down"
+        if len(self.links) == 1:
+            bus = "bus up" if self.bus is not None else "bus down"
+        else:
+            bus = ", ".join(f"{x.name} {'up' if x.bus is not None else 'down'}" for x in self.links)
+        health = "".join(
+            f", {k.replace('_', ' ')} {c[k]}"
+            for k in ("checksum", "counter_frozen", "counter_jump", "timeout", "bad_fd", "unknown_channel")
+            if c[k]
+        )
         return (
             f"{s['level']} ({s['reason']}), ratio {ratio}, {s['warning_count']} warnings, {bus}; "
             f"frames {c['frames_total']} (inputs {c['accepted']}, bad length {c['bad_length']}, "
-            f"out of range {c['out_of_range']}, unknown {c['unknown_id']}, late {c['late']}), "
+            f"out of range {c['out_of_range']}, unknown {c['unknown_id']}, late {c['late']}){health}, "
             f"sent {self.stats['tx_frames']}, dropped {self.stats['tx_dropped']}"
         )
 
@@ -282,15 +486,32 @@ class Daemon:
             self._save()
         if self.uplink is not None:  # issue 15: the period's last summary, then the queue written out
             self.uplink.close(self.monitor, self.stats)
-        self._close()
+        for x in self.links:
+            self._close(x)
         c = self.monitor.counters
         log.info(
-            "stopped: %d frames (%d inputs, %d unknown id, %d bad length, %d out of range), %d sent, %d dropped",
+            "stopped: %d frames (%d inputs, %d unknown id, %d bad length, %d out of range, %d checksum, "
+            "%d counter frozen, %d counter jump), %d sent, %d dropped",
             c["frames_total"],
             c["accepted"],
             c["unknown_id"],
             c["bad_length"],
             c["out_of_range"],
+            c["checksum"],
+            c["counter_frozen"],
+            c["counter_jump"],
             self.stats["tx_frames"],
             self.stats["tx_dropped"],
         )
+
+
+def _is_transport(f: Frame) -> bool:
+    return f.extended and ids.pdu_format(f.arbitration_id) in (transport.PGN_TP_CM >> 8, transport.PGN_TP_DT >> 8)
+
+
+def _fileno(bus: Any) -> int | None:
+    try:
+        fd = bus.fileno()
+    except (NotImplementedError, AttributeError, OSError, ValueError):
+        return None
+    return fd if isinstance(fd, int) and fd >= 0 else None

@@ -22,9 +22,13 @@ from typing import Any
 import can
 
 from cmcan import config as cfgmod
-from cmcan.assemble import dbc_for
+from cmcan.assemble import bus_plan, dbc_for
 from cmcan.daemon import Daemon, DaemonOptions, bus_kwargs
 from cmcan.frame import Frame, from_message, to_message_kwargs
+from cmcan.j1939 import dm1 as j1939_dm1
+from cmcan.j1939 import ids as j1939_ids
+from cmcan.j1939.transport import BamReceiver
+from cmcan.monitor.payloads import Outputs
 from cmcan.preflight import prepare
 from cmcan.sim import scenario as scn
 from cmcan.sim.frames import Frames, frames_from_run
@@ -98,62 +102,103 @@ def demo_scenario(burst_s: float, every_min: float) -> scn.Scenario:
     return s.with_overrides(sampling={"mode": "bursts", "burst_s": burst_s, "every_min": every_min})
 
 
-def stream(frames: Frames, cfg: cfgmod.Config, state_dir: Path, channel: str) -> tuple[list[Frame], int, int]:
-    """Play ``frames`` into the daemon over a virtual bus; return the daemon's frames as received."""
-    cfg = cfgmod.with_overrides(cfg, interface="virtual", channel=channel, state_dir=str(state_dir))
+def on_virtual_buses(cfg: cfgmod.Config, prefix: str, state_dir: Path) -> tuple[cfgmod.Config, dict[str, str]]:
+    """The configuration on python-can's virtual buses, each channel renamed ``prefix-NAME``."""
+    names = {c.name: f"{prefix}-{c.name}" for c in cfg.channel_list}
+    cfg = cfgmod.rename_channels(cfg, names)
+    return cfgmod.with_overrides(cfg, interface="virtual", state_dir=str(state_dir)), names
+
+
+def stream(frames: Frames, cfg: cfgmod.Config, state_dir: Path, channel: str) -> tuple[list[Frame], int, int, Outputs]:
+    """Play ``frames`` into the daemon over virtual buses (one per configured channel, named after
+    ``channel``); return the daemon's frames as received, the counts, and what it sends as."""
+    cfg, names = on_virtual_buses(cfg, channel, state_dir)
     prep = prepare(cfg)
     monitor = prep.parts.monitor
-    ids = list(monitor.inputs)
-    kwargs = bus_kwargs(cfg.bus, ids)
-    kwargs["rx_queue_size"] = 20000  # the player waits when the daemon lags: nothing is dropped
-    kwargs["preserve_timestamps"] = True  # the daemon stamps its frames with frame time: keep it
 
-    daemon = Daemon(cfg, monitor, prep.store, lambda: can.Bus(**kwargs), options=DaemonOptions())
-    player = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
+    def opener(ch: cfgmod.ChannelConfig) -> Any:
+        kwargs = bus_kwargs(cfg, ch, monitor.inputs)
+        kwargs["rx_queue_size"] = 20000  # the player waits when the daemon lags: nothing is dropped
+        kwargs["preserve_timestamps"] = True  # the daemon stamps its frames with frame time: keep it
+        return lambda: can.Bus(**kwargs)
+
+    daemon = Daemon(cfg, monitor, prep.store, {ch.name: opener(ch) for ch in cfg.channel_list}, options=DaemonOptions())
+    players = {
+        ch.name: can.Bus(interface="virtual", channel=ch.name, preserve_timestamps=True) for ch in cfg.channel_list
+    }
+    primary = cfg.bus.channel
     received: list[Frame] = []
     try:
         thread = threading.Thread(target=daemon.run, name="cmcan-daemon", daemon=True)
         thread.start()
-        while daemon.bus is None:  # the daemon's bus must exist before frames go out
+        while any(x.bus is None for x in daemon.links):  # the daemon's buses must exist before frames go out
             time.sleep(0.01)
         ts = frames.timestamp_s.tolist()
         fid = frames.arbitration_id.tolist()
-        data = [bytes(r) for r in frames.data]
+        ext = frames.is_extended().tolist()
+        chans = [names.get(c, primary) for c in frames.channels(default="")]
+        data = [bytes(r[:n]) for r, n in zip(frames.data, frames.dlc.tolist(), strict=True)]
         for i in range(len(ts)):
-            f = Frame(ts[i], "", fid[i], fid[i] > 0x7FF, False, False, False, data[i])
-            player.send(can.Message(**to_message_kwargs(f)), timeout=30.0)
+            f = Frame(ts[i], "", fid[i], ext[i], False, False, False, data[i])
+            players[chans[i]].send(can.Message(**to_message_kwargs(f)), timeout=30.0)
             if i % 4096 == 0:
-                _drain(player, received)
+                _drain(players, received)
         deadline = time.monotonic() + 60.0
         while monitor.counters["frames_total"] < len(ts) and time.monotonic() < deadline:
-            _drain(player, received)
+            _drain(players, received)
             time.sleep(0.01)
         # Let the daemon's idle timer evaluate the last ticks, then stop it.
         time.sleep(daemon.opt.idle_after_s + 3 * daemon.opt.recv_timeout_s)
         daemon.stop()
         thread.join(timeout=10)
-        _drain(player, received)
+        _drain(players, received)
     finally:
-        player.shutdown()
-    return received, len(frames), monitor.counters["frames_total"]
+        for p in players.values():
+            p.shutdown()
+    return received, len(frames), monitor.counters["frames_total"], monitor.outputs
 
 
-def _drain(bus: can.BusABC, into: list[Frame]) -> None:
-    while (m := bus.recv(timeout=0)) is not None:
-        into.append(from_message(m))
+def _drain(buses: dict[str, can.BusABC], into: list[Frame]) -> None:
+    for name, bus in buses.items():
+        while (m := bus.recv(timeout=0)) is not None:
+            into.append(from_message(m)._replace(channel=name))
+
+
+def dm1_messages(received: list[Frame], source: int) -> list[tuple[float, j1939_dm1.Lamps, list[j1939_dm1.Dtc]]]:
+    """The DM1 messages ``source`` sent, single-frame and reassembled from BAM, with their times."""
+    bam = BamReceiver()
+    out = []
+    for f in sorted(received, key=lambda x: x.timestamp_s):
+        if not f.extended or j1939_ids.source_address(f.arbitration_id) != source:
+            continue
+        if j1939_ids.pgn(f.arbitration_id) == j1939_dm1.PGN_DM1:
+            out.append((f.timestamp_s, *j1939_dm1.decode(f.data)))
+            continue
+        done = bam.feed(f.arbitration_id, f.data)
+        if done is not None and done[1] == j1939_dm1.PGN_DM1:
+            out.append((f.timestamp_s, *j1939_dm1.decode(done[2])))
+    return out
 
 
 def analyse(
-    received: list[Frame], db: Any, cfg: cfgmod.Config, start_epoch_s: float, failures: list[dict[str, Any]]
+    received: list[Frame],
+    db: Any,
+    cfg: cfgmod.Config,
+    start_epoch_s: float,
+    failures: list[dict[str, Any]],
+    outputs: Outputs | None = None,
 ) -> tuple[list[dict[str, Any]], list[dict[str, Any]], dict[str, bool], list[float], list[float]]:
-    """Warnings as the bus shows them, the lead time before each scheduled failure, and the checks."""
+    """Warnings as the bus shows them, the lead time before each scheduled failure, and the checks.
+    ``outputs`` are the identifiers cmcan sends with (on J1939 from its own source address)."""
     warn_msg = db.get_message_by_name(cfg.outputs.warning.message)
     ratio_msg = db.get_message_by_name(cfg.outputs.cm_ratio.message)
+    warn_id = outputs.warning.frame_id if outputs is not None else warn_msg.frame_id
+    ratio_id = outputs.ratio.frame_id if outputs is not None else ratio_msg.frame_id
     transitions = []
     last_level = "ok"
     ratio_h, ratio_pct = [], []
     for m in sorted(received, key=lambda x: x.timestamp_s):
-        if m.arbitration_id == warn_msg.frame_id:
+        if m.arbitration_id == warn_id:
             d = warn_msg.decode(m.data)
             level, reason = str(d["warning_level"]), str(d["warning_reason"])
             if level != last_level:
@@ -167,7 +212,7 @@ def analyse(
                     }
                 )
                 last_level = level
-        elif m.arbitration_id == ratio_msg.frame_id:
+        elif m.arbitration_id == ratio_id:
             d = ratio_msg.decode(m.data, decode_choices=False)
             if d["cm_filt_valid"]:
                 ratio_h.append((m.timestamp_s - start_epoch_s) / 3600.0)
@@ -199,7 +244,38 @@ def analyse(
     mis = [f for f in report if f["kind"] == "misposition"]
     if mis:
         checks["the misposition raises the high warning"] = all(f["level"] == "high" for f in mis)
+    if cfg.j1939.dm1.enabled and cfg.j1939.source_address is not None:
+        checks.update(dm1_checks(received, cfg, transitions, start_epoch_s))
     return transitions, report, checks, ratio_h, ratio_pct
+
+
+def dm1_checks(
+    received: list[Frame], cfg: cfgmod.Config, transitions: list[dict[str, Any]], start_epoch_s: float
+) -> dict[str, bool]:
+    """DM1 as a J1939 service tool would read it: after each low or high warning the amber lamp is on
+    and the drive's DTC carries the matching FMI with an occurrence count; back to ok, it is off."""
+    assert cfg.j1939.source_address is not None
+    msgs = dm1_messages(received, cfg.j1939.source_address)
+    spn = cfg.j1939.dm1.spn
+    fmis = {"low": (17, 18), "high": (15, 16), "ok": ()}
+    ok = bool(msgs)
+    for tr in transitions:
+        if tr["to"] not in fmis:
+            continue
+        t = start_epoch_s + tr["operating_h"] * 3600.0
+        after = [m for m in msgs if m[0] >= t - 1e-6]
+        if not after:
+            ok = False
+            continue
+        _, lamps, dtcs = after[0]
+        drive = [d for d in dtcs if d.spn == spn]
+        if tr["to"] == "ok":
+            ok &= lamps.amber_warning == j1939_dm1.Lamp.OFF and not drive
+        else:
+            ok &= lamps.amber_warning == j1939_dm1.Lamp.ON and any(
+                d.fmi in fmis[tr["to"]] and d.occurrence >= 1 for d in drive
+            )
+    return {"DM1 (J1939): the amber lamp and the drive's DTC follow every warning": ok}
 
 
 def run_demo(
@@ -210,17 +286,18 @@ def run_demo(
     cfg = scale_windows(cfgmod.load(config_path), burst_s, every_min)
     db = dbc_for(cfg)
     log.info("simulating %s (%g h, %g s bursts every %g min)", s.name, s.duration_h, burst_s, every_min)
-    run = simulate(s, db)
-    frames = frames_from_run(run, db)
+    plan = bus_plan(cfg, db)
+    run = simulate(s, db, plan.mapping)
+    frames = frames_from_run(run, db, plan=plan)
     state_dir = out_dir / "state"
     state_dir.mkdir(parents=True, exist_ok=True)
     for old in state_dir.glob("state.json*"):
         old.unlink()  # the demo's own state from an earlier demo run, never a user's
     channel = f"cmcan-demo-{os.getpid()}"
     log.info("streaming %d frames through the daemon on python-can's virtual bus %s", len(frames), channel)
-    received, sent, processed = stream(frames, cfg, state_dir, channel)
+    received, sent, processed, outputs = stream(frames, cfg, state_dir, channel)
     failures = run.meta["scheduled_failures"]
-    transitions, report, checks, rh, rp = analyse(received, db, cfg, run.start_epoch_s, failures)
+    transitions, report, checks, rh, rp = analyse(received, db, cfg, run.start_epoch_s, failures, outputs)
     res = DemoResult(
         s.name,
         f"virtual:{channel}",

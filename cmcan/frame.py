@@ -24,9 +24,10 @@ class Frame(NamedTuple):
     data: bytes
 
 
-def from_message(m: Any) -> Frame:
-    """The one conversion from a python-can ``Message`` (read by attribute: no python-can import)."""
-    ch = m.channel
+def from_message(m: Any, channel: str | None = None) -> Frame:
+    """The one conversion from a python-can ``Message`` (read by attribute: no python-can import);
+    ``channel`` names the bus it came from (default: the message's own channel)."""
+    ch = m.channel if channel is None else channel
     return Frame(
         float(m.timestamp),
         "" if ch is None else str(ch),

@@ -35,10 +35,11 @@ def load_config(
 
 
 def check_channel(cfg: cfgmod.Config, sys_class_net: Path = Path("/sys/class/net")) -> None:
-    """The interface is one python-can knows, and for SocketCAN the channel is an existing CAN link."""
+    """The interface is one python-can knows, and for SocketCAN every configured channel is an
+    existing CAN link (a CAN FD bus with the FD MTU)."""
     import can
 
-    iface, chan = cfg.bus.interface, cfg.bus.channel
+    iface = cfg.bus.interface
     valid = sorted(can.interfaces.VALID_INTERFACES)
     if iface not in valid:
         raise CmcanError(
@@ -47,22 +48,38 @@ def check_channel(cfg: cfgmod.Config, sys_class_net: Path = Path("/sys/class/net
         )
     if iface != "socketcan":
         return
+    for i, ch in enumerate(cfg.channel_list):
+        field = "bus.channel" if i == 0 else f"channels.extra[{i - 1}].channel"
+        _check_link(cfg, field, ch.name, ch.fd, ch.bitrate or cfg.bus.bitrate, sys_class_net)
+
+
+CANFD_MTU = 72
+
+
+def _check_link(cfg: cfgmod.Config, field: str, chan: str, fd: bool, bitrate: int, sys_class_net: Path) -> None:
     if not _IFNAME.match(chan):
         raise CmcanError(
-            f"{cfg.source}: bus.channel: {chan!r} is not a network interface name "
+            f"{cfg.source}: {field}: {chan!r} is not a network interface name "
             "(1-15 letters, digits, '_', '.', ':', '-')",
             Kind.CONFIG,
         )
     dev = sys_class_net / chan
     if not dev.exists():
         raise CmcanError(
-            f"{cfg.source}: bus.channel: no network interface {chan!r} on this machine "
-            f"(bring it up first, e.g. ip link set {chan} up type can bitrate {cfg.bus.bitrate})",
+            f"{cfg.source}: {field}: no network interface {chan!r} on this machine "
+            f"(bring it up first, e.g. ip link set {chan} up type can bitrate {bitrate})",
             Kind.UNAVAILABLE,
         )
     kind = (dev / "type").read_text().strip() if (dev / "type").exists() else ARPHRD_CAN
     if kind != ARPHRD_CAN:
-        raise CmcanError(f"{cfg.source}: bus.channel: {chan!r} is not a CAN interface (link type {kind})", Kind.CONFIG)
+        raise CmcanError(f"{cfg.source}: {field}: {chan!r} is not a CAN interface (link type {kind})", Kind.CONFIG)
+    mtu = (dev / "mtu").read_text().strip() if (dev / "mtu").exists() else ""
+    if fd and mtu.isdigit() and int(mtu) < CANFD_MTU:
+        raise CmcanError(
+            f"{cfg.source}: {field}: {chan!r} is configured as CAN FD but the link is classic CAN (MTU {mtu}); "
+            f"set it up with fd on (ip link set {chan} type can ... fd on, or mtu 72 for a vcan)",
+            Kind.CONFIG,
+        )
 
 
 def state_store(cfg: cfgmod.Config) -> StateStore:

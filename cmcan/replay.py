@@ -189,13 +189,14 @@ class TimelineWriter(_FileSink):
 
 
 class EmitWriter(_FileSink):
-    """The emitted frames as a ``candump -l`` log (written with arrays, as ``candump_line`` writes)."""
+    """The emitted frames as a ``candump -l`` log (written with arrays, as ``candump_line`` writes),
+    each on its own channel unless ``channel`` is given."""
 
     wants_frames = True
 
-    def __init__(self, path: str | Path, channel: str = "can0") -> None:
+    def __init__(self, path: str | Path, channel: str | None = None) -> None:
         super().__init__(path)
-        self.channel = channel
+        self.channel = channel  # None: each frame on its own channel (can0 when it has none)
 
     def frames(self, frames: FrameColumns) -> None:
         from cmcan.io.candump import candump_lines

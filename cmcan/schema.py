@@ -178,6 +178,25 @@ class OneOf:
 
 
 @dataclass(frozen=True)
+class Either:
+    """The first of ``options`` that accepts the value (e.g. ``any`` or a list of addresses)."""
+
+    options: tuple[Any, ...]
+    default: Any = _REQUIRED
+
+    def describe(self) -> str:
+        return " or ".join(o.describe() for o in self.options)
+
+    def check(self, value: Any, src: str, path: str) -> Any:
+        for o in self.options:
+            try:
+                return o.check(value, src, path)
+            except SchemaError:
+                continue
+        raise SchemaError(src, path, f"expected {self.describe()}, got {value!r}")
+
+
+@dataclass(frozen=True)
 class Any_:
     default: Any = _REQUIRED
 
@@ -231,4 +250,4 @@ def load_yaml(path: str | Path, kind: Kind = Kind.CONFIG) -> Any:
         raise SchemaError(str(p), "", f"invalid YAML: {where}{problem}", kind) from None
 
 
-__all__ = ["Any_", "Bool", "Num", "Obj", "OneOf", "SchemaError", "Seq", "Str", "load_yaml"]
+__all__ = ["Any_", "Bool", "Either", "Num", "Obj", "OneOf", "SchemaError", "Seq", "Str", "load_yaml"]

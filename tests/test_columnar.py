@@ -68,6 +68,11 @@ def assert_same(a, b) -> None:
         assert (list(w.ts), list(w.rs), w.s1, w.s2, w.last_t) == (list(v.ts), list(v.rs), v.s1, v.s2, v.last_t), r
     assert m_a._low == m_b._low
     assert (m_a.payloads.alive, m_a.payloads.last_warning) == (m_b.payloads.alive, m_b.payloads.last_warning)
+    # the input health of every message stream, and the channels the log's frames were read on
+    fields = ("prev", "prev_t", "newest_t", "newest_ok", "timed_out", "counts")
+    for x, y in zip(m_a._inputs.values(), m_b._inputs.values(), strict=True):
+        assert [getattr(x.stream, f) for f in fields] == [getattr(y.stream, f) for f in fields], x.spec.name
+    assert m_a.channels_seen() == m_b.channels_seen()
 
 
 def mangle(frames: list[Frame], draw, rng: np.random.Generator) -> list[Frame]:

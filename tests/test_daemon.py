@@ -12,6 +12,7 @@ import threading
 import time
 
 import can
+import numpy as np
 import pytest
 
 from cmcan import config as cfgmod
@@ -32,7 +33,7 @@ def test_daemon_on_a_virtual_bus_emits_exactly_what_replay_emits(frames, tmp_pat
     sink = FrameCollector()
     replay(monitor(), as_frames(frames), [sink])
     expected = [(f.arbitration_id, f.data) for f in sink.frames_out]
-    received, sent, processed = stream(frames, cfgmod.load(), tmp_path, f"eq-{os.getpid()}")
+    received, sent, processed, _ = stream(frames, cfgmod.load(), tmp_path, f"eq-{os.getpid()}")
     got = [(m.arbitration_id, m.data) for m in received]
     assert processed == sent == len(frames)
     assert len(expected) > 10_000
@@ -248,3 +249,97 @@ def test_a_wall_clock_step_does_not_pause_the_daemon(frames, step_s):
     assert mon.counters["clock_steps"] == 1 and mon.counters["late"] == 0
     assert abs(mon.counters["ticks"] - plain.counters["ticks"]) <= 1
     assert abs(mon.counters["evaluated"] - plain.counters["evaluated"]) <= 20
+def replayed(mon, frames):
+    """The frames a replay emits."""
+    sink = FrameCollector()
+    replay(mon, frames, [sink])
+    return sink.frames_out
+
+
+def test_two_channels_daemon_emits_what_replay_emits(tmp_path):
+    """Inputs split over two buses: the daemon merges them in time order, as the log has them."""
+    from dataclasses import replace
+
+    from cmcan.assemble import bus_plan, dbc_for
+    from cmcan.sim import scenario as scn
+    from cmcan.sim.frames import frames_from_run
+    from cmcan.sim.run import simulate
+
+    base = cfgmod.load()
+    cfg = replace(
+        base,
+        channels=replace(base.channels, extra=(cfgmod.ChannelConfig("can1"),)),
+        messages={n: cfgmod.MessageConfig(channel="can1") for n in ("MOTOR_STATUS", "OIL_STATUS")},
+    )
+    db = dbc_for(cfg)
+    plan = bus_plan(cfg, db)
+    s = scn.load(scn.shipped("two_set_validation")).with_overrides(duration_h=0.03)
+    frames = frames_from_run(simulate(s, db, plan.mapping), db, plan=plan)
+    assert set(frames.channels("can0")) == {"can0", "can1"}
+    expected = replayed(monitor(cfg=cfg), frames.to_frames())
+    received, sent, processed, _ = stream(frames, cfg, tmp_path, f"two-{os.getpid()}")
+    assert processed == sent == len(frames)
+    got = [(m.arbitration_id, m.data) for m in received]
+    assert len(expected) > 1000
+    assert got[: len(expected)] == [(f.arbitration_id, f.data) for f in expected]
+
+
+def test_transport_packets_keep_their_spacing_on_the_wire_when_frames_come_fast():
+    """A J1939 BAM from a log played much faster than real time: the daemon sends every frame replay
+    emits, and its transport packets at least the configured gap apart in wall time."""
+    from collections import Counter
+
+    from cmcan.j1939 import ids
+    from tests.test_monitor_j1939 import freeze_counter, j1939_cfg, machine_frames
+
+    cfg = j1939_cfg()
+    frames, plan = machine_frames(cfg, 40.0)
+    frames = freeze_counter(frames, cfg, plan, "HST_MOTOR", float(frames.timestamp_s[0]) + 25.0)
+    expected = replayed(monitor(cfg=cfg), frames.to_frames())
+    n_tp = sum(ids.pdu_format(f.arbitration_id) in (0xEC, 0xEB) for f in expected)
+    assert n_tp >= 9
+    source = [
+        can.Message(timestamp=f.timestamp_s, arbitration_id=f.arbitration_id, is_extended_id=True, data=f.data)
+        for f in frames.to_frames()
+    ]
+    sent_at = []
+
+    class Recording(ScriptedBus):
+        def send(self, msg, timeout=None):
+            sent_at.append((time.monotonic(), msg))
+
+    mon = monitor(cfg=cfg)
+    d = Daemon(cfg, mon, None, lambda: Recording(list(source)), options=DaemonOptions(idle_after_s=3600))
+    run_daemon_until(d, lambda: len(sent_at) >= len(expected), timeout=60)
+    got = Counter((m.arbitration_id, bytes(m.data)) for _, m in sent_at)
+    assert got == Counter((f.arbitration_id, f.data) for f in expected)
+    tp = [t for t, m in sent_at if ids.pdu_format(m.arbitration_id) in (0xEC, 0xEB)]
+    assert len(tp) == n_tp and min(np.diff(tp)) >= cfg.j1939.bam_packet_gap_ms / 1000 - 1e-3
+
+
+def test_can_fd_frames_count_the_same_in_the_daemon_and_the_replay():
+    """On a classic channel CAN FD frames are counted bad_fd and unused, on an FD channel they are
+    inputs; the daemon asks python-can for an FD bus exactly when the configuration says FD."""
+    from dataclasses import replace
+
+    from cmcan.daemon import bus_kwargs
+
+    frames = sim_frames("two_set_validation", duration_h=0.01)[1]
+    fd_msgs = [
+        can.Message(
+            timestamp=m.timestamp, arbitration_id=m.arbitration_id, data=m.data, is_extended_id=False, is_fd=True
+        )
+        for m in messages(frames)
+    ]
+    for fd in (False, True):
+        base = cfgmod.load()
+        cfg = replace(base, frames=replace(base.frames, fd=fd))
+        assert bus_kwargs(cfg, cfg.channel_list[0], monitor(cfg=cfg).inputs).get("fd", False) == fd
+        offline = monitor(cfg=cfg)
+        replay(offline, [f._replace(fd=True) for f in as_frames(frames)])
+        mon = monitor(cfg=cfg)
+        d = Daemon(cfg, mon, None, lambda: ScriptedBus(list(fd_msgs)))
+        run_daemon_until(d, lambda m=mon: m.counters["frames_total"] == len(fd_msgs))
+        for key in ("accepted", "bad_fd"):
+            assert mon.counters[key] == offline.counters[key]
+        assert mon.counters["accepted" if fd else "bad_fd"] == len(fd_msgs)

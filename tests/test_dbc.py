@@ -228,3 +228,39 @@ def test_bit_extractor_equals_cantools_on_random_layouts(msg, data):
     want = msg.encode(raws, scaling=False, strict=False, padding=False)
     assert codec.compile_encoder(msg)(phys) == want
     assert bytes(codec.encode(msg, {k: np.array([v]) for k, v in phys.items()})[0]) == want
+
+
+@settings(max_examples=500, deadline=None)
+@given(
+    st.integers(1, 20),
+    st.booleans(),
+    st.sampled_from([1, 0.1, 0.25, 0.05, 0.01, 0.125, -0.5, 2.0, 0.001, 5]),
+    st.sampled_from([0, -40, -320, 100.5, -50]),
+    st.floats(-1e6, 1e6),
+    st.floats(-1e6, 1e6),
+    st.data(),
+)
+def test_raw_bounds_are_the_range_check_in_floating_point(n, signed, scale, offset, a, b, data):
+    lo_v, hi_v = min(a, b), max(a, b)
+    lay = codec.Layout("x", 0, n, signed, False, scale, offset, lo_v, hi_v)
+    lo, hi = codec.raw_bounds(lay)
+    r_min, r_max = (-(1 << (n - 1)), (1 << (n - 1)) - 1) if signed else (0, (1 << n) - 1)
+    for r in {r_min, r_max, data.draw(st.integers(r_min, r_max)), lo, hi, lo - 1, hi + 1}:
+        if r_min <= r <= r_max:
+            assert (lo <= r <= hi) == (lo_v <= r * scale + offset <= hi_v)
+
+
+@pytest.mark.parametrize("name", ["HST_PUMP", "HST_MOTOR", "HST_LOOP_PRESSURE", "VF", "CM_RATIO", "DM1"])
+@settings(max_examples=100, deadline=None)
+@given(payload=st.binary(min_size=8, max_size=8))
+def test_checked_decoder_on_the_j1939_example_equals_cantools(name, payload):
+    from cmcan.dbc import load_dbc
+    from tests.conftest import ROOT
+
+    m = load_dbc(ROOT / "dbc" / "j1939-example.dbc").get_message_by_name(name)
+    names = [s.name for s in m.signals]
+    ref = m.decode(payload, decode_choices=False, scaling=True)
+    raw = m.decode(payload, decode_choices=False, scaling=False)
+    got = codec.compile_checked_decoder(m, names)(payload)
+    in_range = all(s.minimum <= ref[s.name] <= s.maximum for s in m.signals)
+    assert got == (tuple(raw[n] for n in names) if in_range else None)

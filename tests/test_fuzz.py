@@ -50,7 +50,7 @@ def test_a_million_fuzzed_frames(tmp_path):
     mon = prep.parts.monitor
     # No kernel filter on a virtual bus: every fuzzed frame reaches the core and must be counted.
     kw = {
-        **bus_kwargs(cfg.bus, list(mon.inputs)),
+        **bus_kwargs(cfg, cfg.channel_list[0], mon.inputs),
         "rx_queue_size": 20000,
         "preserve_timestamps": True,
         "can_filters": None,
@@ -84,7 +84,18 @@ def test_a_million_fuzzed_frames(tmp_path):
     c = mon.counters
     print(c, daemon.stats)
     assert c["frames_total"] == N
-    parts = ("accepted", "unknown_id", "bad_length", "out_of_range", "error_frame", "remote_frame", "late")
+    parts = (
+        "accepted",
+        "unknown_id",
+        "bad_length",
+        "out_of_range",
+        "error_frame",
+        "remote_frame",
+        "late",
+        "checksum",
+        "counter_frozen",
+        "counter_jump",
+    )
     assert sum(c[k] for k in parts) == N
     assert c["unknown_id"] > 0 and c["bad_length"] > 0 and c["out_of_range"] > 0 and c["accepted"] > 0
     assert mon.totals.warning_count == 0

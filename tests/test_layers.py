@@ -15,7 +15,17 @@ PKG = Path(__file__).resolve().parents[1] / "cmcan"
 
 # Lowest first. A module's layer is that of its longest listed prefix.
 LAYERS: list[tuple[str, ...]] = [
-    ("cmcan", "cmcan.roles", "cmcan.frame", "cmcan.errors", "cmcan.oil", "cmcan.schema", "cmcan.codec"),
+    (
+        "cmcan",
+        "cmcan.roles",
+        "cmcan.frame",
+        "cmcan.errors",
+        "cmcan.oil",
+        "cmcan.schema",
+        "cmcan.codec",
+        "cmcan.checksums",
+        "cmcan.j1939",
+    ),
     ("cmcan.monitor",),  # the pure core
     (
         "cmcan.model",

@@ -81,7 +81,8 @@ def test_bad_frames_are_counted_and_ignored(short):
     mon.feed(frame(t0 + 0.003, PUMP, good, extended=True))  # extended id with the same number
     mon.feed(frame(t0 + 0.004, PUMP, good, remote=True))
     mon.feed(frame(t0 + 0.005, 0x20000080, b"", error=True))
-    mon.feed(frame(t0 + 0.006, PUMP, b"\xff\xff" + good[2:]))  # 16383.75 rpm: beyond the DBC's 8000 rpm
+    # 16383.75 rpm: beyond the DBC's 8000 rpm (the alive counter in byte 8 moves on, or it would be frozen)
+    mon.feed(frame(t0 + 0.006, PUMP, b"\xff\xff" + good[2:7] + bytes([good[7] + 1 & 0x0F | good[7] & 0xF0])))
     mon.feed(frame(t0 + 0.5, PUMP, good))
     mon.feed(frame(t0 + 0.2, PUMP, good))  # older than a tick already evaluated
     c = mon.counters

@@ -6,7 +6,7 @@ import pytest
 
 from cmcan.sim import degradation
 from cmcan.sim import scenario as scn
-from tests.conftest import run_cli
+from tests.conftest import ROOT, run_cli
 from tests.helpers import feed_all, monitor, sim_frames
 
 pytestmark = pytest.mark.slow
@@ -52,3 +52,29 @@ def test_demo_reports_lead_times_as_json(tmp_path):
     assert kinds["misposition"]["level"] == "high"
     assert all(f["lead_h"] >= 10 for f in doc["failures"])
     assert (tmp_path / "demo.png").stat().st_size > 20_000
+
+
+@pytest.mark.slow
+def test_the_demo_passes_the_same_checks_on_the_j1939_machine(tmp_path):
+    res = run_cli(
+        "demo",
+        "--config",
+        str(ROOT / "config" / "j1939-example.yaml"),
+        "--json",
+        "--no-plot",
+        "--out-dir",
+        str(tmp_path),
+    )
+    assert res.returncode == 0, res.stderr + res.stdout
+    doc = json.loads(res.stdout)
+    assert doc["passed"] and doc["frames_sent"] == doc["frames_processed"] > 1_000_000
+    names = set(doc["checks"])
+    for f in doc["failures"]:
+        assert any(f"{f['component']} {f['kind']} failure" in n for n in names)
+        assert f["lead_h"] >= 10
+    assert {
+        "no warning in the healthy first 200 h",
+        "the misposition raises the high warning",
+        "every frame sent was processed",
+        "DM1 (J1939): the amber lamp and the drive's DTC follow every warning",
+    } <= names

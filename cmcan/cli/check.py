@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from typing import Any
 
 from cmcan.cli.errors import exit_code
 from cmcan.errors import CmcanError
@@ -51,6 +52,27 @@ def run(args: argparse.Namespace) -> int:
         "motor_disp_cc": m.motor_disp_cc,
         "fixed": cfg.drive.fixed,
         "bus": f"{cfg.bus.interface}:{cfg.bus.channel}",
+        "channels": [
+            {"channel": c.name, "bitrate": c.bitrate or cfg.bus.bitrate, "fd": c.fd} for c in cfg.channel_list
+        ],
+        "outputs_channel": cfg.output_channel,
+        "input_messages": [_describe(m) for m in prep.parts.monitor.inputs],
+        "j1939": (
+            {
+                "source_address": cfg.j1939.source_address,
+                "dm1": (
+                    {
+                        "spn": cfg.j1939.dm1.spn,
+                        "input_spn": cfg.j1939.dm1.input_spn,
+                        "period_ms": cfg.j1939.dm1.period_ms,
+                    }
+                    if cfg.j1939.dm1.enabled
+                    else None
+                ),
+            }
+            if cfg.j1939.enabled
+            else None
+        ),
     }
     if args.json:
         json.dump(result, sys.stdout, indent=2)
@@ -66,4 +88,32 @@ def run(args: argparse.Namespace) -> int:
             print(f"  {r:<18} <- {s}{env}")
         for r, v in cfg.drive.fixed.items():
             print(f"  {r:<18} =  {v:g} (drive.fixed)")
+        chans = ", ".join(
+            f"{c['channel']} ({c['bitrate'] // 1000} kbit/s{', FD' if c['fd'] else ''})" for c in result["channels"]
+        )
+        print(f"  bus    {cfg.bus.interface}: {chans}; outputs on {cfg.output_channel}")
+        j = result["j1939"]
+        if j is not None:
+            dm = j["dm1"]
+            dm_text = f"DM1 SPN {dm['spn']} (drive) and {dm['input_spn']} (inputs)" if dm else "no DM1"
+            print(f"  j1939  source address 0x{j['source_address']:02X}, {dm_text}")
+        for m in result["input_messages"]:
+            print(f"  {m['message']:<18} {m['match']} on {m['channel']}; {m['health']}")
     return 0
+
+
+def _describe(m: Any) -> dict[str, Any]:
+    """How an input message is matched and checked, for people."""
+    if m.pgn is not None:
+        src = "any address" if m.sources is None else ", ".join(f"0x{a:02X}" for a in sorted(m.sources))
+        match = f"PGN {m.pgn} (0x{m.pgn:04X}) from {src}"
+    else:
+        match = f"id 0x{m.frame_id:0{8 if m.extended else 3}X}"
+    h = m.health
+    parts = []
+    if h.counter is not None:
+        parts.append(f"counter {h.counter.name} (step <= {h.max_step})")
+    if h.checksum is not None:
+        parts.append(f"checksum {h.checksum_name}")
+    parts.append(f"stale after {h.timeout_s:g} s" if h.timeout_s != float("inf") else "no cycle time: no timeout")
+    return {"message": m.name, "channel": m.channel, "match": match, "health": ", ".join(parts)}

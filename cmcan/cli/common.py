@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 
 from cmcan import config as cfgmod
-from cmcan.assemble import check_against_dbc, dbc_for, load_model_for
+from cmcan.assemble import check_against_dbc, dbc_for, frame_matcher, load_model_for
 from cmcan.errors import CmcanError, Kind
 from cmcan.preflight import load_config as _load_config
 
@@ -27,8 +27,9 @@ def load_points(path: str, cfg: cfgmod.Config, envelope: dict[str, tuple[float, 
     """Operating points of a run CSV or a CAN log, gated by the configuration's rules."""
     from cmcan.model.features import load_operating_points
 
+    db = dbc_for(cfg)
     return load_operating_points(
-        path, cfg.gate_limits, dbc_for(cfg), cfg.signals, cfg.rate_hz, cfg.drive.fixed, envelope
+        path, cfg.gate_limits, db, cfg.signals, cfg.rate_hz, cfg.drive.fixed, envelope, frame_matcher(cfg, db)
     )
 
 

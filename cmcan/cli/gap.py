@@ -154,11 +154,12 @@ def _load_data(args: argparse.Namespace, spec: Any) -> Any:
     try:
         if spec is not None:
             return gapdata.load_points(args.real, spec, args.quantity)
-        from cmcan.assemble import dbc_for
+        from cmcan.assemble import dbc_for, frame_matcher
         from cmcan.cli.common import load_config
 
         cfg = load_config(args.config)
-        return gapdata.load(args.real, args.quantity, cfg.gate_limits, dbc_for(cfg), cfg.signals)
+        db = dbc_for(cfg)
+        return gapdata.load(args.real, args.quantity, cfg.gate_limits, db, cfg.signals, frame_matcher(cfg, db))
     except PointsError as exc:
         code = {"noinput": Kind.NO_INPUT, "spec": Kind.CONFIG if args.points else Kind.USAGE}.get(
             exc.problem, Kind.DATA

@@ -6,6 +6,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import Any
 
 from cmcan.assemble import assemble
 from cmcan.cli.common import load_config
@@ -24,6 +25,16 @@ def add_subparser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("log", help="CAN log")
     p.add_argument("--config", help="configuration (default: the shipped config/cmcan.yaml)")
     p.add_argument("--model", help="model file (default: the configuration's)")
+    p.add_argument(
+        "--channel-map",
+        action="append",
+        default=[],
+        metavar="LOG=CONFIGURED",
+        help="read the log's channel LOG as the configured channel CONFIGURED (repeatable); once given, "
+        "log channels not named are on no configured channel. Without it a log channel is read as the "
+        "configured channel of the same name, or, with a single configured channel, as that one "
+        "(channels.from_log in the configuration says the same)",
+    )
     p.add_argument("--out", help="write the evaluation timeline as CSV")
     p.add_argument("--emit", help="write the frames the daemon would have sent as a candump -l log")
     p.add_argument("--plot", help="write the CM ratio over operating hours as PNG")
@@ -39,6 +50,22 @@ def add_subparser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+def channel_map(pairs: list[str], cfg: Any) -> dict[str, str]:
+    """``--channel-map LOG=CONFIGURED`` pairs, each target a configured channel (usage error otherwise)."""
+    out = {}
+    names = [c.name for c in cfg.channel_list]
+    for pair in pairs:
+        log_name, sep, target = pair.partition("=")
+        if not sep or not log_name or not target:
+            raise CmcanError(f"--channel-map {pair!r}: expected LOG=CONFIGURED, e.g. can0=vcan0", Kind.USAGE)
+        if target not in names:
+            raise CmcanError(
+                f"--channel-map {pair!r}: {target!r} is not a configured channel ({', '.join(names)})", Kind.USAGE
+            )
+        out[log_name] = target
+    return out
+
+
 def run(args: argparse.Namespace) -> int:
     outs = {k: ensure_writable(getattr(args, k), args.force) for k in ("out", "emit", "plot") if getattr(args, k)}
     if "plot" in outs:
@@ -46,7 +73,8 @@ def run(args: argparse.Namespace) -> int:
     if not Path(args.log).exists():
         raise CmcanError(f"{args.log}: log file not found", Kind.NO_INPUT)
     cfg = load_config(args.config, check_dbc=False)
-    mon = assemble(cfg, args.model).monitor
+    aliases = channel_map(args.channel_map, cfg)
+    mon = assemble(cfg, args.model, log_aliases=aliases).monitor
     sinks: list = []
     if "out" in outs:
         sinks.append(TimelineWriter(outs["out"], cfg.quantity))
@@ -71,8 +99,18 @@ def run(args: argparse.Namespace) -> int:
 
         th = cfg.thresholds
         plot_ratio(plot.timeline, t0, th.low_pct, th.high_pct, outs["plot"], title=f"CM ratio: {args.log}")
+    seen = mon.channels_seen()
+    merged = sorted(k for k, v in seen.items() if v is not None and k != v)
+    if len(seen) > 1 and len(cfg.channel_list) == 1 and not aliases and not cfg.channels.from_log:
+        print(
+            f"cmcan replay: note: the log's channels {', '.join(sorted(seen))} were all read as "
+            f"{cfg.bus.channel}; give --channel-map LOG={cfg.bus.channel} to read one of them only",
+            file=sys.stderr,
+        )
     summary = {
         "log": str(args.log),
+        "channels": {k: v for k, v in sorted(seen.items())},
+        "channels_renamed": merged,
         "first_timestamp_s": t0,
         "duration_h": ((res.last_t or t0) - t0) / 3600.0,
         "warnings": res.warnings,

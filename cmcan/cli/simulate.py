@@ -32,8 +32,17 @@ def add_subparser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("scenario", help="scenario YAML file or shipped scenario name, or 'fleet'")
     p.add_argument("--out", required=True, help="run CSV to write (for fleet: the folder to write)")
     p.add_argument("--candump", help="also write the input frames as a candump -l log")
-    p.add_argument("--channel", default="can0", help="channel name in the candump log (default can0)")
+    p.add_argument(
+        "--channel",
+        help="channel name in the candump log for frames on bus.channel (default: the configuration's bus.channel, "
+        "can0 without --config); messages the configuration puts on other channels keep theirs",
+    )
     p.add_argument("--dbc", help="DBC to encode frames with (default: the shipped dbc/cmcan.dbc)")
+    p.add_argument(
+        "--config",
+        help="write the frames as this machine sends them: its DBC, signal mapping, channels, identifiers "
+        "(11- or 29-bit, J1939 source addresses), alive counters and checksums",
+    )
     p.add_argument("--seed", type=int, help="override the scenario's seed")
     p.add_argument("--duration-h", type=float, help="override the scenario's duration (hours)")
     p.add_argument("--force", action="store_true", help="overwrite existing output files")
@@ -74,13 +83,29 @@ def run(args: argparse.Namespace) -> int:
     except SchemaError as exc:
         exc.kind = Kind.DATA if exc.kind == Kind.CONFIG else exc.kind  # a scenario is data, not configuration
         raise
-    db = load_dbc(args.dbc)
-    r = simulate(s, db)
+    if args.config and args.dbc:
+        raise CmcanError("give --config or --dbc, not both (the configuration names its DBC)", Kind.USAGE)
+    plan = None
+    channel = args.channel or "can0"
+    if args.config:
+        from cmcan.assemble import bus_plan, check_against_dbc, dbc_for
+        from cmcan.preflight import load_config
+
+        cfg = load_config(args.config)
+        db = dbc_for(cfg)
+        check_against_dbc(cfg, db)
+        plan = bus_plan(cfg, db)
+        channel = args.channel or cfg.bus.channel
+    else:
+        db = load_dbc(args.dbc)
+    r = simulate(s, db, plan.mapping if plan is not None else None)
     write_run_csv(out, r.columns)
     n_frames = 0
     if log is not None:
-        f = frames_from_run(r, db)
-        n_frames = write_candump(log, f.timestamp_s, f.arbitration_id, f.dlc, f.data, channel=args.channel)
+        f = frames_from_run(r, db, plan=plan)
+        n_frames = write_candump(
+            log, f.timestamp_s, f.arbitration_id, f.dlc, f.data, channel=f.channels(channel), extended=f.is_extended()
+        )
     summary = {
         "scenario": s.name,
         "samples": len(r),

@@ -238,7 +238,7 @@ def _replay_and_commit(
     if res.first_t is None:
         problem = "no frames in the log"
     elif c["accepted"] == 0:
-        ids = ", ".join(f"0x{i:X}" for i in sorted(mon.inputs))
+        ids = ", ".join(f"0x{i:X}" for i in sorted(m.frame_id for m in mon.inputs))
         problem = (
             f"none of its {c['frames_total']} frames is an input message of {inp.cfg.dbc_path.name} ({ids}): "
             "wrong DBC or configuration for this machine?"

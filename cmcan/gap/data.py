@@ -183,6 +183,7 @@ def load(
     limits: GateLimits | None = None,
     db: Any = None,
     mapping: Any = None,
+    match: Any = None,
 ) -> GapData:
     """REAL as a run CSV (columns as ``cmcan simulate`` writes them; extra columns ignored) or a CAN log."""
     p = Path(path)
@@ -197,7 +198,7 @@ def load(
             from cmcan.dbc import load_dbc
 
             db = load_dbc()
-        series = series_from_log(p, db, mapping)
+        series = series_from_log(p, db, mapping, match=match)
         return from_series(series, quantity, limits, str(p))
     from cmcan.io.runcsv import read_run_csv
 

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import gzip
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -19,25 +19,34 @@ def write_candump(
     arbitration_id: NDArray[np.int64],
     dlc: NDArray[np.int64],
     data: NDArray[np.uint8],
-    channel: str = "can0",
+    channel: str | Sequence[str] = "can0",
+    extended: NDArray[np.bool_] | None = None,
 ) -> int:
-    """Write frames as ``candump -l`` does: ``(1436509052.249713) can0 100#0011223344556677``.
+    """Write frames as ``candump -l`` does: ``(1436509052.249713) can0 100#0011223344556677``, a 29-bit
+    identifier with 8 hex digits (``18FEF100#...``). ``channel`` is one name or one per frame;
+    ``extended`` says which identifiers are 29-bit (None: those above 0x7FF).
 
     Written to a temporary file then renamed, so an existing log is never left half-written.
     """
     p = Path(path)
     hexdata = _hex_rows(data, dlc)
+    ext = (np.asarray(arbitration_id) > 0x7FF) if extended is None else np.asarray(extended, dtype=bool)
+    per_frame = not isinstance(channel, str)
     tmp = p.with_name(p.name + ".tmp")
     with open(tmp, "w", encoding="ascii", newline="\n") as f:
         chunk = 200_000
         for a in range(0, len(timestamp_s), chunk):
             b = min(a + chunk, len(timestamp_s))
+            chans = list(channel[a:b]) if per_frame else [channel] * (b - a)  # type: ignore[index]
             lines = [
-                f"({ts:017.6f}) {channel} {cid:03X}#{hx}\n"
-                if cid <= 0x7FF
-                else f"({ts:017.6f}) {channel} {cid:08X}#{hx}\n"
-                for ts, cid, hx in zip(
-                    timestamp_s[a:b].tolist(), arbitration_id[a:b].tolist(), hexdata[a:b], strict=True
+                f"({ts:017.6f}) {ch} {cid:08X}#{hx}\n" if e else f"({ts:017.6f}) {ch} {cid:03X}#{hx}\n"
+                for ts, ch, cid, e, hx in zip(
+                    timestamp_s[a:b].tolist(),
+                    chans,
+                    arbitration_id[a:b].tolist(),
+                    ext[a:b].tolist(),
+                    hexdata[a:b],
+                    strict=True,
                 )
             ]
             f.writelines(lines)
@@ -45,15 +54,33 @@ def write_candump(
     return len(timestamp_s)
 
 
-def candump_line(f: Frame, channel: str | None = None) -> str:
-    """One frame as ``candump -l`` writes it (the frame's own channel unless ``channel`` is given)."""
-    ch = channel or f.channel or "can0"
+def candump_line(f: Frame, channel: str | None = None, default_channel: str = "can0") -> str:
+    """One frame as ``candump -l`` writes it: on ``channel`` if given, else on its own (frames with no
+    channel on ``default_channel``); CAN FD as ``##`` with its flags digit, remote as ``R``, an error
+    frame with the error flag in its identifier."""
+    ch = channel or f.channel or default_channel
     cid = f"{f.arbitration_id:08X}" if f.extended else f"{f.arbitration_id:03X}"
+    if f.error:
+        cid = f"{CAN_ERR_FLAG | CAN_ERR_BUSERROR:08X}"
     if f.remote:
         return f"({f.timestamp_s:017.6f}) {ch} {cid}#R\n"
     if f.fd:
         return f"({f.timestamp_s:017.6f}) {ch} {cid}##0{f.data.hex().upper()}\n"
     return f"({f.timestamp_s:017.6f}) {ch} {cid}#{f.data.hex().upper()}\n"
+
+
+def write_frames(path: str | Path, frames: Iterable[Frame], default_channel: str = "can0") -> int:
+    """Write :class:`Frame` objects as a ``candump -l`` log, each on its own channel (frames with no
+    channel on ``default_channel``); a temporary file renamed into place."""
+    p = Path(path)
+    tmp = p.with_name(p.name + ".tmp")
+    n = 0
+    with open(tmp, "w", encoding="ascii", newline="\n") as out:
+        for f in frames:
+            out.write(candump_line(f, None, default_channel))
+            n += 1
+    tmp.replace(p)
+    return n
 
 
 _HEX = np.frombuffer(b"0123456789ABCDEF", dtype=np.uint8)
@@ -71,7 +98,8 @@ def candump_lines(cols: FrameColumns, channel: str | None = None) -> str:
     fast = np.flatnonzero(~slow)
     text = ""
     if len(fast):
-        ch = (channel or (cols.channel_names[0] if len(cols.channel_names) == 1 else "")).encode("ascii")
+        one = cols.channel_names[0] if len(cols.channel_names) == 1 else ""
+        ch = (channel or one or "can0").encode("ascii")
         if not channel and len(cols.channel_names) != 1:  # frames of several buses: per frame
             slow[:] = True
             fast = fast[:0]

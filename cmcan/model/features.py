@@ -10,7 +10,7 @@ same rules, without staleness and steadiness, which a cycle mean does not have).
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 
 from cmcan import codec
 from cmcan.errors import CmcanError, Kind
+from cmcan.frame import Frame, FrameColumns
 from cmcan.io.points import Condition, Points
 from cmcan.io.runcsv import read_run_csv
 from cmcan.monitor.gating import Gate, GateLimits, WindowStats, eval_times, gate, table_stats, window_stats
@@ -184,31 +185,61 @@ def _affine(db: Database, ref: SignalRef) -> Any:
     return role_affine(db.get_message_by_name(ref.message), ref.signal, ref.scale, ref.offset)
 
 
+def _messages_of(
+    cols: FrameColumns, match: Callable[[Frame], str | None] | None, by_id: Mapping[int, str]
+) -> tuple[list[str | None], NDArray[np.int64]]:
+    """Which mapped message each frame of a chunk is: the names, and each frame's index into them.
+    Matching depends on a frame's channel, identifier, format and FD flag only, so it is asked once
+    per distinct combination."""
+    key = (
+        cols.arbitration_id.astype(np.int64)
+        | (cols.extended.astype(np.int64) << 29)
+        | (cols.fd.astype(np.int64) << 30)
+        | (cols.channel.astype(np.int64) << 31)
+    )
+    uniq, inv = np.unique(key, return_inverse=True)
+    names: list[str | None] = []
+    for k in uniq.tolist():
+        fid, ext, fd, ch = k & 0x1FFFFFFF, bool(k >> 29 & 1), bool(k >> 30 & 1), k >> 31
+        if match is None:
+            names.append(None if ext else by_id.get(fid))
+        else:
+            names.append(match(Frame(0.0, cols.channel_names[ch], fid, ext, False, False, fd, b"")))
+    return names, inv.ravel()
+
+
 def series_from_log(
     path: str | Path,
     db: Database,
     mapping: Mapping[str, Any] | None = None,
     quantity: str = MOTOR_SPEED,
     constants: Mapping[str, float] | None = None,
+    match: Callable[[Frame], str | None] | None = None,
 ) -> Series:
     """Decode a CAN log into per-role series (vectorized per message), in each role's unit; dp from
     high and low pressure is formed as the monitor forms it; a constant role is its value at the
-    output's samples."""
+    output's samples. ``match`` says which mapped message a frame is (the monitor's rules: channels,
+    29-bit and J1939 identifiers; see :func:`cmcan.assemble.frame_matcher`); by default a standard
+    frame with the message's identifier."""
     from cmcan.io.columns import column_chunks
 
     refs = as_refs(mapping)
-    wanted = {db.get_message_by_name(r.message).frame_id: db.get_message_by_name(r.message) for r in refs.values()}
-    stamps: dict[int, list[NDArray[np.float64]]] = {i: [] for i in wanted}
-    payloads: dict[int, list[NDArray[np.uint8]]] = {i: [] for i in wanted}
+    by_name = {r.message: db.get_message_by_name(r.message) for r in refs.values()}
+    by_id = {m.frame_id: name for name, m in by_name.items() if not m.is_extended_frame}
+    stamps: dict[str, list[NDArray[np.float64]]] = {n: [] for n in by_name}
+    payloads: dict[str, list[NDArray[np.uint8]]] = {n: [] for n in by_name}
     try:
-        # the replay's columnar reader: chunks of arrays, one mask per message
+        # the replay's columnar reader: chunks of arrays, the frames of each message by one mask
         for cols in column_chunks(path):
-            plain = ~(cols.extended | cols.remote | cols.error)
-            for fid, msg in wanted.items():
-                sel = plain & (cols.arbitration_id == fid) & (cols.dlc >= msg.length)
+            names, which = _messages_of(cols, match, by_id)
+            usable = ~(cols.remote | cols.error)
+            for k, name in enumerate(names):
+                if name is None:
+                    continue
+                sel = usable & (which == k) & (cols.dlc >= by_name[name].length)
                 if sel.any():
-                    stamps[fid].append(cols.timestamp_s[sel])
-                    payloads[fid].append(cols.data[sel])
+                    stamps[name].append(cols.timestamp_s[sel])
+                    payloads[name].append(cols.data[sel])
     except FileNotFoundError as exc:
         raise DataError(str(exc), Kind.NO_INPUT) from None
     except (ValueError, OSError) as exc:
@@ -217,10 +248,10 @@ def series_from_log(
     series: Series = {}
     for role, ref in refs.items():
         m = db.get_message_by_name(ref.message)
-        if not stamps[m.frame_id]:
+        if not stamps[m.name]:
             continue
-        ts = np.concatenate(stamps[m.frame_id])
-        data = np.concatenate(payloads[m.frame_id])
+        ts = np.concatenate(stamps[m.name])
+        data = np.concatenate(payloads[m.name])
         order = np.argsort(ts, kind="stable")
         raw = codec.decode_raw(m, data[order], [ref.signal])[ref.signal]
         raws[role] = (ts[order], raw)
@@ -306,6 +337,7 @@ def load_operating_points(
     rate_hz: float = 10.0,
     constants: Mapping[str, float] | None = None,
     envelope: dict[str, tuple[float, float]] | None = None,
+    match: Callable[[Frame], str | None] | None = None,
 ) -> OperatingPoints:
     """Operating points of a run CSV or a CAN log (chosen by the file's extension); ``envelope``
     marks the points outside it ``EXTRAPOLATED``."""
@@ -318,7 +350,8 @@ def load_operating_points(
             from cmcan.dbc import load_dbc
 
             db = load_dbc()
-        return operating_points(series_from_log(p, db, mapping, q, constants), limits, rate_hz, envelope, source=str(p))
+        series = series_from_log(p, db, mapping, q, constants, match)
+        return operating_points(series, limits, rate_hz, envelope, source=str(p))
     series, truth = series_from_csv(p, q, constants)
     return operating_points(series, limits, rate_hz, envelope, truth, source=str(p))
 

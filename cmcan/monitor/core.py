@@ -1,10 +1,12 @@
 """The monitor core: frames with timestamps in, output frames and a timeline out. No I/O, no clock.
 
-``Monitor.feed`` takes one received frame. Input messages update the trailing windows of their roles
-(:mod:`cmcan.monitor.windows`); the tick clock (:mod:`cmcan.monitor.clock`) says which evaluation
-ticks a frame completes; each tick gates the operating point, asks the model for its prediction,
-updates the ratio filter and the warning machine, and returns the CM frames due
-(:mod:`cmcan.monitor.payloads`). The daemon and the replay drive this same object.
+``Monitor.feed`` takes one received frame. It is matched to a mapped input message by its channel,
+identifier and format (:mod:`cmcan.monitor.inputs`) and checked (:mod:`cmcan.monitor.health`); an
+accepted frame updates the trailing windows of its roles (:mod:`cmcan.monitor.windows`). The tick
+clock (:mod:`cmcan.monitor.clock`) says which evaluation ticks a frame completes; each tick gates the
+operating point, asks the model for its prediction, updates the ratio filter and the warning machine,
+and returns the CM frames due (:mod:`cmcan.monitor.payloads`) and, on a J1939 machine, DM1
+(:mod:`cmcan.monitor.diagnostics`). The daemon and the replay drive this same object.
 
 One tick, in order (:meth:`Monitor._evaluate`), each step a function of the windows and the state
 the previous ticks left:
@@ -12,7 +14,8 @@ the previous ticks left:
 1. window statistics of every gated role at the tick's time; a role the machine holds constant
    (``MonitorParams.constants``) is that value, fresh, with no spread;
 2. the gate (:func:`cmcan.monitor.gating.gate_point`) with the model's envelope: a verdict of
-   ``EVALUATING`` or ``EXTRAPOLATED`` (outside the envelope) evaluates the point, any other names why not;
+   ``EVALUATING`` or ``EXTRAPOLATED`` (outside the envelope) evaluates the point, any other names why
+   not; an erratic input message (:func:`cmcan.monitor.health.tick`) makes it ``IMPLAUSIBLE_INPUT``;
 3. for an evaluated point one model call; a prediction that is not a positive finite number makes
    the tick ``IMPLAUSIBLE_INPUT`` (counted in ``model_errors``);
 4. raw ratio = measured / predicted * 100 and leakage = (predicted - measured) * ``lpm_per_unit``
@@ -20,22 +23,33 @@ the previous ticks left:
 5. the warning machine steps with the gate and, when the point was evaluated and the filter is
    valid, the filtered ratio: extrapolated points may raise a warning, never clear one
    (:mod:`cmcan.monitor.warnings`);
-6. the CM frames due at this tick; ``cm_gate`` carries the verdict, so a receiver sees that a ratio
-   came from an extrapolated point.
+6. the CM frames due at this tick (``cm_gate`` carries the verdict, so a receiver sees that a ratio
+   came from an extrapolated point), and DM1 where configured.
+
+Output order: every output frame carries its time (a tick's time, or later for the packets of a
+J1939 transport session). ``feed(f)``, ``advance(t)`` and ``due(t)`` return, in order of time (equal
+times in the order they were made), the output frames not returned before whose time is at most the
+frame's time (``t``): the frames of the ticks evaluated and the transport packets that fell due.
+``flush()`` returns the rest. A step back of the frames' time (the wall clock) first returns every
+pending packet.
 """
 
 from __future__ import annotations
 
+import heapq
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
-from cmcan.codec import Layout, checked_decoder
 from cmcan.frame import Frame
+from cmcan.monitor import health
 from cmcan.monitor.clock import TickClock
+from cmcan.monitor.diagnostics import Dm1Params, Dm1Producer
 from cmcan.monitor.filter import RatioFilter
 from cmcan.monitor.gating import EVALUATED, Gate, GateLimits, gate_point
+from cmcan.monitor.health import OK, OUT_OF_RANGE, REASONS, Stream
+from cmcan.monitor.inputs import MEMO_MAX, Channels, InputMessage, Matcher
 from cmcan.monitor.payloads import Outputs, Payloads
 from cmcan.monitor.tick import LEVEL_NAMES, Tick
 from cmcan.monitor.totals import HISTORY_MAX, Totals
@@ -52,6 +66,12 @@ COUNTERS = (
     "error_frame",
     "remote_frame",
     "late",
+    "unknown_channel",
+    "bad_fd",
+    "checksum",
+    "counter_frozen",
+    "counter_jump",
+    "timeout",
 )
 # What each decoded value of an input frame does.
 _WINDOW, _HIGH, _LOW, _IGNORED = 0, 1, 2, 3
@@ -61,23 +81,6 @@ class Predictor(Protocol):
     def predict_one(
         self, pump_speed_rpm: float, pump_disp_cc: float, dp_bar: float, temp_c: float
     ) -> tuple[float, float]: ...
-
-
-@dataclass(frozen=True)
-class InputMessage:
-    """How to read one input message: the layouts of its mapped signals (read as ``size`` bytes) and
-    the role of each value in order. ``decode`` gives the raw values of one frame, or None when a
-    value is outside its DBC range (an implausible frame)."""
-
-    frame_id: int
-    length: int
-    layouts: tuple[Layout, ...]
-    size: int
-    roles: tuple[str, ...]
-    decode: Callable[[bytes], tuple[int, ...] | None] = field(init=False, repr=False, compare=False)
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "decode", checked_decoder(self.layouts, self.size))
 
 
 @dataclass(frozen=True)
@@ -110,14 +113,46 @@ class MonitorParams:
         return self.limits.output_role
 
 
+class _Input:
+    """A mapped input message at run time: its spec, what each decoded value does, its health."""
+
+    __slots__ = ("checked", "decode", "length", "plan", "spec", "stream")
+
+    def __init__(self, spec: InputMessage, plan: tuple[tuple[RoleWindow | None, int], ...]) -> None:
+        self.spec = spec
+        self.length = spec.length
+        self.decode = spec.decode
+        self.plan = plan
+        self.stream = Stream(spec.health)
+        self.checked = spec.health.counter is not None or spec.health.checksum is not None
+
+
+class _Channel:
+    """A channel name as frames carry it: its configured channel (index -1: none), FD or not, and
+    the input of each identifier seen on it so far (a cache of the pure matching function)."""
+
+    __slots__ = ("ext", "fd", "index", "std")
+
+    def __init__(self, index: int, fd: bool) -> None:
+        self.index = index
+        self.fd = fd
+        self.std: dict[int, _Input | None] = {}  # by 11-bit identifier
+        self.ext: dict[int, _Input | None] = {}  # by 29-bit identifier
+
+
+_MISS = object()
+
+
 @dataclass
 class Monitor:
     params: MonitorParams
-    inputs: dict[int, InputMessage]
+    inputs: Sequence[InputMessage]
     model: Predictor
     outputs: Outputs
     totals: Totals = field(default_factory=Totals)
     keep_timeline: bool = False
+    channels: Channels = field(default_factory=Channels)
+    dm1: Dm1Params | None = None
 
     def __post_init__(self) -> None:
         p = self.params
@@ -125,7 +160,14 @@ class Monitor:
         self.clock = TickClock(p.rate_hz, max_gap_s=max(p.limits.window_s, 1.0))
         self.windows = {r: RoleWindow() for r in gated_roles(p.output_role) if r not in p.constants}
         self._constants = [(r, float(p.constants[r])) for r in MODEL_INPUTS if r in p.constants]
-        self._plans = {fid: tuple(self._plan(r) for r in spec.roles) for fid, spec in self.inputs.items()}
+        self.inputs = tuple(self.inputs)
+        self._inputs = {id(m): _Input(m, tuple(self._plan(r) for r in m.roles)) for m in self.inputs}
+        self._streams = [x.stream for x in self._inputs.values()]
+        self._matcher = Matcher(self.inputs, self.channels)
+        self._chans: dict[str, _Channel] = {}
+        self._later: list[tuple[float, int, Frame]] = []  # output frames due later (transport packets)
+        self._seq = 0
+        self._dm1 = Dm1Producer(self.dm1, self.totals) if self.dm1 is not None else None
         self._low: int | None = None
         self.counters = dict.fromkeys(COUNTERS, 0)
         self.counters.update(ticks=0, evaluated=0, extrapolated=0, model_errors=0, clock_steps=0)
@@ -158,19 +200,29 @@ class Monitor:
     # -- frames in ---------------------------------------------------------------------------------
 
     def feed(self, frame: Frame) -> list[Frame]:
-        """Take one received frame; returns the output frames of the ticks it completes."""
-        t, _channel, fid, extended, remote, error, _fd, data = frame
+        """Take one received frame; returns the output frames due by its time (see the module)."""
+        t, channel, fid, extended, remote, error, fd, data = frame
         c = self.counters
         c["frames_total"] += 1
-        if error or remote or extended:
-            c["error_frame" if error else "remote_frame" if remote else "unknown_id"] += 1
+        if error or remote:
+            c["error_frame" if error else "remote_frame"] += 1
             return []
-        spec = self.inputs.get(fid)
-        if spec is None:
+        ch = self._chans.get(channel) or self._channel(channel)
+        if ch.index < 0:
+            c["unknown_channel"] += 1
+            return []
+        if fd and not ch.fd:
+            c["bad_fd"] += 1
+            return []
+        inp = (ch.ext if extended else ch.std).get(fid, _MISS)
+        if inp is _MISS:
+            inp = self._lookup(ch, fid, extended)
+        if inp is None:
             c["unknown_id"] += 1
             return []
-        if len(data) < spec.length:
+        if len(data) < inp.length:
             c["bad_length"] += 1
+            inp.stream.counts["bad_length"] += 1
             return []
         out: list[Frame] = []
         clock = self.clock
@@ -180,17 +232,29 @@ class Monitor:
                 c["late"] += 1
                 return []
             if step.back_by_s:
+                out = self._release(out, math.inf)
                 self.shift_time(-step.back_by_s)
             for k in step.ticks:
                 out += self._evaluate(k)
-        raws = spec.decode(data)
+        stream = inp.stream
+        if inp.checked:
+            verdict = stream.check(t, fid, data)
+            if verdict != OK:
+                c[REASONS[verdict]] += 1
+                stream.note(t, verdict)
+                return self._release(out, t) if self._later else out
+        raws = inp.decode(data)
         if raws is None:
             c["out_of_range"] += 1
-            return out
+            stream.note(t, OUT_OF_RANGE)
+            return self._release(out, t) if self._later else out
         c["accepted"] += 1
+        if t >= stream.newest_t:  # stream.note(t, OK), inlined: the common case
+            stream.newest_t = t
+            stream.newest_ok = True
         clock.started(t)
         high = None
-        for raw, (win, kind) in zip(raws, self._plans[fid], strict=True):
+        for raw, (win, kind) in zip(raws, inp.plan, strict=True):
             if kind == _WINDOW:
                 win.add(t, raw)  # type: ignore[union-attr]
             elif kind == _HIGH:
@@ -201,21 +265,59 @@ class Monitor:
             hl = self.params.dp_from_high_low
             assert hl is not None
             self.windows[DP].add(t, hl.p * high - hl.q * self._low)
-        return out
+        return self._release(out, t) if self._later else out
+
+    def _channel(self, name: str) -> _Channel:
+        i = self.channels.resolve(name)
+        ch = _Channel(-1, False) if i is None else _Channel(i, self.channels.fd[i])
+        if len(self._chans) < MEMO_MAX:
+            self._chans[name] = ch
+        return ch
+
+    def _lookup(self, ch: _Channel, fid: int, extended: bool) -> _Input | None:
+        spec = self._matcher.match(ch.index, fid, extended)
+        inp = self._inputs[id(spec)] if spec is not None else None
+        memo = ch.ext if extended else ch.std
+        if len(memo) < MEMO_MAX:
+            memo[fid] = inp
+        return inp
 
     def advance(self, t: float) -> list[Frame]:
         """Time passes without frames (the daemon's idle timer): evaluate up to ``t``."""
         out: list[Frame] = []
         for k in self.clock.advance(t):
             out += self._evaluate(k)
-        return out
+        return self._release(out, t) if self._later else out
+
+    def due(self, t: float) -> list[Frame]:
+        """The pending transport packets due by ``t``, without evaluating (the daemon's timer)."""
+        return self._release([], t) if self._later else []
+
+    @property
+    def next_due_t(self) -> float:
+        """The time of the next pending output frame (inf when none)."""
+        return self._later[0][0] if self._later else math.inf
 
     def flush(self) -> list[Frame]:
-        """Evaluate the ticks up to the last frame (end of a replayed log)."""
+        """Evaluate the ticks up to the last frame (end of a replayed log); every pending frame."""
         out: list[Frame] = []
         for k in self.clock.flush():
             out += self._evaluate(k)
-        return out
+        return self._release(out, math.inf)
+
+    def _release(self, out: list[Frame], t: float) -> list[Frame]:
+        """``out`` (frames of ticks, in time order) merged with the pending frames due by ``t``."""
+        later = self._later
+        if not later or later[0][0] > t:
+            return out
+        merged: list[Frame] = []
+        for f in out:
+            while later and later[0][0] <= f.timestamp_s:
+                merged.append(heapq.heappop(later)[2])
+            merged.append(f)
+        while later and later[0][0] <= t:
+            merged.append(heapq.heappop(later)[2])
+        return merged
 
     def shift_time(self, delta_s: float) -> None:
         """The wall clock stepped by ``delta_s``: move the windows and the tick clock onto the new
@@ -226,6 +328,8 @@ class Monitor:
         ticks = self.clock.whole_ticks(delta_s)
         for w in self.windows.values():
             w.shift(ticks * self.period)
+        for st in self._streams:
+            st.shift(ticks * self.period)
         self.clock.shift(ticks)
 
     # -- evaluation --------------------------------------------------------------------------------
@@ -242,6 +346,7 @@ class Monitor:
         for role, value in self._constants:
             mean[role], std[role], count[role], age[role] = value, 0.0, p.limits.min_samples, 0.0
         g = gate_point(mean, std, count, age, p.limits, p.max_age_s, p.envelope)
+        g = self._health_gate(t, g)
         out = p.output_role
         meas = mean[out] if count[out] else 0.0
         pred = wb = raw = 0.0
@@ -296,7 +401,26 @@ class Monitor:
         self.last_tick = tick
         if self.keep_timeline:
             self.timeline.append(tick)
-        return self.payloads.frames(k, tick, self.totals.warning_count)
+        return self._emit(k, tick)
+
+    def _health_gate(self, t: float, g: Gate) -> Gate:
+        """An erratic input message makes the point implausible (:mod:`cmcan.monitor.health`)."""
+        return Gate.IMPLAUSIBLE_INPUT if health.tick(self._streams, t) else g
+
+    def _emit(self, k: int, tick: Tick) -> list[Frame]:
+        """The output frames of an evaluated tick: CM frames, and DM1 where configured; frames for
+        later (transport packets) wait in the pending queue."""
+        out = self.payloads.frames(k, tick, self.totals.warning_count)
+        if self._dm1 is not None:
+            m = self.machine
+            ratio = tick.ratio_filt_pct if tick.filt_valid and tick.gate == Gate.EVALUATING else None
+            for f in self._dm1.step(k, tick.t_s, m.condition, m.fault_reason, ratio):
+                if f.timestamp_s > tick.t_s:
+                    heapq.heappush(self._later, (f.timestamp_s, self._seq, f))
+                    self._seq += 1
+                else:
+                    out.append(f)
+        return out
 
     def _record(self, t: float, frm: Level, to: Level, reason: Reason, ratio: float | None) -> None:
         tot = self.totals
@@ -321,6 +445,11 @@ class Monitor:
         self.transitions_since_save = 0
         return self.totals
 
+    def channels_seen(self) -> dict[str, str | None]:
+        """Each channel name frames came with so far, and the configured channel it was read as."""
+        names = self.channels.names
+        return {k: (names[c.index] if c.index >= 0 else None) for k, c in self._chans.items()}
+
     def snapshot(self) -> dict[str, Any]:
         tk = self.last_tick
         return {
@@ -331,4 +460,6 @@ class Monitor:
             "counters": dict(self.counters),
             "warning_count": self.totals.warning_count,
             "evaluated_h": self.totals.evaluated_s / 3600.0,
+            "inputs": {x.spec.name or hex(x.spec.frame_id): dict(x.stream.counts) for x in self._inputs.values()},
+            "dtcs_active": list(self.totals.dtc_active),
         }

@@ -22,7 +22,8 @@ ALIVE_MODULO = 16
 @dataclass(frozen=True)
 class OutputMessage:
     """One output message: its identifier, its signals' layouts (read as ``size`` bytes, sent as
-    ``length``), and its period in ticks. ``encode`` makes one frame from physical values."""
+    ``length``), its period in ticks, and ``fill``: bytes ORed into every frame (J1939 sends the bits
+    of no signal as 1). ``encode`` makes one frame from physical values."""
 
     frame_id: int
     extended: bool
@@ -30,10 +31,12 @@ class OutputMessage:
     size: int
     length: int
     every_ticks: int
+    fill: bytes = b""
     encode: Callable[[Mapping[str, float]], bytes] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "encode", frame_encoder(self.layouts, self.size, self.length))
+        fill = int.from_bytes(self.fill.ljust(self.size, b"\0"), "big")
+        object.__setattr__(self, "encode", frame_encoder(self.layouts, self.size, self.length, fill))
 
 
 @dataclass(frozen=True)

@@ -6,6 +6,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from cmcan.errors import CmcanError, Kind
+from cmcan.j1939.dm1 import OC_MAX
 
 HISTORY_MAX = 1000
 FORMAT = "cmcan-state/1"
@@ -29,6 +30,9 @@ class Totals:
     condition: str = "ok"  # ratio condition underneath any fault, restored on restart
     filter_ratios: list[float] = field(default_factory=list)
     filter_leaks: list[float] = field(default_factory=list)
+    # J1939 DM1: occurrence count per DTC ("SPN:FMI") and the DTCs active at the last save
+    dtc_occurrences: dict[str, int] = field(default_factory=dict)
+    dtc_active: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
         return {"format": FORMAT, **asdict(self)}
@@ -53,4 +57,25 @@ class Totals:
             raise StateError(f"field {exc} missing or of the wrong type") from None
         if len(t.filter_ratios) != len(t.filter_leaks):
             raise StateError("filter_ratios and filter_leaks differ in length")
+        # absent in state files written before J1939 diagnostics: start with no counts
+        occ = d.get("dtc_occurrences", {})
+        active = d.get("dtc_active", [])
+        if not isinstance(occ, dict) or not isinstance(active, list):
+            raise StateError("dtc_occurrences must be a mapping and dtc_active a list")
+        for key, n in occ.items():
+            _dtc_key(key)
+            if isinstance(n, bool) or not isinstance(n, int) or not 0 <= n <= OC_MAX:
+                raise StateError(f"dtc_occurrences[{key!r}]: expected an occurrence count 0..{OC_MAX}, got {n!r}")
+        for key in active:
+            _dtc_key(key)
+        t.dtc_occurrences = {str(k): int(v) for k, v in occ.items()}
+        t.dtc_active = [str(k) for k in active]
         return t
+
+
+def _dtc_key(key: Any) -> None:
+    """A DTC key is "SPN:FMI" with SPN 0..524287 and FMI 0..31."""
+    parts = key.split(":") if isinstance(key, str) else []
+    ok = len(parts) == 2 and all(x.isdigit() for x in parts) and int(parts[0]) < 1 << 19 and int(parts[1]) < 32
+    if not ok:
+        raise StateError(f"DTC key {key!r} is not SPN:FMI (SPN 0..524287, FMI 0..31)")

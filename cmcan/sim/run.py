@@ -87,7 +87,9 @@ def oil_temperatures(s: Scenario, t_s: NDArray[np.float64]) -> tuple[NDArray[np.
     return np.full_like(t_s, np.nan), amb
 
 
-def simulate(s: Scenario, db: Database | None = None, mapping: dict[str, tuple[str, str]] | None = None) -> Run:
+def simulate(s: Scenario, db: Database | None = None, mapping: dict[str, tuple[Any, ...]] | None = None) -> Run:
+    """The scenario's run; ``mapping`` (role -> (message, signal[, scale, offset])) says which DBC
+    signal carries each sensor, for its resolution and range (default: the shipped DBC's)."""
     db = db if db is not None else load_dbc()
     mapping = mapping if mapping is not None else DEFAULT_INPUTS
     p: DriveParams = s.params
@@ -180,7 +182,7 @@ def sense(
     truth: dict[str, NDArray[np.float64]],
     noise: dict[str, float],
     db: Database,
-    mapping: dict[str, tuple[str, str]],
+    mapping: dict[str, tuple[Any, ...]],
     t_s: NDArray[np.float64],
     bursts: list[tuple[int, int]],
     rng: np.random.Generator,
@@ -195,11 +197,23 @@ def sense(
     for key, true in truth.items():
         if key in errors:
             true = errors[key].apply(true, dt, bursts)
-        msg = db.get_message_by_name(mapping[key][0])
         noisy = true + rng.normal(0.0, noise[key], size=len(true)) if noise[key] > 0 else true.copy()
-        q = quantize(msg, mapping[key][1], noisy)
+        if key not in mapping:  # not on this machine's bus (one that sends dp_bar, not high and low)
+            out[key] = noisy
+            continue
+        msg = db.get_message_by_name(mapping[key][0])
+        scale, offset = role_conversion(mapping[key])
+        if scale == 1.0 and offset == 0.0:
+            q = quantize(msg, mapping[key][1], noisy)
+        else:  # the signal carries another unit: value_in_role_unit = signal * scale + offset
+            q = quantize(msg, mapping[key][1], (noisy - offset) / scale) * scale + offset
         out[key] = hold_between_sends(q, send_every(msg.cycle_time, dt), bursts)
     return out
+
+
+def role_conversion(ref: tuple[Any, ...]) -> tuple[float, float]:
+    """(scale, offset) of a mapping entry (message, signal[, scale, offset]): role = signal * scale + offset."""
+    return (float(ref[2]), float(ref[3])) if len(ref) >= 4 else (1.0, 0.0)
 
 
 def send_every(cycle_time_ms: int | None, dt_s: float) -> int:

@@ -168,7 +168,7 @@ def play(log: Path) -> subprocess.Popen:
 
 
 def recorded(path: Path) -> list[tuple[float, int, bytes]]:
-    return [(t, i, d) for t, i, d, *_ in iter_frames(path)]
+    return [(f.timestamp_s, f.arbitration_id, f.data) for f in iter_frames(path)]
 
 
 @pytest.fixture(scope="module")
@@ -376,3 +376,224 @@ def test_sigterm_stops_within_2_s_and_state_survives_restart(daemon, work):
         assert again.notify.wait_for(lambda: f"{warnings_before} warnings" in again.notify.status(), 10)
     finally:
         assert again.stop() < 2.0
+
+
+# -- the J1939 machine on two channels: a sender that changes its address, DM1 to the kernel's J1939
+#    stack (single frame and BAM), inputs split over vcan0 and vcan1 ----------------------------------------
+
+IFACE1 = "vcan1"
+J1939_SA = 0x8C
+J_SECONDS = 30.0
+J_MOVE_AT_S = 8.0  # the drive controller claims address 0x04 instead of 0x03
+J_FREEZE_AT_S = 20.0  # its motor message's counter freezes: erratic input, a fault 5 s later
+ON_VCAN1 = ("HST_MOTOR", "VF")
+
+
+def make_j1939_config(tmp: Path) -> Path:
+    """The example J1939 machine on vcan0 and vcan1 (motor speed and oil temperature on vcan1)."""
+    raw = yaml.safe_load((ROOT / "config" / "j1939-example.yaml").read_text())
+    raw["dbc"] = str(ROOT / "dbc" / "j1939-example.dbc")
+    raw["bus"].update(interface="socketcan", channel=IFACE)
+    raw["channels"] = {"extra": [{"channel": IFACE1}], "from_log": {"can0": IFACE, "can1": IFACE1}}
+    for name in ON_VCAN1:
+        raw["messages"].setdefault(name, {})["channel"] = IFACE1
+    raw.setdefault("filter", {}).update(samples=20, min_samples=10)
+    raw.setdefault("thresholds", {}).update(debounce_s=2.0)
+    raw["state"]["directory"] = str(tmp / "jstate")
+    (tmp / "jstate").mkdir(exist_ok=True)
+    p = tmp / "j1939-vcan.yaml"
+    p.write_text(yaml.safe_dump(raw, sort_keys=False))
+    return p
+
+
+def make_j1939_log(path: Path, cfg_path: Path) -> Path:
+    """A steady point with a leak from LEAK_AT_S; the sender moves to 0x04 at J_MOVE_AT_S and its
+    motor message's counter freezes at J_FREEZE_AT_S. Frames on can0 and can1 as the machine has them."""
+    from cmcan.assemble import bus_plan
+    from cmcan.sim.frames import with_source_address
+    from tests.test_monitor_j1939 import freeze_counter, leak_scenario
+
+    cfg = cfgmod.rename_channels(cfgmod.load(cfg_path), {IFACE: "can0", IFACE1: "can1"})
+    db = dbc_for(cfg)
+    plan = bus_plan(cfg, db)
+    f = frames_from_run(simulate(leak_scenario(J_SECONDS), db, plan.mapping), db, plan=plan)
+    t0 = float(f.timestamp_s[0])
+    for name in ("HST_PUMP", "HST_MOTOR", "HST_LOOP_PRESSURE", "VF"):
+        f = with_source_address(f, db, plan, name, 0x04, t0 + J_MOVE_AT_S)
+    f = freeze_counter(f, cfg, plan, "HST_MOTOR", t0 + J_FREEZE_AT_S)
+    write_candump(path, f.timestamp_s, f.arbitration_id, f.dlc, f.data, f.channels("can0"), f.is_extended())
+    return path
+
+
+class J1939Listener:
+    """A J1939 peer through the kernel's stack (module can-j1939): every broadcast parameter group
+    it receives on the interface, transport protocol reassembled by the kernel."""
+
+    def __init__(self, iface: str) -> None:
+        self.sock = socket.socket(socket.PF_CAN, socket.SOCK_DGRAM, socket.CAN_J1939)
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
+        self.sock.bind((iface, socket.J1939_NO_NAME, socket.J1939_NO_PGN, socket.J1939_NO_ADDR))
+        self.sock.settimeout(0.2)
+        self.got: list[tuple[float, int, int, bytes]] = []  # (time, PGN, source address, data)
+        self.stop = False
+        self.thread = threading.Thread(target=self._loop, daemon=True)
+        self.thread.start()
+
+    def _loop(self) -> None:
+        while not self.stop:
+            try:
+                data, addr = self.sock.recvfrom(2048)
+            except (TimeoutError, OSError):
+                continue
+            self.got.append((time.monotonic(), addr[2], addr[3], data))
+
+    def close(self) -> None:
+        self.stop = True
+        self.thread.join(2)
+        self.sock.close()
+
+
+@pytest.fixture(scope="module")
+def j1939_run(work):
+    """The J1939 daemon on vcan0 + vcan1 while canplayer plays the log; what the bus and the kernel's
+    J1939 stack saw."""
+    try:
+        socket.socket(socket.PF_CAN, socket.SOCK_DGRAM, socket.CAN_J1939).close()
+    except OSError as exc:
+        pytest.skip(f"this kernel has no J1939 stack (module can-j1939): {exc}")
+    if not Path(f"/sys/class/net/{IFACE1}").exists():
+        pytest.skip(f"no {IFACE1}")
+    tmp = work["tmp"]
+    cfg_path = make_j1939_config(tmp)
+    log = make_j1939_log(tmp / "j1939.log", cfg_path)
+    d = Daemon(tmp, cfg_path, "j1939")
+    listener = J1939Listener(IFACE)
+    bus_log = open(tmp / "j1939-bus.log", "w")  # noqa: SIM115 - candump writes it until stopped
+    rec = subprocess.Popen(["candump", "-L", IFACE, IFACE1], stdout=bus_log, stderr=subprocess.DEVNULL)
+    try:
+        before = d.fresh_status()
+        time.sleep(0.5)
+        player = subprocess.Popen(
+            ["canplayer", "-I", str(log), f"{IFACE}=can0", f"{IFACE1}=can1"], stderr=subprocess.PIPE, text=True
+        )
+        assert player.wait(timeout=180) == 0, player.stderr.read()
+        time.sleep(2.0)
+        after = d.fresh_status()
+        status = d.notify.status()
+    finally:
+        stop(rec)
+        bus_log.close()
+        listener.close()
+        d.stop()
+    return {
+        "cfg": cfg_path,
+        "log": log,
+        "bus": list(iter_frames(tmp / "j1939-bus.log")),
+        "dm1": [(t, data) for t, pgn, sa, data in listener.got if pgn == 65226 and sa == J1939_SA],
+        "delta": {k: after[k] - before[k] for k in after},
+        "status": status,
+        "stderr": d.stderr(),
+    }
+
+
+def _outputs(frames):
+    from cmcan.j1939 import ids
+
+    return [f for f in frames if f.extended and ids.source_address(f.arbitration_id) == J1939_SA]
+
+
+@pytest.mark.vcan
+def test_j1939_machine_decodes_a_sender_that_changes_its_address(j1939_run):
+    from cmcan.j1939 import ids
+
+    run = j1939_run
+    log = list(iter_frames(run["log"]))
+    assert sum(ids.source_address(f.arbitration_id) == 0x04 for f in log) > len(log) / 2
+    d = run["delta"]
+    # every input frame reached the daemon and was used, whichever address it came from; the frozen
+    # counter's frames were refused, exactly as the replay of the same log refuses them
+    cfg = cfgmod.load(run["cfg"])
+    parts = assemble(cfg)
+    offline = replay(parts.monitor, iter_frames(run["log"])).frames_out
+    c = parts.monitor.counters
+    assert c["counter_frozen"] > 900 and c["unknown_id"] == 0
+    assert d["frames_total"] == len(log), run["status"]
+    assert d["accepted"] == c["accepted"], run["status"]
+    assert f"counter frozen {c['counter_frozen']}" in run["status"]
+    assert d["unknown_id"] == 0 and d["bad_length"] == 0
+    # the live warnings are the ones replay computes for the same log
+    db = parts.db
+    warn = parts.monitor.outputs.warning.frame_id
+    msg = db.get_message_by_name("CM_WARNING")
+
+    def levels(frames):
+        out, last = [], None
+        for f in frames:
+            if f.arbitration_id == warn:
+                lvl = int(msg.decode(f.data, decode_choices=False)["warning_level"])
+                if lvl != last:
+                    out.append((f.timestamp_s, lvl))
+                    last = lvl
+        return out
+
+    live = _outputs(run["bus"])
+    t_live0 = next(f.timestamp_s for f in live if f.arbitration_id == warn)
+    t_off0 = next(f.timestamp_s for f in offline if f.arbitration_id == warn)
+    a = [(round(t - t_live0, 1), lvl) for t, lvl in levels(live)]
+    b = [(round(t - t_off0, 1), lvl) for t, lvl in levels(offline)]
+    assert [lvl for _, lvl in a] == [lvl for _, lvl in b] == [0, 1, 3]  # ok, low, fault
+    assert all(abs(x[0] - y[0]) <= 0.5 for x, y in zip(a, b, strict=True))
+    # outputs only on the output channel, from cmcan's own address
+    assert live and {f.channel for f in live} == {IFACE}
+
+
+@pytest.mark.vcan
+def test_dm1_reaches_the_kernel_j1939_stack_single_frame_and_bam(j1939_run):
+    from cmcan.j1939 import dm1, ids
+
+    run = j1939_run
+    got = [(t, *dm1.decode(data), len(data)) for t, data in run["dm1"]]
+    assert got, "the kernel's J1939 stack received no DM1 from 0x8C"
+    kinds = [(lamps.amber_warning, [(x.spn, x.fmi) for x in dtcs], n) for _, lamps, dtcs, n in got]
+    # no fault: a single frame with the all-zero DTC and the lamp off
+    assert (dm1.Lamp.OFF, [], 8) in kinds
+    # the low warning: one DTC, amber lamp, still a single frame
+    low = [k for k in kinds if k[0] == dm1.Lamp.ON and len(k[1]) == 1]
+    assert low and low[0][1][0][0] == 520192 and low[0][1][0][1] in (17, 18) and low[0][2] == 8
+    # low and the erratic input together: two DTCs, which only BAM carries; the kernel reassembled it
+    bam = [(lamps, dtcs, n) for _, lamps, dtcs, n in got if len(dtcs) == 2]
+    assert bam, kinds
+    lamps, dtcs, n = bam[0]
+    assert n == 10 and lamps.amber_warning == dm1.Lamp.ON
+    assert (dtcs[1].spn, dtcs[1].fmi, dtcs[1].occurrence) == (520193, 2, 1) and dtcs[0].occurrence == 1
+    # on the wire: TP.CM, then TP.DT 50..200 ms apart (J1939-21)
+    tp = [f for f in _outputs(run["bus"]) if ids.pgn(f.arbitration_id) in (0xEC00, 0xEB00)]
+    cm = [i for i, f in enumerate(tp) if ids.pgn(f.arbitration_id) == 0xEC00]
+    assert cm
+    for i in cm:
+        session = tp[i : i + 3]
+        if len(session) < 3 and i == cm[-1]:
+            continue  # the recording stopped during the last session
+
+        assert [ids.pgn(f.arbitration_id) for f in session] == [0xEC00, 0xEB00, 0xEB00]
+        gaps = np.diff([f.timestamp_s for f in session])
+        assert np.all((gaps >= 0.05) & (gaps <= 0.2)), gaps
+
+
+@pytest.mark.vcan
+def test_two_vcan_channels_with_inputs_split(j1939_run):
+    from cmcan.j1939 import ids
+
+    run = j1939_run
+    inputs = [f for f in run["bus"] if ids.source_address(f.arbitration_id) != J1939_SA]
+    by_channel = {c: sum(f.channel == c for f in inputs) for c in (IFACE, IFACE1)}
+    assert by_channel[IFACE] > 1000 and by_channel[IFACE1] > 1000, by_channel
+    # every frame of both channels reached the daemon and was used as the replay uses it (the motor
+    # speed on vcan1 and the pump on vcan0 make the ratio); only the frozen counter's frames were not
+    parts = assemble(cfgmod.load(run["cfg"]))
+    replay(parts.monitor, iter_frames(run["log"]))
+    assert run["delta"]["frames_total"] == len(inputs)
+    assert run["delta"]["accepted"] == parts.monitor.counters["accepted"]
+    assert parts.monitor.channels_seen() == {"can0": IFACE, "can1": IFACE1}
+    assert "unknown channel" not in run["status"] and "bad fd" not in run["status"]
+    assert "Traceback" not in run["stderr"] and "failed" not in run["stderr"], run["stderr"]

@@ -29,9 +29,10 @@ def vcan_here() -> bool:
         socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW).close()
     except (OSError, AttributeError):
         return False
-    if not Path("/sys/class/net/vcan0").exists() and os.geteuid() == 0 and shutil.which("ip"):
-        subprocess.run(["ip", "link", "add", "dev", "vcan0", "type", "vcan"], capture_output=True)
-        subprocess.run(["ip", "link", "set", "up", "vcan0"], capture_output=True)
+    for dev in ("vcan0", "vcan1"):
+        if not Path(f"/sys/class/net/{dev}").exists() and os.geteuid() == 0 and shutil.which("ip"):
+            subprocess.run(["ip", "link", "add", "dev", dev, "type", "vcan"], capture_output=True)
+            subprocess.run(["ip", "link", "set", "up", dev], capture_output=True)
     return Path("/sys/class/net/vcan0").exists() and all(shutil.which(t) for t in ("candump", "canplayer"))
 
 

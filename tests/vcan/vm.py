@@ -37,6 +37,7 @@ MODULES = (
     "can-bcm",
     "can-dev",
     "vcan",  # SocketCAN
+    "can-j1939",  # the kernel's J1939 stack (a real J1939 peer for DM1 and its transport protocol)
 )
 EXIT_MARK = "CMCAN-VM-EXIT="
 
@@ -65,7 +66,7 @@ for share in project:$PROJECT results:$RESULTS; do
   [ -d "/host$dir" ] || mkdir -p "/host$dir"
   mount -t 9p -o $O "$tag" "/host$dir" || echo "cmcan-vm: cannot mount $tag at $dir"
 done
-ip link add dev vcan0 type vcan && ip link set up vcan0 || echo "cmcan-vm: no vcan0"
+for v in vcan0 vcan1; do ip link add dev $v type vcan && ip link set up $v || echo "cmcan-vm: no $v"; done
 chroot /host /bin/sh "$RESULTS/run.sh" </dev/null
 echo "CMCAN-VM-EXIT=$?"
 sync
@@ -111,8 +112,8 @@ def kernel_package() -> str:
 def ensure_kernel() -> tuple[Path, Path]:
     """(vmlinuz, module folder) in the cache; downloads and unpacks the kernel at first use."""
     root = cache_dir()
-    done = sorted(root.glob("*/ready"))
-    if done:
+    done = [r for r in sorted(root.glob("*/ready")) if all((r.parent / "mods" / f"{m}.ko").exists() for m in MODULES)]
+    if done:  # a cache from before a module was added is unpacked again
         d = done[-1].parent
         return d / "vmlinuz", d / "mods"
     pkg = kernel_package()

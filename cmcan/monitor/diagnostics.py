@@ -1,0 +1,137 @@
+"""J1939 diagnostics of the drive: the DM1 message driven by the warning state (SAE J1939-73).
+
+Active DTCs at each evaluation tick, from the warning machine's condition and fault:
+- condition low: (``spn``, FMI 17, below normal, least severe), or FMI 18 (moderately severe) while
+  the filtered ratio is below ``low_severe_pct``; condition high: FMI 15, or FMI 16 above
+  ``high_severe_pct``. The severity follows the filtered ratio of evaluated ticks with the thresholds'
+  hysteresis (severe from below ``low_severe_pct``, least severe again from ``low_severe_pct +
+  hysteresis``; mirrored on the high side) and is kept while nothing is evaluated;
+- fault: (``input_spn``, FMI 9, abnormal update rate) for stale inputs, FMI 2 (data erratic) for
+  implausible or erratic ones, FMI 12 for a model error.
+The amber warning lamp is on while the condition is low or high (a fault alone lights no lamp: the
+monitor cannot judge the drive then, which is a service matter). A DTC's occurrence count goes up by
+one each time it becomes active (up to 126) and lives in the totals, so it survives restarts; the
+DTCs active at the last save are not counted again when they are still active after a restart.
+
+DM1 goes out every ``every_ticks`` ticks (1 s) and at once when the lamp or the active DTCs change;
+with one DTC or none in one frame (the all-zero DTC when none is active), with more over BAM
+(:mod:`cmcan.j1939.transport`): TP.CM at the tick's time, each TP.DT ``bam_gap_s`` later. A node has
+one BAM at a time, so a change during a BAM is sent at the first tick after that BAM's last packet.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from cmcan.frame import Frame
+from cmcan.j1939 import dm1, ids, transport
+from cmcan.j1939.dm1 import Dtc, Fmi, Lamp, Lamps
+from cmcan.monitor.totals import Totals
+from cmcan.monitor.warnings import Level, Reason
+
+
+@dataclass(frozen=True)
+class Dm1Params:
+    spn: int  # the drive's condition (CM ratio)
+    input_spn: int  # the monitor's inputs
+    low_pct: float  # the warning thresholds, for the severity's hysteresis
+    high_pct: float
+    low_severe_pct: float
+    high_severe_pct: float
+    hysteresis_pct: float
+    every_ticks: int
+    source: int  # cmcan's source address
+    priority: int = dm1.DM1_PRIORITY
+    bam_gap_s: float = 0.1
+    channel: str = ""
+
+
+_FAULT_FMI = {Reason.INPUT_STALE: Fmi.ABNORMAL_UPDATE_RATE, Reason.INPUT_IMPLAUSIBLE: Fmi.DATA_ERRATIC}
+
+
+class Dm1Producer:
+    __slots__ = (
+        "_last",
+        "_payload",
+        "active",
+        "busy_until",
+        "changed",
+        "frame_id",
+        "high_severe",
+        "low_severe",
+        "p",
+        "totals",
+    )
+
+    def __init__(self, p: Dm1Params, totals: Totals) -> None:
+        self.p = p
+        self.totals = totals
+        self.frame_id = ids.make_id(p.priority, dm1.PGN_DM1, p.source)
+        self.active: list[str] = list(totals.dtc_active)
+        self.low_severe = f"{p.spn}:{int(Fmi.BELOW_NORMAL_MODERATE)}" in self.active
+        self.high_severe = f"{p.spn}:{int(Fmi.ABOVE_NORMAL_MODERATE)}" in self.active
+        self.busy_until = -1e300
+        self.changed = False
+        self._last: tuple[int, int, bool, bool] | None = None  # the inputs of the last DTC list
+        self._payload: tuple[tuple[int, ...], bytes] | None = None  # the last DM1 payload and what made it
+
+    def _severity(self, ratio_pct: float | None) -> None:
+        p = self.p
+        if ratio_pct is None:
+            return
+        if ratio_pct < p.low_severe_pct:
+            self.low_severe = True
+        elif ratio_pct >= p.low_severe_pct + p.hysteresis_pct:
+            self.low_severe = False
+        if ratio_pct > p.high_severe_pct:
+            self.high_severe = True
+        elif ratio_pct <= p.high_severe_pct - p.hysteresis_pct:
+            self.high_severe = False
+
+    def dtcs(self, condition: Level, fault: Reason) -> list[tuple[int, int]]:
+        """(SPN, FMI) of the active DTCs, condition first."""
+        p = self.p
+        out = []
+        if condition == Level.LOW:
+            out.append((p.spn, Fmi.BELOW_NORMAL_MODERATE if self.low_severe else Fmi.BELOW_NORMAL_LEAST))
+        elif condition == Level.HIGH:
+            out.append((p.spn, Fmi.ABOVE_NORMAL_MODERATE if self.high_severe else Fmi.ABOVE_NORMAL_LEAST))
+        if fault != Reason.NONE:
+            out.append((p.input_spn, _FAULT_FMI.get(fault, Fmi.BAD_DEVICE)))
+        return [(s, int(f)) for s, f in out]
+
+    def step(self, k: int, t: float, condition: Level, fault: Reason, ratio_pct: float | None) -> list[Frame]:
+        """One tick: update the active DTCs and counts; the DM1 frames due (times >= ``t``)."""
+        self._severity(ratio_pct)
+        state = (int(condition), int(fault), self.low_severe, self.high_severe)
+        due = k % self.p.every_ticks == 0 or self.changed
+        if state == self._last and not due:  # nothing changed, nothing to send: the common tick
+            return []
+        self._last = state
+        now = self.dtcs(condition, fault)
+        keys = [f"{s}:{f}" for s, f in now]
+        counts = self.totals.dtc_occurrences
+        if keys != self.active:
+            for key in keys:
+                if key not in self.active:
+                    counts[key] = min(dm1.OC_MAX, counts.get(key, 0) + 1)
+            self.active = keys
+            self.totals.dtc_active = list(keys)
+            self.changed = True
+        due = k % self.p.every_ticks == 0 or self.changed
+        if not due or t <= self.busy_until:
+            return []
+        self.changed = False
+        amber = condition in (Level.LOW, Level.HIGH)
+        made_of = (amber, *(x for s, f in now for x in (s, f, counts.get(f"{s}:{f}", 0))))
+        if self._payload is not None and self._payload[0] == made_of:  # the same DM1 as a second ago
+            payload = self._payload[1]
+        else:
+            lamps = Lamps(amber_warning=Lamp.ON if amber else Lamp.OFF)
+            payload = dm1.encode(lamps, [Dtc(s, f, counts.get(f"{s}:{f}", 0)) for s, f in now])
+            self._payload = (made_of, payload)
+        if len(payload) <= 8:
+            return [Frame(t, self.p.channel, self.frame_id, True, False, False, False, payload)]
+        frames = transport.bam_frames(t, self.p.bam_gap_s, dm1.PGN_DM1, payload, self.p.source, self.p.channel)
+        self.busy_until = frames[-1].timestamp_s
+        return frames

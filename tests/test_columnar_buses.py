@@ -1,0 +1,150 @@
+"""Both replay engines on the machine buses of issue 11: the J1939 machine (29-bit identifiers matched
+on PGN, TSC1 counters and checksums, a sender changing its address, DM1 over BAM), the same machine
+without DM1 (the columnar engine's array path for the checks), two channels, CAN FD frames, and
+counters broken the ways a real bus breaks them. The same timeline, frames, summary and state."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, event, given, settings
+from hypothesis import strategies as st
+
+from cmcan import config as cfgmod
+from cmcan.assemble import assemble, bus_plan, dbc_for
+from cmcan.columnar import replay_columns
+from cmcan.frame import Frame, FrameColumns
+from cmcan.replay import FrameCollector, TimelineCollector, replay
+from cmcan.sim import scenario as scn
+from cmcan.sim.frames import frames_from_run, with_source_address
+from cmcan.sim.run import simulate
+from tests.test_columnar import assert_same
+from tests.test_monitor_j1939 import freeze_counter, j1939_cfg, machine_frames
+
+
+def both(cfg: cfgmod.Config, frames: list[Frame], chunk: int):
+    out = {}
+    for engine in ("streaming", "columnar"):
+        mon = assemble(cfg).monitor
+        tl, fr = TimelineCollector(), FrameCollector()
+        if engine == "streaming":
+            s = replay(mon, frames, [tl, fr])
+        else:
+            chunks = [FrameColumns.from_frames(frames[i : i + chunk]) for i in range(0, len(frames), chunk)]
+            s = replay_columns(mon, chunks, [tl, fr])
+        out[engine] = (tl.timeline, fr.frames_out, s, mon)
+    return out["streaming"], out["columnar"]
+
+
+def no_dm1(cfg: cfgmod.Config) -> cfgmod.Config:
+    return replace(cfg, j1939=replace(cfg.j1939, dm1=replace(cfg.j1939.dm1, enabled=False)))
+
+
+@pytest.fixture(scope="module")
+def j1939():
+    """40 s of the J1939 machine with a leak, HST_MOTOR's counter frozen from 25 s on (DM1 over BAM),
+    the sender moving from address 0x03 to 0x04 at 30 s."""
+    cfg = j1939_cfg()
+    frames, plan = machine_frames(cfg, 40.0)
+    t0 = float(frames.timestamp_s[0])
+    frames = freeze_counter(frames, cfg, plan, "HST_MOTOR", t0 + 25.0)
+    db = dbc_for(cfg)
+    for name in ("HST_PUMP", "HST_MOTOR", "HST_LOOP_PRESSURE"):
+        frames = with_source_address(frames, db, plan, name, 0x04, t0 + 30.0)
+    return cfg, frames.to_frames()
+
+
+@pytest.mark.parametrize("dm1", [True, False])
+@pytest.mark.parametrize("chunk", [333, 100_000])
+def test_the_j1939_machine_replays_the_same(j1939, dm1, chunk):
+    cfg, frames = j1939
+    cfg = cfg if dm1 else no_dm1(cfg)
+    a, b = both(cfg, frames, chunk)
+    assert_same(a, b)
+    counters = a[2].counters
+    assert counters["counter_frozen"] > 0 and counters["accepted"] > 0
+    if dm1:
+        assert any(f.arbitration_id & 0x00FF0000 == 0x00EC0000 for f in a[1])  # a BAM announcement
+
+
+def corrupt(frames: list[Frame], rng: np.random.Generator, share: float) -> list[Frame]:
+    """Bytes flipped in some frames (a bad checksum, a counter out of step, a value out of range)."""
+    out = []
+    for f in frames:
+        if rng.random() < share and f.data:
+            d = bytearray(f.data)
+            d[int(rng.integers(len(d)))] ^= int(rng.integers(1, 256))
+            f = f._replace(data=bytes(d))
+        out.append(f)
+    return out
+
+
+_SETTINGS = {"deadline": None, "suppress_health_check": [HealthCheck.function_scoped_fixture, HealthCheck.too_slow]}
+
+
+@settings(max_examples=12, **_SETTINGS)
+@given(
+    seed=st.integers(0, 2**31),
+    share=st.sampled_from([0.001, 0.01, 0.1]),
+    chunk=st.sampled_from([97, 4096]),
+    dm1=st.booleans(),
+)
+def test_corrupted_j1939_frames_replay_the_same(j1939, seed, share, chunk, dm1):
+    cfg, frames = j1939
+    cfg = cfg if dm1 else no_dm1(cfg)
+    a, b = both(cfg, corrupt(frames, np.random.default_rng(seed), share), chunk)
+    assert_same(a, b)
+    c = a[2].counters
+    for k in ("checksum", "counter_jump", "counter_frozen", "out_of_range"):
+        if c[k]:
+            event(f"reached {k}")
+
+
+@settings(max_examples=12, **_SETTINGS)
+@given(seed=st.integers(0, 2**31), share=st.sampled_from([0.002, 0.02, 0.2]), chunk=st.sampled_from([97, 4096]))
+def test_corrupted_and_dropped_frames_on_the_shipped_machine_replay_the_same(seed, share, chunk):
+    """The shipped 11-bit machine checks its alive counters: lost frames (jumps), repeated frames
+    (frozen), flipped bytes, and a message silent long enough to time out."""
+    from tests.helpers import as_frames, sim_frames
+
+    rng = np.random.default_rng(seed)
+    _, sim = sim_frames("two_set_validation", duration_h=0.02)
+    frames = as_frames(sim)
+    keep = rng.random(len(frames)) > share  # lost frames
+    frames = [f for f, k in zip(frames, keep, strict=True) if k]
+    dup = [f for f in frames if rng.random() < share]  # repeated ones, right after themselves
+    frames = sorted(frames + dup, key=lambda f: f.timestamp_s)
+    # one message silent for two seconds in the middle: it times out while the others go on
+    t_mid = frames[len(frames) // 2].timestamp_s
+    frames = [f for f in frames if not (f.arbitration_id == 0x101 and t_mid <= f.timestamp_s < t_mid + 2.0)]
+    a, b = both(cfgmod.load(), corrupt(frames, rng, share), chunk)
+    assert_same(a, b)
+    counts = a[3].snapshot()["inputs"]
+    assert sum(v["timeout"] for v in counts.values()) > 0
+    for k in ("counter_jump", "counter_frozen", "out_of_range"):
+        if a[2].counters[k]:
+            event(f"reached {k}")
+
+
+def test_two_channels_replay_the_same():
+    base = cfgmod.load()
+    cfg = replace(
+        base,
+        channels=replace(base.channels, extra=(cfgmod.ChannelConfig("can1"),)),
+        messages={n: cfgmod.MessageConfig(channel="can1") for n in ("MOTOR_STATUS", "OIL_STATUS")},
+    )
+    db = dbc_for(cfg)
+    plan = bus_plan(cfg, db)
+    s = scn.load(scn.shipped("two_set_validation")).with_overrides(duration_h=0.02)
+    frames = frames_from_run(simulate(s, db, plan.mapping), db, plan=plan).to_frames()
+    assert {f.channel for f in frames} == {"can0", "can1"}
+    # a third channel nobody configured, and CAN FD frames on the classic bus: counted the same
+    extra = [f._replace(channel="can7") for f in frames[:200]] + [f._replace(fd=True) for f in frames[200:400]]
+    frames = sorted(frames + extra, key=lambda f: f.timestamp_s)
+    for chunk in (211, 50_000):
+        a, b = both(cfg, frames, chunk)
+        assert_same(a, b)
+    c = a[2].counters
+    assert c["unknown_channel"] == 200 and c["bad_fd"] == 200
