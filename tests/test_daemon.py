@@ -249,6 +249,8 @@ def test_a_wall_clock_step_does_not_pause_the_daemon(frames, step_s):
     assert mon.counters["clock_steps"] == 1 and mon.counters["late"] == 0
     assert abs(mon.counters["ticks"] - plain.counters["ticks"]) <= 1
     assert abs(mon.counters["evaluated"] - plain.counters["evaluated"]) <= 20
+
+
 def replayed(mon, frames):
     """The frames a replay emits."""
     sink = FrameCollector()
