@@ -110,7 +110,7 @@ def test_nothing_lost_when_broker_and_uplink_are_killed(tmp_path):
     cfg = cfgmod.with_overrides(cfg, interface="virtual", channel=channel)
     prep = prepare(cfg)
     mon = prep.parts.monitor
-    kw = {**bus_kwargs(cfg.bus, list(mon.inputs)), "rx_queue_size": 20000, "preserve_timestamps": True}
+    kw = {**bus_kwargs(cfg, cfg.channel_list[0], list(mon.inputs)), "rx_queue_size": 20000, "preserve_timestamps": True}
     settings = cfg.uplink
     feed = UplinkFeed.open(settings, mon)
     daemon = Daemon(cfg, mon, prep.store, lambda: can.Bus(**kw), options=DaemonOptions(), uplink=feed)
