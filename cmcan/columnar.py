@@ -30,7 +30,7 @@ from cmcan import codec
 from cmcan.checksums import TSC1_FOLD
 from cmcan.frame import Frame, FrameColumns
 from cmcan.monitor.clock import STEP_BACK_S
-from cmcan.monitor.core import _HIGH, _LOW, _MISS, _WINDOW, Monitor
+from cmcan.monitor.core import _HIGH, _LOW, _MISS, _WINDOW, Monitor, _Input
 from cmcan.monitor.exactsum import window_fsums
 from cmcan.monitor.gating import EVALUATED, Gate, gate_columns
 from cmcan.monitor.health import CHECKSUM, COUNTER_FROZEN, COUNTER_JUMP, OK, OUT_OF_RANGE, REASONS, Stream
@@ -171,8 +171,7 @@ class _Engine:
             return
         t = cols.timestamp_s[idx]
         ids = which[idx]
-        raws, ok, row = self._decode(cols, idx, ids)
-        ctr, cs_ok = self._integrity(cols, idx, ids)
+        raws, ok, row, ctr, cs_ok = self._decode(cols, idx, ids)
         pos = 0
         while pos < len(idx):
             if m.clock.next_k is None or not math.isfinite(t[pos]):
@@ -209,7 +208,7 @@ class _Engine:
         hit = at < len(self._m_keys)
         hit[hit] = self._m_keys[at[hit]] == key[hit]
         if not hit.all():  # combinations not seen before in this log: ask the core's matching
-            new = np.unique(key[~hit])
+            new = _distinct(key[~hit])
             codes = np.array([self._code(k, names) for k in new.tolist()], dtype=np.int64)
             keys = np.concatenate([self._m_keys, new])
             order = np.argsort(keys, kind="stable")
@@ -237,65 +236,63 @@ class _Engine:
 
     def _decode(
         self, cols: FrameColumns, idx: NDArray[np.int64], ids: NDArray[np.int64]
-    ) -> tuple[dict[int, NDArray[np.int64]], NDArray[np.bool_], NDArray[np.int64]]:
-        """Per input message the raw values (its frames x its values), the DBC range check per frame
-        (on the raw values, as the core's decoder checks them), and each frame's row in its message's
-        array. ``ids`` are the frames' input message indices."""
+    ) -> tuple[
+        dict[int, list[NDArray[np.int64]]], NDArray[np.bool_], NDArray[np.int64], NDArray[np.int64], NDArray[np.bool_]
+    ]:
+        """Per input message the raw values (one array per value, over its frames), the DBC range
+        check per frame (on the raw values, as the core's decoder checks them), each frame's row in
+        its message's arrays, and its message counter and checksum verdict (:meth:`_integrity`).
+        ``ids`` are the frames' input message indices."""
         ok = np.ones(len(idx), dtype=bool)
         row = np.zeros(len(idx), dtype=np.int64)
-        raws: dict[int, NDArray[np.int64]] = {}
+        ctr = np.zeros(len(idx), dtype=np.int64)
+        cs_ok = np.ones(len(idx), dtype=bool)
+        raws: dict[int, list[NDArray[np.int64]]] = {}
         for j, x in enumerate(self.inps):
             sel = np.flatnonzero(ids == j)
             if not len(sel):
                 continue
             spec = x.spec
-            data = self._payloads(cols, idx[sel], spec.size)
-            vals = codec.extract_all(data, spec.layouts, spec.size)
-            arr = np.stack(vals, axis=1) if vals else np.zeros((len(sel), 0), dtype=np.int64)
+            rows = idx[sel]
+            data = self._payloads(cols, rows, max(spec.size, x.spec.health.nbytes))
+            vals = codec.extract_all(data[:, : spec.size], spec.layouts, spec.size)
             good = np.ones(len(sel), dtype=bool)
-            for v, (lo, hi) in enumerate(self.bounds[j]):
-                good &= (lo <= arr[:, v]) & (arr[:, v] <= hi)
+            for v, (lo, hi) in zip(vals, self.bounds[j], strict=True):
+                good &= (lo <= v) & (v <= hi)
             ok[sel] = good
             row[sel] = np.arange(len(sel))
-            raws[j] = arr
-        return raws, ok, row
+            raws[j] = vals
+            if x.checked:
+                ctr[sel], cs_ok[sel] = self._integrity(cols, rows, x, data)
+        return raws, ok, row, ctr, cs_ok
 
     def _integrity(
-        self, cols: FrameColumns, idx: NDArray[np.int64], ids: NDArray[np.int64]
+        self, cols: FrameColumns, rows: NDArray[np.int64], x: _Input, data: NDArray[np.uint8]
     ) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
-        """Per frame its message counter (0 where none) and whether its checksum holds (True where
-        none): pure functions of one frame, as :meth:`cmcan.monitor.health.Stream.check` reads them."""
-        ctr = np.zeros(len(idx), dtype=np.int64)
-        cs_ok = np.ones(len(idx), dtype=bool)
-        for j, x in enumerate(self.inps):
-            if not x.checked:
-                continue
-            sel = np.flatnonzero(ids == j)
-            if not len(sel):
-                continue
-            rows = idx[sel]
-            st, spec = x.stream, x.spec.health
-            if st.tsc1 and bool((cols.dlc[rows] == 8).all()):
-                # J1939-71's TSC1 layout: counter and checksum in byte 8, the sum over the frame and the id
-                data = cols.data[rows].astype(np.int64)
-                d7 = data[:, 7]
-                cid = cols.arbitration_id[rows].astype(np.int64)
-                ids_sum = (cid & 0xFF) + ((cid >> 8) & 0xFF) + ((cid >> 16) & 0xFF) + ((cid >> 24) & 0xFF)
-                cs_ok[sel] = (d7 >> 4) == _TSC1_FOLD[data.sum(axis=1) - (d7 & 0xF0) + ids_sum]
-                ctr[sel] = d7 & 0x0F
-                continue
-            if st.tsc1 or st.checksum is not None:  # any other checksum: the stream's own check, per frame
-                probe = Stream(spec)
-                for s_i, r in zip(sel.tolist(), rows.tolist(), strict=True):
-                    f = cols.frame(r)
-                    probe.prev = None
-                    verdict = probe.check(0.0, f.arbitration_id, f.data)
-                    cs_ok[s_i] = verdict != CHECKSUM
-                    ctr[s_i] = probe.prev if probe.prev is not None else 0
-                continue
-            if spec.counter is not None:
-                data = self._payloads(cols, rows, spec.nbytes)
-                ctr[sel] = codec.extract_all(data, [spec.counter], spec.nbytes)[0]
+        """The message counter (0 where none) and whether the checksum holds (True where none) of
+        each frame of one checked message, pure functions of the frame, as
+        :meth:`cmcan.monitor.health.Stream.check` reads them. ``data``: the frames' payloads."""
+        n = len(rows)
+        ctr = np.zeros(n, dtype=np.int64)
+        cs_ok = np.ones(n, dtype=bool)
+        st, spec = x.stream, x.spec.health
+        if st.tsc1 and bool((cols.dlc[rows] == 8).all()):
+            # J1939-71's TSC1 layout: counter and checksum in byte 8, the sum over the frame and the id
+            d = data[:, :8].astype(np.int64)
+            d7 = d[:, 7]
+            cid = cols.arbitration_id[rows].astype(np.int64)
+            ids_sum = (cid & 0xFF) + ((cid >> 8) & 0xFF) + ((cid >> 16) & 0xFF) + ((cid >> 24) & 0xFF)
+            cs_ok[:] = (d7 >> 4) == _TSC1_FOLD[d.sum(axis=1) - (d7 & 0xF0) + ids_sum]
+            ctr[:] = d7 & 0x0F
+        elif st.tsc1 or st.checksum is not None:  # any other checksum: the stream's own check, per frame
+            probe = Stream(spec)
+            for i, r in enumerate(rows.tolist()):
+                f = cols.frame(r)
+                probe.prev = None
+                cs_ok[i] = probe.check(0.0, f.arbitration_id, f.data) != CHECKSUM
+                ctr[i] = probe.prev if probe.prev is not None else 0
+        elif spec.counter is not None:
+            ctr[:] = codec.extract_all(data[:, : spec.nbytes], [spec.counter], spec.nbytes)[0]
         return ctr, cs_ok
 
     @staticmethod
@@ -314,7 +311,7 @@ class _Engine:
         self,
         t_all: NDArray[np.float64],
         ids_all: NDArray[np.int64],
-        raws_all: dict[int, NDArray[np.int64]],
+        raws_all: dict[int, list[NDArray[np.int64]]],
         row_all: NDArray[np.int64],
         ok_all: NDArray[np.bool_],
         ctr_all: NDArray[np.int64],
@@ -391,7 +388,7 @@ class _Engine:
         self,
         t: NDArray[np.float64],
         ids: NDArray[np.int64],
-        raws_all: dict[int, NDArray[np.int64]],
+        raws_all: dict[int, list[NDArray[np.int64]]],
         row: NDArray[np.int64],
         accepted: NDArray[np.bool_],
     ) -> dict[str, _RoleSamples]:
@@ -404,14 +401,15 @@ class _Engine:
             mine = np.flatnonzero((ids == f) & accepted)
             if not len(mine):
                 continue
-            arr = raws_all[f][row[mine]]
+            at = row[mine]
+            vals = raws_all[f]
             for j, (role, kind) in enumerate(targets):
                 if kind == _WINDOW and role is not None:
-                    per_role[role].append((mine, arr[:, j]))
+                    per_role[role].append((mine, vals[j][at]))
                 elif kind == _HIGH:
-                    high_rows.append((mine, arr[:, j]))
+                    high_rows.append((mine, vals[j][at]))
                 elif kind == _LOW:
-                    low_rows.append((mine, arr[:, j]))
+                    low_rows.append((mine, vals[j][at]))
         self._low_after = None
         hl = m.params.dp_from_high_low
         if hl is not None and high_rows:
@@ -437,7 +435,9 @@ class _Engine:
             self._low_after = int(lv[np.argmax(li)])
         out = {}
         for role, parts in per_role.items():
-            if parts:
+            if len(parts) == 1:  # one message's frames: in arrival order already
+                fi, rv = parts[0]
+            elif parts:
                 fi = np.concatenate([r for r, _ in parts])
                 rv = np.concatenate([v for _, v in parts])
                 order = np.argsort(fi, kind="stable")
@@ -835,6 +835,20 @@ def _filter(
     flt.ratios = deque(all_r[-size:], maxlen=size)
     flt.leaks = deque(all_l[-size:], maxlen=size)
     return filt, filt_leak, cnt
+
+
+def _distinct(keys: NDArray[np.int64], few: int = 16) -> NDArray[np.int64]:
+    """The distinct values, sorted: a pass per value while there are few (a bus has a handful of
+    identifiers), a sort beyond."""
+    found: list[int] = []
+    rest = keys
+    while len(rest) and len(found) < few:
+        k = int(rest[0])
+        found.append(k)
+        rest = rest[rest != k]
+    if len(rest):
+        found += np.unique(rest).tolist()
+    return np.array(sorted(found), dtype=np.int64)
 
 
 class _RoleSamples:
