@@ -58,6 +58,8 @@ def run(args: argparse.Namespace) -> int:
     progress = _Progress(Path(args.log)) if sys.stdout.isatty() and not args.json else None
     try:
         res = replay_file(args.log, mon, sinks, engine=args.engine, progress=progress)
+    except CmcanError:  # a log that cannot be read names itself (truncated, corrupt, a reader missing)
+        raise
     except (ValueError, OSError) as exc:
         raise CmcanError(f"{args.log}: cannot read as a CAN log: {exc}", Kind.DATA) from None
     finally:
