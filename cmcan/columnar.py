@@ -30,7 +30,7 @@ from cmcan import codec
 from cmcan.frame import Frame, FrameColumns
 from cmcan.monitor.clock import STEP_BACK_S
 from cmcan.monitor.core import _HIGH, _LOW, _WINDOW, Monitor
-from cmcan.monitor.gating import EVALUATED, Gate, gate_columns
+from cmcan.monitor.gating import EVALUATED, Gate, gate_columns, predictions_ok
 from cmcan.monitor.payloads import OutputMessage
 from cmcan.monitor.tick import LEVEL_NAMES, Tick
 from cmcan.monitor.warnings import Level, Reason
@@ -358,9 +358,9 @@ class _Engine:
             except Exception:  # as the streaming core: a failing model call is a model error
                 pe, we = np.full(len(ev), np.nan), np.zeros(len(ev))
             pe = np.asarray(pe, dtype=np.float64)
-            bad = ~(np.isfinite(pe) & (pe > 0.0))
+            bad = ~predictions_ok(pe, p.limits)
             m.counters["model_errors"] += int(bad.sum())
-            gates[ev[bad]] = Gate.IMPLAUSIBLE_INPUT
+            gates[ev[bad]] = Gate.MODEL_ERROR
             pred[ev] = np.where(bad, 0.0, pe)
             wb[ev] = np.where(bad, 0.0, we)
         evaluated = np.isin(gates, _EVALUATED)

@@ -13,8 +13,10 @@ the previous ticks left:
    (``MonitorParams.constants``) is that value, fresh, with no spread;
 2. the gate (:func:`cmcan.monitor.gating.gate_point`) with the model's envelope: a verdict of
    ``EVALUATING`` or ``EXTRAPOLATED`` (outside the envelope) evaluates the point, any other names why not;
-3. for an evaluated point one model call; a prediction that is not a positive finite number makes
-   the tick ``IMPLAUSIBLE_INPUT`` (counted in ``model_errors``);
+3. for an evaluated point one model call; a prediction that is not a positive finite number within
+   the output's plausible range (:func:`cmcan.monitor.gating.prediction_ok`) makes the tick
+   ``MODEL_ERROR`` (counted in ``model_errors``; for ``fault_after_s`` it is a fault with reason
+   ``model_error``);
 4. raw ratio = measured / predicted * 100 and leakage = (predicted - measured) * ``lpm_per_unit``
    into the moving-average filter, extrapolated points included;
 5. the warning machine steps with the gate and, when the point was evaluated and the filter is
@@ -35,7 +37,7 @@ from cmcan.codec import Layout, checked_decoder
 from cmcan.frame import Frame
 from cmcan.monitor.clock import TickClock
 from cmcan.monitor.filter import RatioFilter
-from cmcan.monitor.gating import EVALUATED, Gate, GateLimits, gate_point
+from cmcan.monitor.gating import EVALUATED, Gate, GateLimits, gate_point, prediction_ok
 from cmcan.monitor.payloads import Outputs, Payloads
 from cmcan.monitor.tick import LEVEL_NAMES, Tick
 from cmcan.monitor.totals import HISTORY_MAX, Totals
@@ -253,9 +255,9 @@ class Monitor:
                 )
             except Exception:  # a model that fails must not take the daemon down
                 pred = math.nan
-            if not (math.isfinite(pred) and pred > 0.0):
+            if not prediction_ok(pred, p.limits):
                 self.counters["model_errors"] += 1
-                g = Gate.IMPLAUSIBLE_INPUT
+                g = Gate.MODEL_ERROR
                 pred = wb = 0.0
             else:
                 raw = meas / pred * 100.0
