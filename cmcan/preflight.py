@@ -9,7 +9,7 @@ from pathlib import Path
 from cmcan import config as cfgmod
 from cmcan.assemble import Assembled, assemble
 from cmcan.errors import CmcanError, Kind
-from cmcan.statefile import StateStore
+from cmcan.statefile import StateLock, StateStore
 
 _IFNAME = re.compile(r"^[A-Za-z0-9_.:-]{1,15}$")
 ARPHRD_CAN = "280"
@@ -73,9 +73,20 @@ def state_store(cfg: cfgmod.Config) -> StateStore:
     return store
 
 
-def prepare(cfg: cfgmod.Config, need_state: bool = True, keep_timeline: bool = False) -> Prepared:
+def lock_state(cfg: cfgmod.Config) -> StateLock:
+    """The daemon's exclusive hold on its state directory, taken before the state is read: a second
+    daemon on the same directory stops here with a temporary failure naming the lock and its holder."""
+    return StateLock(state_store(cfg).dir).acquire()
+
+
+def prepare(
+    cfg: cfgmod.Config, need_state: bool = True, keep_timeline: bool = False, read_only: bool = False
+) -> Prepared:
     """DBC, mapping, model and state directory checked against each other; the monitor built with
-    the saved totals."""
+    the saved totals. ``read_only`` (``cmcan check``) changes nothing: a state file that cannot be
+    used is an error naming it instead of being kept aside as the daemon does."""
     store = state_store(cfg) if need_state else None
-    totals = store.load() if store is not None else None
+    totals = None
+    if store is not None:
+        totals = store.read() if read_only else store.load()
     return Prepared(assemble(cfg, totals=totals, keep_timeline=keep_timeline), store)
