@@ -5,6 +5,8 @@ error), asks the kernel to filter the input identifiers, feeds every frame to th
 the core returns. Bus errors (network down, a full transmit queue, bus-off) are logged with rate
 limits and recovered from by reopening the bus with a growing back-off; no frame and no bus error
 stops it. Under systemd it reports READY, WATCHDOG and STATUS; SIGTERM and SIGINT stop it cleanly.
+A reload (SIGHUP, :meth:`Daemon.request_reload`) swaps in a new configuration and model validated by
+the caller, between two frames, with the monitor's state carried over.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from __future__ import annotations
 import errno
 import logging
 import math
+import signal
 import socket
 import struct
 import threading
@@ -23,6 +26,7 @@ from typing import TYPE_CHECKING, Any
 import can
 
 from cmcan.config import BusConfig, Config
+from cmcan.errors import CmcanError
 from cmcan.frame import Frame, from_message, to_message_kwargs
 from cmcan.monitor.core import Monitor
 from cmcan.ratelog import RateLimitedLog
@@ -46,6 +50,15 @@ WALL_STEP_S = 1.0  # a jump of frame time against boot time beyond this is a wal
 
 def _boot_time() -> float:
     return time.clock_gettime(time.CLOCK_BOOTTIME)
+
+
+@dataclass(frozen=True)
+class Reloaded:
+    """What a reload brings: the new configuration, its monitor (built and checked) and bus opener."""
+
+    cfg: Config
+    monitor: Monitor
+    open_bus: Callable[[], can.BusABC]
 
 
 @dataclass
@@ -77,11 +90,19 @@ def tune_socketcan(bus: can.BusABC, rcvbuf: int) -> None:
     if rcvbuf:
         try:
             sock.setsockopt(socket.SOL_SOCKET, SO_RCVBUFFORCE, rcvbuf)
-        except OSError:  # needs CAP_NET_ADMIN; the plain option is capped by net.core.rmem_max
+        except OSError:  # needs CAP_NET_ADMIN (the unit grants none); the plain option is capped by net.core.rmem_max
             try:
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
             except OSError as exc:
                 log.warning("cannot enlarge the receive buffer: %s", exc)
+        got = sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF) // 2  # the kernel reports twice the size
+        if got < rcvbuf:
+            log.warning(
+                "receive buffer %d bytes, %d asked for (bus.receive_buffer_bytes): raise net.core.rmem_max, "
+                "e.g. with systemd/60-cmcan.conf in /etc/sysctl.d/",
+                got,
+                rcvbuf,
+            )
     try:
         sock.setsockopt(SOL_CAN_RAW, CAN_RAW_ERR_FILTER, struct.pack("=I", CAN_ERR_MASK))
     except OSError as exc:
@@ -118,6 +139,9 @@ class Daemon:
         # difference is the wall clock stepping (the kernel stamps frames with the wall clock).
         self.boot_clock = boot_clock or _boot_time
         self._wall_minus_boot: float | None = None
+        self.reloader: Callable[[], Reloaded] | None = None  # builds a validated configuration (SIGHUP)
+        self._reload_requested = threading.Event()
+        self.stop_signal: int | None = None  # the signal that stopped the daemon, if one did
 
     # -- the loop --------------------------------------------------------------------------------------
 
@@ -132,6 +156,9 @@ class Daemon:
         self.notifier.ready(self._status_text())
         log.info("cmcan running on %s %s", self.cfg.bus.interface, self.cfg.bus.channel)
         while not self.stop_event.is_set():
+            if self._reload_requested.is_set():
+                self._reload_requested.clear()
+                self._reload()
             now = self.clock()
             if self.notifier.watchdog_interval_s is not None and now >= next_wd:
                 self.notifier.watchdog()
@@ -197,14 +224,60 @@ class Daemon:
         diff = frame_t - self.boot_clock()
         prev = self._wall_minus_boot
         self._wall_minus_boot = diff
-        if prev is not None and diff - prev > WALL_STEP_S and math.isfinite(diff):
+        if prev is None or not math.isfinite(diff):
+            return
+        if diff - prev > WALL_STEP_S:
             log.warning(
                 "the wall clock stepped forward by %.3f s; monitoring goes on on the new time base", diff - prev
             )
             self.monitor.shift_time(diff - prev)
+        elif diff - prev < -WALL_STEP_S:
+            log.warning("the wall clock stepped back by %.3f s; monitoring goes on on the new time base", prev - diff)
 
-    def stop(self) -> None:
+    def stop(self, signum: int | None = None) -> None:
+        """Stop after the current step (safe from a signal handler); the state is saved on the way out."""
+        if signum is not None and self.stop_signal is None:
+            self.stop_signal = signum
         self.stop_event.set()
+
+    # -- reload ----------------------------------------------------------------------------------------
+
+    def request_reload(self) -> None:
+        """Reload between two frames (safe from a signal handler: it only sets a flag)."""
+        self._reload_requested.set()
+
+    def _reload(self) -> None:
+        """Swap in the configuration and model the reloader builds and checks; if it cannot (a bad
+        file, a model that does not fit), say why and go on with the running ones."""
+        if self.reloader is None:
+            log.warning("reload requested, but this daemon has nothing to reload from")
+            return
+        self.notifier.reloading()
+        try:
+            new = self.reloader()
+        except Exception as exc:  # a CmcanError names the file and field; anything else is a bug, logged
+            log.error("reload failed, running on with the previous configuration: %s", exc, exc_info=not _named(exc))
+            self.notifier.ready(self._status_text())
+            return
+        old_cfg, old_mon = self.cfg, self.monitor
+        afresh = new.monitor.take_over(old_mon)
+        self.cfg, self.monitor, self.open_bus = new.cfg, new.monitor, new.open_bus
+        self.save_every_s = new.cfg.state.save_every_s
+        kept = []
+        if new.cfg.state.directory != old_cfg.state.directory:
+            kept.append(f"state.directory stays {old_cfg.state.directory} until a restart")
+        if new.cfg.uplink != old_cfg.uplink:
+            kept.append("the uplink settings take effect at a restart")
+        if new.cfg.bus != old_cfg.bus or set(new.monitor.inputs) != set(old_mon.inputs):
+            self._close()  # reopened by the loop with the new settings and kernel filters
+            afresh.append("the bus connection (new bus settings or input identifiers)")
+        log.info(
+            "reloaded %s: totals, warning state, filter and counters kept; started afresh: %s%s",
+            new.cfg.source,
+            "; ".join(afresh) or "nothing",
+            "".join(f"; {k}" for k in kept),
+        )
+        self.notifier.ready(self._status_text())
 
     # -- bus handling ----------------------------------------------------------------------------------
 
@@ -277,6 +350,8 @@ class Daemon:
         )
 
     def _shutdown(self) -> None:
+        if self.stop_signal is not None:
+            log.info("stopping on %s: saving state", _signal_name(self.stop_signal))
         self.notifier.stopping()
         if self.store is not None:
             self._save()
@@ -294,3 +369,14 @@ class Daemon:
             self.stats["tx_frames"],
             self.stats["tx_dropped"],
         )
+
+
+def _named(exc: BaseException) -> bool:
+    return isinstance(exc, CmcanError)
+
+
+def _signal_name(signum: int) -> str:
+    try:
+        return signal.Signals(signum).name
+    except ValueError:
+        return f"signal {signum}"

@@ -4,14 +4,16 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
 import sys
-from types import FrameType
+from collections.abc import Callable
 
 import can
 
-from cmcan.daemon import Daemon, DaemonOptions, bus_kwargs, tune_socketcan
-from cmcan.preflight import check_channel, load_config, prepare
+from cmcan import config as cfgmod
+from cmcan.assemble import assemble
+from cmcan.cli import signals
+from cmcan.daemon import Daemon, DaemonOptions, Reloaded, bus_kwargs, tune_socketcan
+from cmcan.preflight import check_channel, load_config, lock_state, prepare
 from cmcan.sdnotify import Notifier
 from cmcan.uplink.feed import UplinkFeed
 
@@ -23,7 +25,9 @@ def add_subparser(sub: argparse._SubParsersAction) -> None:
         "run",
         help="run the monitoring daemon on the CAN bus",
         description="Monitor the drive on the configured bus and broadcast CM ratio and warnings. "
-        "Under systemd it reports READY, WATCHDOG and STATUS; SIGTERM or SIGINT stop it.",
+        "Under systemd it reports READY, WATCHDOG and STATUS; SIGHUP reloads the configuration and model, "
+        "SIGTERM or SIGINT stop it (other signals that would end it save the state first, exit 128+N). "
+        "One daemon per state directory: a second one exits 75.",
     )
     p.add_argument("--config", help="configuration (default: the shipped config/cmcan.yaml)")
     p.add_argument("--interface", help="python-can interface (overrides bus.interface)")
@@ -36,9 +40,24 @@ def run(args: argparse.Namespace) -> int:
     if args.verbose == 0:
         logging.getLogger().setLevel(logging.INFO)
     cfg = load_config(args.config, args.interface, args.channel, args.state_dir)
+    lock = lock_state(cfg)  # before the state is read: a second daemon on this directory stops here (75)
     prep = prepare(cfg)  # files first (config, DBC, model, state), then the machine's channel
     check_channel(cfg)
-    ids = list(prep.parts.monitor.inputs)
+    uplink = UplinkFeed.open(cfg.uplink, prep.parts.monitor) if cfg.uplink.enabled else None
+    open_bus = bus_opener(cfg, list(prep.parts.monitor.inputs))
+    daemon = Daemon(cfg, prep.parts.monitor, prep.store, open_bus, Notifier(), DaemonOptions(), uplink=uplink)
+    daemon.reloader = reloader(args)
+    signals.install(daemon)
+    sys.stdout.flush()
+    try:
+        daemon.run()
+    finally:
+        lock.release()
+    return signals.exit_status(daemon)
+
+
+def bus_opener(cfg: cfgmod.Config, ids: list[int]) -> Callable[[], can.BusABC]:
+    """Opens the configured bus with kernel filters for the input identifiers."""
 
     def open_bus() -> can.BusABC:
         bus = can.Bus(**bus_kwargs(cfg.bus, ids))
@@ -46,15 +65,17 @@ def run(args: argparse.Namespace) -> int:
             tune_socketcan(bus, cfg.bus.receive_buffer_bytes)
         return bus
 
-    uplink = UplinkFeed.open(cfg.uplink, prep.parts.monitor) if cfg.uplink.enabled else None
-    daemon = Daemon(cfg, prep.parts.monitor, prep.store, open_bus, Notifier(), DaemonOptions(), uplink=uplink)
+    return open_bus
 
-    def on_signal(signum: int, _frame: FrameType | None) -> None:
-        log.info("received %s, stopping", signal.Signals(signum).name)
-        daemon.stop()
 
-    signal.signal(signal.SIGTERM, on_signal)
-    signal.signal(signal.SIGINT, on_signal)
-    sys.stdout.flush()
-    daemon.run()
-    return 0
+def reloader(args: argparse.Namespace) -> Callable[[], Reloaded]:
+    """SIGHUP's work: the configuration file (with this command line's overrides), its DBC and model
+    read and checked as at a start; any problem raises before anything of the running daemon changes."""
+
+    def reload() -> Reloaded:
+        cfg = load_config(args.config, args.interface, args.channel, args.state_dir)
+        parts = assemble(cfg)
+        check_channel(cfg)
+        return Reloaded(cfg, parts.monitor, bus_opener(cfg, list(parts.monitor.inputs)))
+
+    return reload

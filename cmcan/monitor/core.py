@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
 from cmcan.codec import Layout, checked_decoder
@@ -229,6 +229,43 @@ class Monitor:
         for w in self.windows.values():
             w.shift(ticks * self.period)
         self.clock.shift(ticks)
+
+    def take_over(self, old: Monitor) -> list[str]:
+        """Go on where ``old`` (this machine's monitor under the previous configuration or model, the
+        daemon's SIGHUP reload) left off: the totals and warning history, the warning machine with
+        its debounce and fault timers (under the new thresholds), the ratio filter (its newest
+        ``filter_samples``), the counters and the alive counter carry over. The input windows and the
+        tick clock carry over when the inputs are read and scaled as before and the rate is the
+        same; otherwise they start afresh. Returns what started afresh (empty: nothing)."""
+        p = self.params
+        self.totals = old.totals
+        ratios, leaks = old.filter.saved()
+        n = p.filter_samples
+        self.filter = RatioFilter(n, p.filter_min_samples, ratios[-n:], leaks[-n:])
+        self.machine = replace(old.machine, th=p.thresholds)
+        self.counters.update(old.counters)
+        self.payloads.alive = old.payloads.alive
+        self.payloads.last_warning = old.payloads.last_warning
+        self.last_tick = old.last_tick
+        self.transitions_since_save = old.transitions_since_save
+        afresh = []
+        same_inputs = (
+            self.inputs == old.inputs
+            and p.affine == old.params.affine
+            and p.dp_from_high_low == old.params.dp_from_high_low
+            and set(self.windows) == set(old.windows)
+        )
+        if same_inputs:
+            self.windows = old.windows
+            self._plans = {fid: tuple(self._plan(r) for r in spec.roles) for fid, spec in self.inputs.items()}
+            self._low = old._low
+        else:
+            afresh.append("the input windows (inputs read or scaled differently: about a second of warming up)")
+        if same_inputs and self.period == old.period and self.clock.max_gap_s == old.clock.max_gap_s:
+            self.clock = old.clock
+        else:
+            afresh.append("the tick clock (it starts on the next frame)")
+        return afresh
 
     # -- evaluation --------------------------------------------------------------------------------
 
