@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from cmcan import config as cfgmod
-from cmcan.assemble import Assembled, assemble
+from cmcan.assemble import Assembled, assemble, build_monitor
 from cmcan.errors import CmcanError, Kind
 from cmcan.statefile import StateLock, StateStore
 
@@ -19,6 +19,7 @@ ARPHRD_CAN = "280"
 class Prepared:
     parts: Assembled
     store: StateStore | None
+    lock: StateLock | None = None  # the daemon's hold on the state directory
 
     @property
     def cfg(self) -> cfgmod.Config:
@@ -73,20 +74,29 @@ def state_store(cfg: cfgmod.Config) -> StateStore:
     return store
 
 
-def lock_state(cfg: cfgmod.Config) -> StateLock:
-    """The daemon's exclusive hold on its state directory, taken before the state is read: a second
-    daemon on the same directory stops here with a temporary failure naming the lock and its holder."""
-    return StateLock(state_store(cfg).dir).acquire()
-
-
 def prepare(
     cfg: cfgmod.Config, need_state: bool = True, keep_timeline: bool = False, read_only: bool = False
 ) -> Prepared:
     """DBC, mapping, model and state directory checked against each other; the monitor built with
     the saved totals. ``read_only`` (``cmcan check``) changes nothing: a state file that cannot be
     used is an error naming it instead of being kept aside as the daemon does."""
-    store = state_store(cfg) if need_state else None
-    totals = None
-    if store is not None:
+    prep = Prepared(assemble(cfg, keep_timeline=keep_timeline), None)
+    return with_state(prep, read_only=read_only) if need_state else prep
+
+
+def with_state(prep: Prepared, read_only: bool = False, lock: bool = False) -> Prepared:
+    """The state directory added to what is prepared, last, so that a problem found before leaves it
+    as it was: with ``lock`` the daemon's exclusive hold on it is taken first (a second daemon on the
+    same directory stops there with a temporary failure naming the lock and its holder), then the
+    saved totals are read (the daemon keeps a corrupt file aside; ``read_only`` refuses it)."""
+    cfg, parts = prep.cfg, prep.parts
+    store = state_store(cfg)
+    held = StateLock(store.dir).acquire() if lock else None
+    try:
         totals = store.read() if read_only else store.load()
-    return Prepared(assemble(cfg, totals=totals, keep_timeline=keep_timeline), store)
+        monitor = build_monitor(cfg, parts.db, parts.model, totals, parts.monitor.keep_timeline)
+    except BaseException:
+        if held is not None:
+            held.release()
+        raise
+    return Prepared(replace(parts, monitor=monitor), store, held)

@@ -13,7 +13,7 @@ from cmcan import config as cfgmod
 from cmcan.assemble import assemble
 from cmcan.cli import signals
 from cmcan.daemon import Daemon, DaemonOptions, Reloaded, bus_kwargs, tune_socketcan
-from cmcan.preflight import check_channel, load_config, lock_state, prepare
+from cmcan.preflight import check_channel, load_config, prepare, with_state
 from cmcan.sdnotify import Notifier
 from cmcan.uplink.feed import UplinkFeed
 
@@ -40,9 +40,9 @@ def run(args: argparse.Namespace) -> int:
     if args.verbose == 0:
         logging.getLogger().setLevel(logging.INFO)
     cfg = load_config(args.config, args.interface, args.channel, args.state_dir)
-    lock = lock_state(cfg)  # before the state is read: a second daemon on this directory stops here (75)
-    prep = prepare(cfg)  # files first (config, DBC, model, state), then the machine's channel
+    prep = prepare(cfg, need_state=False)  # files first (config, DBC, model), then the machine's channel,
     check_channel(cfg)
+    prep = with_state(prep, lock=True)  # then the state: a second daemon on this directory stops here (75)
     uplink = UplinkFeed.open(cfg.uplink, prep.parts.monitor) if cfg.uplink.enabled else None
     open_bus = bus_opener(cfg, list(prep.parts.monitor.inputs))
     daemon = Daemon(cfg, prep.parts.monitor, prep.store, open_bus, Notifier(), DaemonOptions(), uplink=uplink)
@@ -52,7 +52,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         daemon.run()
     finally:
-        lock.release()
+        assert prep.lock is not None
+        prep.lock.release()
     return signals.exit_status(daemon)
 
 
