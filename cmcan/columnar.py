@@ -35,7 +35,7 @@ from cmcan.monitor.payloads import OutputMessage
 from cmcan.monitor.tick import LEVEL_NAMES, Tick
 from cmcan.monitor.warnings import Level, Reason
 from cmcan.monitor.windows import TIME_EPS_S, Affine, RoleWindow, mean_std
-from cmcan.replay import ReplaySummary, Sink, TickColumns, summarize
+from cmcan.replay import NoFrames, ReplaySummary, Sink, TickColumns, summarize
 from cmcan.roles import DP, MODEL_INPUTS
 
 _EVALUATED = np.array(sorted(int(g) for g in EVALUATED), dtype=np.int8)
@@ -61,6 +61,8 @@ def replay_columns(monitor: Monitor, chunks: Iterable[FrameColumns], sinks: Sequ
                     s.start(first)
             last = float(cols.timestamp_s[-1])
             eng.chunk(cols)
+        if first is None:
+            raise NoFrames("no frames in the log")
         eng.scalar_out(monitor.flush())
         eng.drain()
     except BaseException:

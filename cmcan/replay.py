@@ -18,6 +18,7 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from cmcan.errors import CmcanError, Kind
 from cmcan.frame import Frame
 from cmcan.monitor.core import Monitor
 from cmcan.monitor.gating import Gate
@@ -42,6 +43,12 @@ _TAIL = (
 )
 TIMELINE_COLUMNS = timeline_columns(MOTOR_SPEED)
 CHUNK_TICKS = 8192
+
+
+class NoFrames(CmcanError, ValueError):
+    """A log without a single frame: nothing to replay (the sinks leave nothing behind)."""
+
+    kind = Kind.DATA
 
 
 @dataclass(frozen=True)
@@ -294,6 +301,8 @@ def replay(monitor: Monitor, frames_in: Iterable[Frame], sinks: Sequence[Sink] =
                 out.extend(res)
             if len(timeline) >= CHUNK_TICKS or len(out) >= 3 * CHUNK_TICKS:
                 drain()
+        if first is None:
+            raise NoFrames("no frames in the log")
         tail = monitor.flush()
         if want_frames:
             out.extend(tail)
@@ -337,10 +346,13 @@ def replay_file(
 
     if engine not in ENGINES:
         raise ValueError(f"engine {engine!r} is not one of {', '.join(ENGINES)}")
-    if engine == "streaming":
-        return replay(monitor, iter_frames(path), sinks)
-    # progress(bytes of the file read, frames): after each chunk (-1 bytes: unknown)
-    from cmcan.columnar import replay_columns
-    from cmcan.io.columns import column_chunks
+    try:
+        if engine == "streaming":
+            return replay(monitor, iter_frames(path), sinks)
+        # progress(bytes of the file read, frames): after each chunk (-1 bytes: unknown)
+        from cmcan.columnar import replay_columns
+        from cmcan.io.columns import column_chunks
 
-    return replay_columns(monitor, column_chunks(path, progress=progress), sinks)
+        return replay_columns(monitor, column_chunks(path, progress=progress), sinks)
+    except NoFrames:
+        raise NoFrames(f"{path}: no frames in the log") from None

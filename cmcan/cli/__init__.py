@@ -49,6 +49,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     level = logging.WARNING - 10 * min(args.verbose, 2)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
     sys.unraisablehook = _unraisable
+    # asammdf logs a traceback for each .mf4 it cannot read; the reader's error says it in one line.
+    logging.getLogger("asammdf").setLevel(logging.DEBUG if args.verbose >= 2 else logging.CRITICAL)
     try:
         return int(args.func(args) or 0)
     except CmcanError as exc:

@@ -175,6 +175,10 @@ def _python_can_frames(p: Path) -> Iterator[Frame]:
             for m in reader:
                 if not math.isfinite(m.timestamp):
                     raise LogError(f"{p}: frame {n + 1}: timestamp {m.timestamp!r} is not a time")
+                if not 0 <= m.arbitration_id <= 0x1FFFFFFF or len(m.data) > 64:
+                    raise LogError(
+                        f"{p}: frame {n + 1}: not a CAN frame (identifier {m.arbitration_id}, {len(m.data)} data bytes)"
+                    )
                 n += 1
                 yield from_message(m)
             if getattr(reader, "_tail", b""):  # BLFReader: an object left incomplete at the end
