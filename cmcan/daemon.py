@@ -201,7 +201,13 @@ class Daemon:
                             bytes(msg.data).hex(),
                         )
                     self._watch_wall_clock(msg.timestamp)
+                    steps = self.monitor.counters["clock_steps"]
                     out = self.monitor.feed(from_message(msg))
+                    if self.monitor.counters["clock_steps"] != steps:  # the core found a step back
+                        log.warning(
+                            "the wall clock stepped back by %.3f s; monitoring goes on on the new time base",
+                            last_frame_t - msg.timestamp,
+                        )
                     last_rx_wall = now
                     last_frame_t = msg.timestamp
                 elif last_rx_wall is not None and now - last_rx_wall >= opt.idle_after_s:
@@ -231,8 +237,6 @@ class Daemon:
                 "the wall clock stepped forward by %.3f s; monitoring goes on on the new time base", diff - prev
             )
             self.monitor.shift_time(diff - prev)
-        elif diff - prev < -WALL_STEP_S:
-            log.warning("the wall clock stepped back by %.3f s; monitoring goes on on the new time base", prev - diff)
 
     def stop(self, signum: int | None = None) -> None:
         """Stop after the current step (safe from a signal handler); the state is saved on the way out."""
