@@ -12,6 +12,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 from cantools.database.can import Database, Message
 
 from cmcan import checksums, codec
@@ -24,6 +25,7 @@ from cmcan.j1939 import ids
 from cmcan.model import GrayBoxModel, ModelError, default_model_path, load_model
 from cmcan.monitor.core import DpFromHighLow, InputMessage, Monitor, MonitorParams
 from cmcan.monitor.diagnostics import Dm1Params
+from cmcan.monitor.gating import GateLimits, prediction_ok
 from cmcan.monitor.health import HealthSpec
 from cmcan.monitor.inputs import MEMO_MAX, Channels, Matcher, overlap
 from cmcan.monitor.payloads import OutputMessage, Outputs
@@ -33,9 +35,11 @@ from cmcan.roles import (
     DP,
     HIGH_PRESSURE,
     LOW_PRESSURE,
+    MODEL_INPUTS,
     OUTPUT_SIGNALS,
     QUANTITY_OUTPUT,
     QUANTITY_SIGNALS,
+    UNITS,
     SignalRef,
     gated_roles,
 )
@@ -60,11 +64,47 @@ def load_model_for(cfg: Config, path: str | Path | None = None) -> GrayBoxModel:
     displacement and oil."""
     expect = {"motor_disp_cc": cfg.motor_disp_cc, "quantity": cfg.quantity, "oil": cfg.oil}
     if path is not None:
-        return load_model(path, **expect)
+        model = load_model(path, **expect)
+        check_predictions(model, cfg.gate_limits)
+        return model
     try:
-        return load_model(model_file(cfg), **expect)
+        model = load_model(model_file(cfg), **expect)
+        check_predictions(model, cfg.gate_limits)
+        return model
     except ModelError as exc:  # the configuration named it: a configuration problem
         raise ModelError(f"{exc} (model: in {cfg.source})", Kind.CONFIG) from None
+
+
+def check_predictions(model: GrayBoxModel, limits: GateLimits) -> None:
+    """The model's predictions at a few points of its own training envelope (its centre, and each
+    input at its minimum and its maximum with the others at the centre), alone and in one batch, are
+    predictions the monitor accepts (:func:`cmcan.monitor.gating.prediction_ok`): a model that
+    returns nonsense is refused before it is run, not reported on the bus tick after tick."""
+    env = model.envelope
+    names = list(MODEL_INPUTS)
+    centre = [(env[r][0] + env[r][1]) / 2.0 for r in names]
+    points = [centre]
+    for i, r in enumerate(names):
+        for bound in env[r]:
+            x = list(centre)
+            x[i] = bound
+            points.append(x)
+    x = np.array(points, dtype=np.float64)
+    try:
+        batch, _ = model.predict(x)
+        single = [model.predict_one(*row)[0] for row in points]
+    except Exception as exc:  # onnxruntime's own errors on a graph that loads but does not run
+        raise ModelError(f"{model.path}: the model does not run: {type(exc).__name__}: {exc}") from None
+    unit = UNITS.get(limits.output_role, "")
+    for row, a, b in zip(points, np.asarray(batch, dtype=np.float64).tolist(), single, strict=True):
+        for v in (a, b):
+            if not prediction_ok(v, limits):
+                at = ", ".join(f"{r} {x:g}" for r, x in zip(names, row, strict=True))
+                hi = limits.plausible.get(limits.output_role, (0.0, math.inf))[1]
+                raise ModelError(
+                    f"{model.path}: predicts {v!r} {unit} at {at} (inside its training envelope); "
+                    f"expected a number in (0, {hi:g}] {unit}"
+                )
 
 
 def _message(cfg: Config, db: Database, name: str, field: str) -> Message:

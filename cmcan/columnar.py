@@ -32,13 +32,13 @@ from cmcan.frame import Frame, FrameColumns
 from cmcan.monitor.clock import STEP_BACK_S
 from cmcan.monitor.core import _HIGH, _LOW, _MISS, _WINDOW, Monitor, _Input
 from cmcan.monitor.exactsum import window_fsums
-from cmcan.monitor.gating import EVALUATED, Gate, gate_columns
+from cmcan.monitor.gating import EVALUATED, Gate, gate_columns, predictions_ok
 from cmcan.monitor.health import CHECKSUM, COUNTER_FROZEN, COUNTER_JUMP, OK, OUT_OF_RANGE, REASONS, Stream
 from cmcan.monitor.payloads import OutputMessage
 from cmcan.monitor.tick import LEVEL_NAMES, Tick
 from cmcan.monitor.warnings import Level, Reason, add_repeat
 from cmcan.monitor.windows import TIME_EPS_S, Affine, RoleWindow, mean_std
-from cmcan.replay import ReplaySummary, Sink, TickColumns, summarize
+from cmcan.replay import NoFrames, ReplaySummary, Sink, TickColumns, summarize
 from cmcan.roles import DP, MODEL_INPUTS
 
 _EVALUATED = np.array(sorted(int(g) for g in EVALUATED), dtype=np.int8)
@@ -67,6 +67,8 @@ def replay_columns(monitor: Monitor, chunks: Iterable[FrameColumns], sinks: Sequ
                     s.start(first)
             last = float(cols.timestamp_s[-1])
             eng.chunk(cols)
+        if first is None:
+            raise NoFrames("no frames in the log")
         eng.scalar_out(monitor.flush())
         eng.drain()
     except BaseException:
@@ -589,9 +591,9 @@ class _Engine:
             except Exception:  # as the streaming core: a failing model call is a model error
                 pe, we = np.full(len(ev), np.nan), np.zeros(len(ev))
             pe = np.asarray(pe, dtype=np.float64)
-            bad = ~(np.isfinite(pe) & (pe > 0.0))
+            bad = ~predictions_ok(pe, p.limits)
             m.counters["model_errors"] += int(bad.sum())
-            gates[ev[bad]] = Gate.IMPLAUSIBLE_INPUT
+            gates[ev[bad]] = Gate.MODEL_ERROR
             pred[ev] = np.where(bad, 0.0, pe)
             wb[ev] = np.where(bad, 0.0, we)
         evaluated = np.isin(gates, _EVALUATED)

@@ -8,7 +8,9 @@ the frame's time (a J1939 transport session's packets are spaced in frame time; 
 when the bus's time reaches it). Bus errors (network down, a full transmit queue, bus-off) are logged
 with rate limits and recovered from by reopening that bus with a growing back-off while the others go
 on; no frame and no bus error stops it. Under systemd it reports READY, WATCHDOG and STATUS; SIGTERM
-and SIGINT stop it cleanly.
+and SIGINT stop it cleanly. A reload (SIGHUP, :meth:`Daemon.request_reload`) swaps in a new
+configuration and model validated by the caller, between two frames, with the monitor's state carried
+over.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import errno
 import logging
 import math
 import select
+import signal
 import socket
 import struct
 import threading
@@ -29,6 +32,7 @@ from typing import TYPE_CHECKING, Any
 import can
 
 from cmcan.config import ChannelConfig, Config
+from cmcan.errors import CmcanError
 from cmcan.frame import Frame, from_message, to_message_kwargs
 from cmcan.j1939 import ids, transport
 from cmcan.monitor.clock import STEP_BACK_S
@@ -55,6 +59,16 @@ WALL_STEP_S = 1.0  # a jump of frame time against boot time beyond this is a wal
 
 def _boot_time() -> float:
     return time.clock_gettime(time.CLOCK_BOOTTIME)
+
+
+@dataclass(frozen=True)
+class Reloaded:
+    """What a reload brings: the new configuration, its monitor (built and checked) and an opener per
+    configured channel."""
+
+    cfg: Config
+    monitor: Monitor
+    opens: Mapping[str, Callable[[], can.BusABC]]
 
 
 @dataclass
@@ -122,11 +136,19 @@ def tune_socketcan(bus: can.BusABC, rcvbuf: int) -> None:
     if rcvbuf:
         try:
             sock.setsockopt(socket.SOL_SOCKET, SO_RCVBUFFORCE, rcvbuf)
-        except OSError:  # needs CAP_NET_ADMIN; the plain option is capped by net.core.rmem_max
+        except OSError:  # needs CAP_NET_ADMIN (the unit grants none); the plain option is capped by net.core.rmem_max
             try:
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
             except OSError as exc:
                 log.warning("cannot enlarge the receive buffer: %s", exc)
+        got = sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF) // 2  # the kernel reports twice the size
+        if got < rcvbuf:
+            log.warning(
+                "receive buffer %d bytes, %d asked for (bus.receive_buffer_bytes): raise net.core.rmem_max, "
+                "e.g. with systemd/60-cmcan.conf in /etc/sysctl.d/",
+                got,
+                rcvbuf,
+            )
     try:
         sock.setsockopt(SOL_CAN_RAW, CAN_RAW_ERR_FILTER, struct.pack("=I", CAN_ERR_MASK))
     except OSError as exc:
@@ -163,9 +185,7 @@ class Daemon:
         self.cfg = cfg
         self.monitor = monitor
         self.store = store
-        opens = dict(open_bus) if isinstance(open_bus, Mapping) else {cfg.bus.channel: open_bus}
-        self.links = [Link(name, fn) for name, fn in opens.items()]
-        self._link_of = {x.name: x for x in self.links}
+        self._set_links(open_bus)
         self.notifier = notifier or Notifier(env={})
         self.opt = options or DaemonOptions()
         self.clock = clock
@@ -179,15 +199,23 @@ class Daemon:
         self.boot_clock = boot_clock or _boot_time
         self._wall_minus_boot: float | None = None
         self._last_stamp: float | None = None
-        self._selectable: bool | None = None
-        self._merge: list[tuple[Link, can.Message]] = []  # several buses: read, not yet handed on
-        self._mark: dict[str, float] = {}  # per bus, the timestamp of the last frame read
-        self._input_channels = {m.channel or cfg.bus.channel for m in monitor.inputs}
         # Transport packets wait until the configured gap after the packet before has gone out.
         self._tp_gap_s = cfg.j1939.bam_packet_gap_ms / 1000.0
         self._tp_last_sent = -math.inf
         self._tp_waiting: deque[Frame] = deque()
+        self.reloader: Callable[[], Reloaded] | None = None  # builds a validated configuration (SIGHUP)
+        self._reload_requested = threading.Event()
+        self.stop_signal: int | None = None  # the signal that stopped the daemon, if one did
+
+    def _set_links(self, open_bus: Callable[[], can.BusABC] | Mapping[str, Callable[[], can.BusABC]]) -> None:
+        opens = dict(open_bus) if isinstance(open_bus, Mapping) else {self.cfg.bus.channel: open_bus}
+        self.links = [Link(name, fn) for name, fn in opens.items()]
+        self._link_of = {x.name: x for x in self.links}
+        self._input_channels = {m.channel or self.cfg.bus.channel for m in self.monitor.inputs}
         self._live: list[Link] = []  # the links whose bus is open
+        self._merge: list[tuple[Link, can.Message]] = []  # several buses: read, not yet handed on
+        self._mark: dict[str, float] = {}  # per bus, the timestamp of the last frame read
+        self._selectable: bool | None = None
 
     @property
     def bus(self) -> can.BusABC | None:
@@ -206,6 +234,9 @@ class Daemon:
         self.notifier.ready(self._status_text())
         log.info("cmcan running on %s %s", self.cfg.bus.interface, ", ".join(x.name for x in self.links))
         while not self.stop_event.is_set():
+            if self._reload_requested.is_set():
+                self._reload_requested.clear()
+                self._reload()
             now = self.clock()
             if self.notifier.watchdog_interval_s is not None and now >= next_wd:
                 self.notifier.watchdog()
@@ -256,7 +287,13 @@ class Daemon:
                     )
                 try:
                     self._watch_wall_clock(msg.timestamp)
+                    steps = self.monitor.counters["clock_steps"]
                     out = self.monitor.feed(from_message(msg, link.name))
+                    if self.monitor.counters["clock_steps"] != steps:  # the core found a step back
+                        log.warning(
+                            "the wall clock stepped back by %.3f s; monitoring goes on on the new time base",
+                            last_frame_t - msg.timestamp,
+                        )
                     if out and self.monitor.next_due_t != math.inf:  # a transport session's packets: spaced here
                         out += self.monitor.due(math.inf)
                 except Exception:  # the core must never take the daemon down: log, count, go on
@@ -310,12 +347,58 @@ class Daemon:
             self.monitor.shift_time(diff - ref)
         self._wall_minus_boot = max(ref, diff)
 
-    def stop(self) -> None:
+    def stop(self, signum: int | None = None) -> None:
+        """Stop after the current step (safe from a signal handler); the state is saved on the way out."""
+        if signum is not None and self.stop_signal is None:
+            self.stop_signal = signum
         self.stop_event.set()
 
     def _internal_error(self) -> None:
         self.stats["internal_errors"] += 1
         self.ratelog(logging.ERROR, "internal", "internal error processing a frame", exc_info=True)
+
+    # -- reload ----------------------------------------------------------------------------------------
+
+    def request_reload(self) -> None:
+        """Reload between two frames (safe from a signal handler: it only sets a flag)."""
+        self._reload_requested.set()
+
+    def _reload(self) -> None:
+        """Swap in the configuration and model the reloader builds and checks; if it cannot (a bad
+        file, a model that does not fit), say why and go on with the running ones."""
+        if self.reloader is None:
+            log.warning("reload requested, but this daemon has nothing to reload from")
+            return
+        self.notifier.reloading()
+        try:
+            new = self.reloader()
+        except Exception as exc:  # a CmcanError names the file and field; anything else is a bug, logged
+            log.error("reload failed, running on with the previous configuration: %s", exc, exc_info=not _named(exc))
+            self.notifier.ready(self._status_text())
+            return
+        old_cfg, old_mon = self.cfg, self.monitor
+        afresh = new.monitor.take_over(old_mon)
+        self.cfg, self.monitor = new.cfg, new.monitor
+        self.save_every_s = new.cfg.state.save_every_s
+        self._tp_gap_s = new.cfg.j1939.bam_packet_gap_ms / 1000.0
+        kept = []
+        if new.cfg.state.directory != old_cfg.state.directory:
+            kept.append(f"state.directory stays {old_cfg.state.directory} until a restart")
+        if new.cfg.uplink != old_cfg.uplink:
+            kept.append("the uplink settings take effect at a restart")
+        buses_same = new.cfg.bus == old_cfg.bus and new.cfg.channel_list == old_cfg.channel_list
+        if not buses_same or list(new.monitor.inputs) != list(old_mon.inputs):
+            for x in self.links:  # reopened by the loop with the new settings and kernel filters
+                self._close(x)
+            self._set_links(new.opens)
+            afresh.append("the bus connections (new bus settings or input identifiers)")
+        log.info(
+            "reloaded %s: totals, warning state, filter and counters kept; started afresh: %s%s",
+            new.cfg.source,
+            "; ".join(afresh) or "nothing",
+            "".join(f"; {k}" for k in kept),
+        )
+        self.notifier.ready(self._status_text())
 
     # -- bus handling ----------------------------------------------------------------------------------
 
@@ -481,6 +564,8 @@ class Daemon:
         )
 
     def _shutdown(self) -> None:
+        if self.stop_signal is not None:
+            log.info("stopping on %s: saving state", _signal_name(self.stop_signal))
         self.notifier.stopping()
         if self.store is not None:
             self._save()
@@ -515,3 +600,14 @@ def _fileno(bus: Any) -> int | None:
     except (NotImplementedError, AttributeError, OSError, ValueError):
         return None
     return fd if isinstance(fd, int) and fd >= 0 else None
+
+
+def _named(exc: BaseException) -> bool:
+    return isinstance(exc, CmcanError)
+
+
+def _signal_name(signum: int) -> str:
+    try:
+        return signal.Signals(signum).name
+    except ValueError:
+        return f"signal {signum}"

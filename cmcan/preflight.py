@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from cmcan import config as cfgmod
-from cmcan.assemble import Assembled, assemble
+from cmcan.assemble import Assembled, assemble, build_monitor
 from cmcan.errors import CmcanError, Kind
-from cmcan.statefile import StateStore
+from cmcan.statefile import StateLock, StateStore
 
 _IFNAME = re.compile(r"^[A-Za-z0-9_.:-]{1,15}$")
 ARPHRD_CAN = "280"
@@ -19,6 +19,7 @@ ARPHRD_CAN = "280"
 class Prepared:
     parts: Assembled
     store: StateStore | None
+    lock: StateLock | None = None  # the daemon's hold on the state directory
 
     @property
     def cfg(self) -> cfgmod.Config:
@@ -90,9 +91,29 @@ def state_store(cfg: cfgmod.Config) -> StateStore:
     return store
 
 
-def prepare(cfg: cfgmod.Config, need_state: bool = True, keep_timeline: bool = False) -> Prepared:
+def prepare(
+    cfg: cfgmod.Config, need_state: bool = True, keep_timeline: bool = False, read_only: bool = False
+) -> Prepared:
     """DBC, mapping, model and state directory checked against each other; the monitor built with
-    the saved totals."""
-    store = state_store(cfg) if need_state else None
-    totals = store.load() if store is not None else None
-    return Prepared(assemble(cfg, totals=totals, keep_timeline=keep_timeline), store)
+    the saved totals. ``read_only`` (``cmcan check``) changes nothing: a state file that cannot be
+    used is an error naming it instead of being kept aside as the daemon does."""
+    prep = Prepared(assemble(cfg, keep_timeline=keep_timeline), None)
+    return with_state(prep, read_only=read_only) if need_state else prep
+
+
+def with_state(prep: Prepared, read_only: bool = False, lock: bool = False) -> Prepared:
+    """The state directory added to what is prepared, last, so that a problem found before leaves it
+    as it was: with ``lock`` the daemon's exclusive hold on it is taken first (a second daemon on the
+    same directory stops there with a temporary failure naming the lock and its holder), then the
+    saved totals are read (the daemon keeps a corrupt file aside; ``read_only`` refuses it)."""
+    cfg, parts = prep.cfg, prep.parts
+    store = state_store(cfg)
+    held = StateLock(store.dir).acquire() if lock else None
+    try:
+        totals = store.read() if read_only else store.load()
+        monitor = build_monitor(cfg, parts.db, parts.model, totals, parts.monitor.keep_timeline)
+    except BaseException:
+        if held is not None:
+            held.release()
+        raise
+    return Prepared(replace(parts, monitor=monitor), store, held)

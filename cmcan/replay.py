@@ -18,6 +18,7 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from cmcan.errors import CmcanError, Kind
 from cmcan.frame import Frame, FrameColumns
 from cmcan.io import textcols as tc
 from cmcan.monitor.core import Monitor
@@ -43,6 +44,12 @@ _TAIL = (
 )
 TIMELINE_COLUMNS = timeline_columns(MOTOR_SPEED)
 CHUNK_TICKS = 8192
+
+
+class NoFrames(CmcanError, ValueError):
+    """A log without a single frame: nothing to replay (the sinks leave nothing behind)."""
+
+    kind = Kind.DATA
 
 
 @dataclass(frozen=True)
@@ -379,6 +386,8 @@ def replay(monitor: Monitor, frames_in: Iterable[Frame], sinks: Sequence[Sink] =
                 out.extend(res)
             if len(timeline) >= CHUNK_TICKS or len(out) >= 3 * CHUNK_TICKS:
                 drain()
+        if first is None:
+            raise NoFrames("no frames in the log")
         tail = monitor.flush()
         if want_frames:
             out.extend(tail)
@@ -422,12 +431,15 @@ def replay_file(
 
     if engine not in ENGINES:
         raise ValueError(f"engine {engine!r} is not one of {', '.join(ENGINES)}")
-    if engine == "streaming":
-        return replay(monitor, iter_frames(path), sinks)
-    # progress(bytes of the file read, frames): after each chunk (-1 bytes: unknown)
-    from cmcan.columnar import replay_columns
-    from cmcan.io.columns import column_chunks
+    try:
+        if engine == "streaming":
+            return replay(monitor, iter_frames(path), sinks)
+        # progress(bytes of the file read, frames): after each chunk (-1 bytes: unknown)
+        from cmcan.columnar import replay_columns
+        from cmcan.io.columns import column_chunks
 
-    # the files are written from a thread of their own while the engine goes on
-    threaded: Sequence[Sink] = [SinkThread(sinks)] if sinks else ()
-    return replay_columns(monitor, column_chunks(path, progress=progress), threaded)
+        # the files are written from a thread of their own while the engine goes on
+        threaded: Sequence[Sink] = [SinkThread(sinks)] if sinks else ()
+        return replay_columns(monitor, column_chunks(path, progress=progress), threaded)
+    except NoFrames:
+        raise NoFrames(f"{path}: no frames in the log") from None

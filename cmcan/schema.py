@@ -228,10 +228,18 @@ def _fmt(x: float) -> str:
     return str(int(x)) if float(x).is_integer() else f"{x:g}"
 
 
+# Configurations, scenarios, drive files and column maps are a few kB; YAML's parser takes seconds per
+# MB, so a file far larger is refused at once instead of keeping a start (or a reload) busy.
+MAX_YAML_BYTES = 1 << 20
+
+
 def load_yaml(path: str | Path, kind: Kind = Kind.CONFIG) -> Any:
     """Read a YAML file; a missing file or a syntax error names the file (and line)."""
     p = Path(path)
     try:
+        if p.is_file() and p.stat().st_size > MAX_YAML_BYTES:
+            size = p.stat().st_size
+            raise SchemaError(str(p), "", f"{size} bytes, more than any YAML file cmcan reads ({MAX_YAML_BYTES})", kind)
         text = p.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise SchemaError(str(p), "", "file not found", Kind.NO_INPUT) from None

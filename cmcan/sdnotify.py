@@ -1,9 +1,10 @@
-"""systemd's notify protocol (sd_notify(3)): READY, WATCHDOG, STATUS, STOPPING over a datagram socket."""
+"""systemd's notify protocol (sd_notify(3)): READY, RELOADING, WATCHDOG, STATUS, STOPPING over a datagram socket."""
 
 from __future__ import annotations
 
 import os
 import socket
+import time
 
 
 class Notifier:
@@ -46,6 +47,11 @@ class Notifier:
 
     def status(self, text: str) -> bool:
         return self.send(f"STATUS={text}")
+
+    def reloading(self) -> bool:
+        """A reload begins (READY=1 ends it); systemd wants the monotonic time with it."""
+        usec = time.clock_gettime_ns(time.CLOCK_MONOTONIC) // 1000
+        return self.send("RELOADING=1", f"MONOTONIC_USEC={usec}")
 
     def stopping(self) -> bool:
         return self.send("STOPPING=1")

@@ -1,16 +1,22 @@
-"""The daemon's persisted state: one JSON file in the state directory, written atomically."""
+"""The daemon's persisted state: one JSON file in the state directory, written atomically, and the
+lock that keeps a second daemon off the directory."""
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import fcntl
 import json
 import logging
 import os
 from pathlib import Path
 
+from cmcan.errors import CmcanError, Kind
 from cmcan.monitor.totals import StateError, Totals
 
 log = logging.getLogger("cmcan.state")
 STATE_FILE = "state.json"
+LOCK_FILE = "cmcan.lock"
 
 
 class StateStore:
@@ -28,16 +34,28 @@ class StateStore:
             return f"{self.dir}: state directory is not writable by this user"
         return None
 
-    def load(self) -> Totals:
-        """The saved totals; a missing file is a fresh start, a corrupt one is kept aside, not lost."""
+    def read(self) -> Totals:
+        """The saved totals (fresh ones when there is no file), changing nothing: ``StateError``
+        (a data error) names the file and the field when it cannot be used."""
         if not self.path.exists():
             return Totals()
         try:
-            return Totals.from_dict(json.loads(self.path.read_text(encoding="utf-8")))
-        except (OSError, ValueError, StateError) as exc:
+            doc = json.loads(self.path.read_bytes().decode("utf-8"), parse_constant=_no_constant)
+            return Totals.from_dict(doc)
+        except StateError as exc:
+            raise StateError(f"{self.path}: {exc}") from None
+        except (OSError, ValueError) as exc:  # unreadable, not UTF-8, not JSON, NaN or Infinity
+            raise StateError(f"{self.path}: not a readable state file: {exc}") from None
+
+    def load(self) -> Totals:
+        """The saved totals for the daemon; a missing file is a fresh start, a corrupt one is kept
+        aside (``state.json.corrupt-N``), not lost, and the daemon starts with fresh totals."""
+        try:
+            return self.read()
+        except StateError as exc:
             aside = self._aside()
             self.path.replace(aside)
-            log.error("%s: unreadable state (%s); kept as %s, starting with fresh totals", self.path, exc, aside)
+            log.error("unreadable state: %s; kept as %s, starting with fresh totals", exc, aside)
             return Totals()
 
     def _aside(self) -> Path:
@@ -63,3 +81,72 @@ class StateStore:
             os.fsync(dfd)
         finally:
             os.close(dfd)
+
+
+def _no_constant(name: str) -> float:
+    raise ValueError(f"{name} is not a number a state file holds")
+
+
+class StateLock:
+    """An exclusive ``flock`` on ``cmcan.lock`` in the state directory, held for the daemon's life:
+    two daemons on one directory would overwrite each other's state. The kernel drops the lock when
+    the process ends however it ends (kill -9 included), so a lock file left behind never blocks a
+    start; the file says which process holds the lock."""
+
+    def __init__(self, directory: str | Path) -> None:
+        self.path = Path(directory) / LOCK_FILE
+        self._fd: int | None = None
+
+    def acquire(self) -> StateLock:
+        """Take the lock or raise a temporary failure naming the lock file and the holder's pid."""
+        try:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o640)
+        except OSError as exc:
+            raise CmcanError(f"{self.path}: cannot open the state lock: {exc.strerror}", Kind.CANT_CREATE) from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            holder = _read_pid(fd)
+            os.close(fd)
+            if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN):
+                raise CmcanError(f"{self.path}: cannot lock: {exc.strerror}", Kind.CANT_CREATE) from None
+            who = f"pid {holder}" if holder else "another process"
+            raise CmcanError(
+                f"{self.path}: the state directory is in use by another cmcan ({who} holds the lock); "
+                "one daemon per state directory",
+                Kind.TEMPFAIL,
+            ) from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        self._fd = fd
+        return self
+
+    def holder(self) -> int | None:
+        """The pid holding the lock now, or None when nobody does (read-only: for ``cmcan check``)."""
+        try:
+            fd = os.open(self.path, os.O_RDONLY | os.O_CLOEXEC)
+        except OSError:
+            return None
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+            except OSError:
+                return _read_pid(fd) or -1
+            fcntl.flock(fd, fcntl.LOCK_UN)
+            return None
+        finally:
+            os.close(fd)
+
+    def release(self) -> None:
+        if self._fd is not None:
+            with contextlib.suppress(OSError):
+                os.close(self._fd)
+            self._fd = None
+
+
+def _read_pid(fd: int) -> int | None:
+    try:
+        text = os.pread(fd, 32, 0).decode("ascii", errors="replace").strip()
+    except OSError:
+        return None
+    return int(text) if text.isdigit() else None

@@ -73,7 +73,21 @@ std_line = st.tuples(
     st.one_of(payload, remote, fd, st.sampled_from(["0", "ZZ", "00112"])),
     st.sampled_from(["", "", "", " R", " T"]),
 ).map(lambda x: f"{x[0]} {x[1]} {x[2]}#{x[3]}{x[4]}")
-odd_line = st.sampled_from(["(1e9) can0 100#00", "(12.5) can0 7FF#", "   ", "(1767225600.000001) can0 100#0011"])
+odd_line = st.sampled_from(
+    [
+        "(1e9) can0 100#00",
+        "(12.5) can0 7FF#",
+        "   ",
+        "(1767225600.000001) can0 100#0011",
+        # not timestamps: both readers refuse them, on the same line
+        "(.) can0 100#0011",
+        "(1.) can0 100#0011",
+        "(.5) can0 100#0011",
+        "(nan) can0 100#0011",
+        "1767225600.000001 can0 100#0011",
+        "x1767225600.00000y can0 100#0011",
+    ]
+)
 
 
 @settings(max_examples=150, deadline=None)

@@ -34,12 +34,15 @@ def base():
     return as_frames(frames)
 
 
-def both(frames: list[Frame], chunk: int):
-    """Timeline, frames and summary of each engine (fresh monitors, the shipped configuration)."""
+def both(frames: list[Frame], chunk: int, wrap_model=None):
+    """Timeline, frames and summary of each engine (fresh monitors, the shipped configuration;
+    ``wrap_model`` replaces the model by what it makes of it)."""
     cfg = cfgmod.load()
     out = {}
     for engine in ("streaming", "columnar"):
         mon = assemble(cfg).monitor
+        if wrap_model is not None:
+            mon.model = wrap_model(mon.model)
         tl, fr = TimelineCollector(), FrameCollector()
         if engine == "streaming":
             s = replay(mon, frames, [tl, fr])
@@ -255,3 +258,38 @@ def test_all_four_steps_in_one_log(base):
     assert a[2].counters["clock_steps"] == 3 and [w["to"] for w in a[2].warnings] == [
         w["to"] for w in plain[2].warnings
     ]
+
+
+# -- a model that returns nonsense ------------------------------------------------------------------
+
+
+class Flaky:
+    """The real model, but NaN above 350 bar, 1e30 rpm between 40 and 45 C and negative at low
+    displacement: sometimes, in both engines' calls (batched and one by one) alike."""
+
+    def __init__(self, model) -> None:
+        self.model = model
+
+    @staticmethod
+    def _spoil(x: np.ndarray, p: np.ndarray) -> np.ndarray:
+        p = np.where(x[:, 2] > 350.0, np.nan, p)
+        p = np.where((x[:, 3] > 40.0) & (x[:, 3] < 45.0), 1e30, p)
+        return np.where(x[:, 1] < 35.0, -p, p)
+
+    def predict(self, x):
+        p, w = self.model.predict(x)
+        return self._spoil(np.atleast_2d(x), p), w
+
+    def predict_one(self, *row):
+        p, w = self.model.predict_one(*row)
+        return float(self._spoil(np.array([row]), np.array([p]))[0]), w
+
+
+def test_a_model_returning_nonsense_is_a_model_error_in_both_engines(base):
+    from cmcan.monitor.gating import Gate
+
+    a, b = both(base, 997, wrap_model=Flaky)
+    assert_same(a, b)
+    gates = a[0].gate
+    assert (gates == Gate.MODEL_ERROR).sum() == a[2].counters["model_errors"] > 50
+    assert (gates == Gate.EVALUATING).sum() > 50  # the rest is evaluated as before

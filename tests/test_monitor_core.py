@@ -171,6 +171,37 @@ def test_model_failure_does_not_stop_the_core(short):
     assert math.isfinite(mon.last_tick.ratio_filt_pct)
 
 
+@pytest.mark.parametrize("nonsense", [math.nan, -5.0, 0.0, math.inf, 1e30])
+def test_a_model_returning_nonsense_is_a_model_error_on_the_bus(short, nonsense):
+    """Not implausible sensor input (the inputs are fine), not a wear warning (a huge prediction
+    would read as a ratio near 0): the tick is MODEL_ERROR and, after fault_after_s, the warning
+    frame says fault with reason model_error."""
+    from cmcan.monitor.warnings import Reason
+
+    _, frames = short
+
+    class Nonsense:
+        def predict_one(self, *a):
+            return nonsense, nonsense
+
+    mon = monitor()
+    mon.model = Nonsense()
+    out = feed_all(mon, frames)
+    gates = {k.gate for k in mon.timeline}
+    assert Gate.MODEL_ERROR in gates and Gate.IMPLAUSIBLE_INPUT not in gates
+    assert mon.counters["model_errors"] == sum(k.gate == Gate.MODEL_ERROR for k in mon.timeline) > 0
+    assert mon.counters["evaluated"] == 0 and mon.totals.warning_count == 0
+    faults = [h for h in mon.totals.history if h["to"] == "fault"]
+    assert faults and {h["reason"] for h in faults} == {Reason.MODEL_ERROR.name.lower()}
+    assert mon.totals.fault_count == len(faults)
+    db = dbc_for(cfgmod.load())
+    warning = [db.decode_message(f.arbitration_id, f.data) for f in out if f.arbitration_id == 0x3A2]
+    ratio = [db.decode_message(f.arbitration_id, f.data) for f in out if f.arbitration_id == 0x3A0]
+    assert ("fault", "model_error") in {(str(w["warning_level"]), str(w["warning_reason"])) for w in warning}
+    assert "input_implausible" not in {str(w["warning_reason"]) for w in warning}
+    assert "model_error" in {str(r["cm_gate"]) for r in ratio}
+
+
 def test_leakage_raises_the_low_warning_and_estimates_the_flow():
     run, frames = sim_frames("two_set_validation", duration_h=1.5)
     mon = monitor()

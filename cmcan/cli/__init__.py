@@ -37,11 +37,20 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _unraisable(u: sys.UnraisableHookArgs) -> None:
+    """An exception in a library's destructor (asammdf's, on a file it failed to open) is no error of
+    the command's, which has said what went wrong: no traceback for it, a debug line with -vv."""
+    logging.getLogger("cmcan").debug("ignored in %r: %s: %s", u.object, u.exc_type.__name__, u.exc_value)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     level = logging.WARNING - 10 * min(args.verbose, 2)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    sys.unraisablehook = _unraisable
+    # asammdf logs a traceback for each .mf4 it cannot read; the reader's error says it in one line.
+    logging.getLogger("asammdf").setLevel(logging.DEBUG if args.verbose >= 2 else logging.CRITICAL)
     try:
         return int(args.func(args) or 0)
     except CmcanError as exc:

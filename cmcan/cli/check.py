@@ -9,7 +9,9 @@ from typing import Any
 
 from cmcan.cli.errors import exit_code
 from cmcan.errors import CmcanError
+from cmcan.monitor.totals import StateError
 from cmcan.preflight import check_channel, load_config, prepare
+from cmcan.statefile import StateLock
 
 
 def add_subparser(sub: argparse._SubParsersAction) -> None:
@@ -22,7 +24,11 @@ def add_subparser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--config", help="configuration (default: the shipped config/cmcan.yaml)")
     p.add_argument("--channel-check", action="store_true", help="also check the bus channel exists on this machine")
-    p.add_argument("--state", action="store_true", help="also check the state directory is writable")
+    p.add_argument(
+        "--state",
+        action="store_true",
+        help="also check the state directory is writable and its state file readable (changes nothing)",
+    )
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.set_defaults(func=run)
 
@@ -30,7 +36,10 @@ def add_subparser(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     try:
         cfg = load_config(args.config)
-        prep = prepare(cfg, need_state=args.state)
+        try:
+            prep = prepare(cfg, need_state=args.state, read_only=True)
+        except StateError as exc:
+            raise StateError(f"{exc} (cmcan run would keep it aside and start with fresh totals)") from None
         if args.channel_check:
             check_channel(cfg)
     except CmcanError as exc:
@@ -74,6 +83,16 @@ def run(args: argparse.Namespace) -> int:
             else None
         ),
     }
+    if prep.store is not None:
+        t = prep.parts.monitor.totals
+        result["state"] = {
+            "file": str(prep.store.path),
+            "exists": prep.store.path.exists(),
+            "warning_count": t.warning_count,
+            "condition": t.condition,
+            "evaluated_h": t.evaluated_s / 3600.0,
+            "locked_by_pid": StateLock(prep.store.dir).holder(),
+        }
     if args.json:
         json.dump(result, sys.stdout, indent=2)
         sys.stdout.write("\n")
@@ -99,6 +118,15 @@ def run(args: argparse.Namespace) -> int:
             print(f"  j1939  source address 0x{j['source_address']:02X}, {dm_text}")
         for m in result["input_messages"]:
             print(f"  {m['message']:<18} {m['match']} on {m['channel']}; {m['health']}")
+        if "state" in result:
+            st = result["state"]
+            saved = (
+                f"{st['warning_count']} warnings, condition {st['condition']}, {st['evaluated_h']:.1f} h evaluated"
+                if st["exists"]
+                else "no state saved yet"
+            )
+            held = f"; in use by the daemon (pid {st['locked_by_pid']})" if st["locked_by_pid"] else ""
+            print(f"  state  {st['file']} ({saved}{held})")
     return 0
 
 

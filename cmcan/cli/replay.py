@@ -86,13 +86,14 @@ def run(args: argparse.Namespace) -> int:
     progress = _Progress(Path(args.log)) if sys.stdout.isatty() and not args.json else None
     try:
         res = replay_file(args.log, mon, sinks, engine=args.engine, progress=progress)
+    except CmcanError:  # a log that cannot be read names itself (truncated, corrupt, a reader missing)
+        raise
     except (ValueError, OSError) as exc:
         raise CmcanError(f"{args.log}: cannot read as a CAN log: {exc}", Kind.DATA) from None
     finally:
         if progress is not None:
             progress.done()
-    if res.first_t is None:
-        raise CmcanError(f"{args.log}: no frames in the log", Kind.DATA)
+    assert res.first_t is not None  # a log without frames raised NoFrames, leaving no output behind
     t0 = res.first_t
     if plot is not None:
         from cmcan.plots import plot_ratio

@@ -4,16 +4,17 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
 import sys
-from collections.abc import Callable
-from types import FrameType
+from collections.abc import Callable, Sequence
 
 import can
 
-from cmcan.config import ChannelConfig
-from cmcan.daemon import Daemon, DaemonOptions, bus_kwargs, tune_socketcan
-from cmcan.preflight import check_channel, load_config, prepare
+from cmcan import config as cfgmod
+from cmcan.assemble import assemble
+from cmcan.cli import signals
+from cmcan.daemon import Daemon, DaemonOptions, Reloaded, bus_kwargs, tune_socketcan
+from cmcan.monitor.inputs import InputMessage
+from cmcan.preflight import check_channel, load_config, prepare, with_state
 from cmcan.sdnotify import Notifier
 from cmcan.uplink.feed import UplinkFeed
 
@@ -25,7 +26,9 @@ def add_subparser(sub: argparse._SubParsersAction) -> None:
         "run",
         help="run the monitoring daemon on the CAN bus",
         description="Monitor the drive on the configured bus and broadcast CM ratio and warnings. "
-        "Under systemd it reports READY, WATCHDOG and STATUS; SIGTERM or SIGINT stop it.",
+        "Under systemd it reports READY, WATCHDOG and STATUS; SIGHUP reloads the configuration and model, "
+        "SIGTERM or SIGINT stop it (other signals that would end it save the state first, exit 128+N). "
+        "One daemon per state directory: a second one exits 75.",
     )
     p.add_argument("--config", help="configuration (default: the shipped config/cmcan.yaml)")
     p.add_argument("--interface", help="python-can interface (overrides bus.interface)")
@@ -38,11 +41,27 @@ def run(args: argparse.Namespace) -> int:
     if args.verbose == 0:
         logging.getLogger().setLevel(logging.INFO)
     cfg = load_config(args.config, args.interface, args.channel, args.state_dir)
-    prep = prepare(cfg)  # files first (config, DBC, model, state), then the machine's channel
+    prep = prepare(cfg, need_state=False)  # files first (config, DBC, model), then the machine's channel,
     check_channel(cfg)
-    inputs = prep.parts.monitor.inputs
+    prep = with_state(prep, lock=True)  # then the state: a second daemon on this directory stops here (75)
+    uplink = UplinkFeed.open(cfg.uplink, prep.parts.monitor) if cfg.uplink.enabled else None
+    opens = bus_openers(cfg, prep.parts.monitor.inputs)
+    daemon = Daemon(cfg, prep.parts.monitor, prep.store, opens, Notifier(), DaemonOptions(), uplink=uplink)
+    daemon.reloader = reloader(args)
+    signals.install(daemon)
+    sys.stdout.flush()
+    try:
+        daemon.run()
+    finally:
+        assert prep.lock is not None
+        prep.lock.release()
+    return signals.exit_status(daemon)
 
-    def opener(ch: ChannelConfig) -> Callable[[], can.BusABC]:
+
+def bus_openers(cfg: cfgmod.Config, inputs: Sequence[InputMessage]) -> dict[str, Callable[[], can.BusABC]]:
+    """An opener per configured channel: its bus with kernel filters for the inputs it carries."""
+
+    def opener(ch: cfgmod.ChannelConfig) -> Callable[[], can.BusABC]:
         def open_bus() -> can.BusABC:
             bus = can.Bus(**bus_kwargs(cfg, ch, inputs))
             if cfg.bus.interface == "socketcan":
@@ -51,16 +70,17 @@ def run(args: argparse.Namespace) -> int:
 
         return open_bus
 
-    opens = {ch.name: opener(ch) for ch in cfg.channel_list}
-    uplink = UplinkFeed.open(cfg.uplink, prep.parts.monitor) if cfg.uplink.enabled else None
-    daemon = Daemon(cfg, prep.parts.monitor, prep.store, opens, Notifier(), DaemonOptions(), uplink=uplink)
+    return {ch.name: opener(ch) for ch in cfg.channel_list}
 
-    def on_signal(signum: int, _frame: FrameType | None) -> None:
-        log.info("received %s, stopping", signal.Signals(signum).name)
-        daemon.stop()
 
-    signal.signal(signal.SIGTERM, on_signal)
-    signal.signal(signal.SIGINT, on_signal)
-    sys.stdout.flush()
-    daemon.run()
-    return 0
+def reloader(args: argparse.Namespace) -> Callable[[], Reloaded]:
+    """SIGHUP's work: the configuration file (with this command line's overrides), its DBC and model
+    read and checked as at a start; any problem raises before anything of the running daemon changes."""
+
+    def reload() -> Reloaded:
+        cfg = load_config(args.config, args.interface, args.channel, args.state_dir)
+        parts = assemble(cfg)
+        check_channel(cfg)
+        return Reloaded(cfg, parts.monitor, bus_openers(cfg, parts.monitor.inputs))
+
+    return reload

@@ -88,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
     op = op.select(keep)
     if len(op) == 0:
         raise CmcanError(f"{args.data}: no operating points left to score (check --where)", Kind.DATA)
-    s = score(model, op, cfg.lpm_per_unit)
+    s = score(model, op, cfg.lpm_per_unit, cfg.gate_limits)
     cols = op.columns()
     labels = None
     if label is not None:

@@ -52,8 +52,8 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config, state_dir=args.state_dir)
     settings = cfg.uplink
     try:
-        if args.status:
-            box = open_for_uplink(settings.outbox.path)
+        if args.status:  # a query: a corrupt outbox is reported, not moved
+            box = open_for_uplink(settings.outbox.path, keep_aside=False, source=cfg.source)
             out = {"outbox": str(box.path), "stream_id": box.stream_id, **describe(box.usage(), time.time())}
             box.close()
             json.dump(out, sys.stdout, indent=2)
@@ -66,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
             )
         tls = tls_context(settings.mqtt.tls, cfg.source)
         password = read_password(settings.mqtt, cfg.source)
-        box = open_for_uplink(settings.outbox.path)
+        box = open_for_uplink(settings.outbox.path, source=cfg.source)
         notifier = Notifier() if not args.check else Notifier(env={})
         pub = Publisher(settings, box, password=password, tls=tls, notifier=notifier)
         if args.check:

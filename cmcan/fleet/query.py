@@ -35,7 +35,7 @@ EMPTY = {
 PROVENANCE_KEYS = ("log_hash", "config_hash", "dbc_hash", "model_hash")
 
 
-def _require_duckdb() -> Any:
+def require_duckdb() -> Any:
     try:
         import duckdb
     except ImportError:
@@ -47,9 +47,18 @@ def _require_duckdb() -> Any:
 
 def connect(root: str | Path) -> Any:
     """An in-memory DuckDB connection with the data set's views."""
-    duckdb = _require_duckdb()
+    duckdb = require_duckdb()
     root = ds.open_dataset(Path(root), create=False)
     con = duckdb.connect(":memory:")
+    try:
+        _views(con, root)
+    except duckdb.Error as exc:  # a data set file that DuckDB cannot read (corrupt, cut short)
+        con.close()
+        raise CmcanError(f"{root}: cannot read the data set: {str(exc).splitlines()[0]}", Kind.DATA) from None
+    return con
+
+
+def _views(con: Any, root: Path) -> None:
     for table in (ds.SUMMARY_TABLE, "quarantine", *ds.DATA_TABLES):  # logs first: the data views join it
         depth = "machine=*/*.parquet" if table == "quarantine" else "machine=*/day=*/*.parquet"
         pattern = (root / table / depth).as_posix().replace("'", "''")
@@ -84,7 +93,6 @@ def connect(root: str | Path) -> Any:
                   ROWS BETWEEN UNBOUNDED PRECEDING AND 1 PRECEDING), 0.0) AS offset_h
            FROM logs"""
     )
-    return con
 
 
 PROVENANCE_COLUMNS = (

@@ -20,7 +20,8 @@ from pathlib import Path
 from typing import Any
 
 from cmcan import __version__
-from cmcan.fleet.query import connect
+from cmcan.errors import CmcanError, Kind
+from cmcan.fleet.query import connect, require_duckdb
 
 ATTENTION = {3: "warning now", 2: "had warnings", 1: "faults", 0: "ok"}
 MAX_POINTS_PER_MACHINE = 1500
@@ -285,7 +286,11 @@ def build(root: str | Path, trend_h: float = 50.0, max_machines: int = 50) -> st
 
 
 def write_report(root: str | Path, out: Path, trend_h: float = 50.0, max_machines: int = 50) -> int:
-    text = build(root, trend_h, max_machines)
+    duckdb = require_duckdb()
+    try:
+        text = build(root, trend_h, max_machines)
+    except duckdb.Error as exc:  # a data set file that DuckDB cannot read (corrupt, cut short)
+        raise CmcanError(f"{root}: cannot read the data set: {str(exc).splitlines()[0]}", Kind.DATA) from None
     tmp = out.with_name(f".{out.name}.tmp")
     tmp.write_text(text, encoding="utf-8")
     os.replace(tmp, out)

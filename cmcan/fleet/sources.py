@@ -81,6 +81,7 @@ def read_manifest(path: Path, config: str | None, model: str | None) -> list[Log
                 log=_abs(base / log),
                 config=_abs(base / cfg) if cfg else config,
                 model=_abs(base / mdl) if mdl else model,
+                origin=f"{path} line {i}",
             )
         )
     return jobs

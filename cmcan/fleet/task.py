@@ -46,6 +46,7 @@ class LogJob:
     log: str
     config: str | None = None  # None: the shipped configuration
     model: str | None = None  # None: the configuration's model
+    origin: str = ""  # where the log was named (a manifest's line), for messages about it
 
 
 @dataclass(frozen=True)
@@ -194,7 +195,8 @@ def _process_log(job: LogJob, opt: Options) -> dict[str, Any]:
     try:
         log_hash = ds.sha256_file(job.log)
     except OSError as exc:
-        return _quarantine(opt, job, _path_key(job.log), "read", f"cannot read the log: {exc}", None, started)
+        named = f" (named in {job.origin})" if job.origin else ""
+        return _quarantine(opt, job, _path_key(job.log), "read", f"cannot read the log: {exc}{named}", None, started)
     try:
         inp = load_inputs(job.config, job.model)
     except (CmcanError, OSError, ValueError) as exc:

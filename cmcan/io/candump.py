@@ -1,16 +1,33 @@
-"""CAN logs: writing the ``candump -l`` format fast, reading any format python-can's LogReader reads."""
+"""CAN logs: writing the ``candump -l`` format fast, reading any format python-can's LogReader reads.
+
+Whatever the format, a log that cannot be read whole is an error naming the file
+(:class:`LogError`): a truncated or corrupt file never replays its readable part as if it were all.
+"""
 
 from __future__ import annotations
 
 import gzip
+import math
+import re
+import zlib
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
+from cmcan.errors import CmcanError, Kind
 from cmcan.frame import Frame, FrameColumns, from_message
 from cmcan.io import textcols as tc
+
+# The formats python-can reads (by suffix, also gzipped text formats); .log is candump -l.
+LOG_FORMATS = (".log", ".asc", ".blf", ".trc", ".csv", ".db", ".mf4")
+
+
+class LogError(CmcanError, ValueError):
+    """A CAN log cannot be read (truncated, corrupt, not of its format); ``str()`` names the file."""
+
+    kind = Kind.DATA
 
 
 def write_candump(
@@ -141,17 +158,28 @@ def _hex_rows(data: NDArray[np.uint8], dlc: NDArray[np.int64]) -> list[str]:
 
 CAN_ERR_FLAG = 0x20000000
 CAN_ERR_BUSERROR = 0x00000080
+# A candump timestamp: seconds in parentheses, a plain decimal (an exponent is tolerated); python-can
+# takes whatever sits between the first and last character, which turns a line without one into an
+# invented time.
+# No candump line comes near this (CAN FD's 64 bytes are 128 hex digits): a longer one is not a log.
+MAX_LINE_BYTES = 4096
+_STAMP = re.compile(r"\(([0-9]+(?:\.[0-9]*)?(?:[eE][+-]?[0-9]+)?)\)")
 
 
 def parse_candump_line(line: str, path: Path | str, n: int) -> Frame | None:
     """One ``candump -l`` line as python-can's ``CanutilsLogReader`` reads it (None for a blank
-    line); ValueError names the file and line."""
+    line), except that the timestamp must be one; ValueError names the file and line."""
     parts = line.split()
     if not parts:
         return None
     try:
         stamp, channel, frame = parts[0], parts[1], parts[2]
-        t = float(stamp[1:-1])
+        m = _STAMP.fullmatch(stamp)
+        if m is None:
+            raise ValueError(stamp)
+        t = float(m.group(1))
+        if not math.isfinite(t):
+            raise ValueError(stamp)
         cid_s, data = frame.split("#", 1)
         cid = int(cid_s, 16)
     except (IndexError, ValueError):
@@ -178,22 +206,65 @@ def iter_candump(path: str | Path) -> Iterator[Frame]:
     (tests check both agree) but about three times faster: it builds no ``can.Message``."""
     p = Path(path)
     opener = gzip.open if p.suffix == ".gz" else open
-    with opener(p, "rt", encoding="ascii", errors="replace") as f:  # type: ignore[operator]
-        for n, line in enumerate(f, 1):
-            frame = parse_candump_line(line, p, n)
-            if frame is not None:
-                yield frame
+    n = 0
+    try:
+        with opener(p, "rt", encoding="ascii", errors="replace") as f:  # type: ignore[operator]
+            while line := f.readline(MAX_LINE_BYTES + 1):
+                n += 1
+                if len(line) > MAX_LINE_BYTES:
+                    raise LogError(f"{p}: line {n}: longer than {MAX_LINE_BYTES} bytes: not a candump -l log")
+                frame = parse_candump_line(line, p, n)
+                if frame is not None:
+                    yield frame
+    except (EOFError, gzip.BadGzipFile, zlib.error) as exc:  # a truncated or corrupt .gz
+        raise LogError(f"{p}: cannot read past line {n}: {exc} (truncated or corrupt compressed log)") from None
 
 
 def iter_frames(path: str | Path) -> Iterator[Frame]:
-    """Frames of any log python-can reads; candump logs (.log, .log.gz) through the fast reader."""
+    """Frames of any log python-can reads; candump logs (.log, .log.gz) through the fast reader.
+    A log that cannot be read to its end raises :class:`LogError` (a ValueError) naming the file."""
     p = Path(path)
     if not p.exists():
         raise FileNotFoundError(f"{p}: log file not found")
     if p.name.endswith((".log", ".log.gz")):
         yield from iter_candump(p)
         return
+    yield from _python_can_frames(p)
+
+
+def _python_can_frames(p: Path) -> Iterator[Frame]:
+    """A log through python-can's reader for its format, every failure of it said in one line."""
     import can
 
-    for m in can.LogReader(str(p)):
-        yield from_message(m)
+    fmt = p.suffixes[-2] if p.suffix == ".gz" and len(p.suffixes) > 1 else p.suffix
+    if fmt.lower() not in LOG_FORMATS:
+        raise LogError(f"{p}: unknown CAN log format {fmt or '(no suffix)'!r}; cmcan reads {', '.join(LOG_FORMATS)}")
+    if fmt.lower() == ".blf":
+        from cmcan.io.blf import check_blf
+
+        try:
+            check_blf(p)
+        except ValueError as exc:
+            raise LogError(str(exc)) from None
+    n = 0
+    try:
+        with can.LogReader(str(p)) as reader:
+            for m in reader:
+                if not math.isfinite(m.timestamp):
+                    raise LogError(f"{p}: frame {n + 1}: timestamp {m.timestamp!r} is not a time")
+                if not 0 <= m.arbitration_id <= 0x1FFFFFFF or len(m.data) > 64:
+                    raise LogError(
+                        f"{p}: frame {n + 1}: not a CAN frame (identifier {m.arbitration_id}, {len(m.data)} data bytes)"
+                    )
+                n += 1
+                yield from_message(m)
+            if getattr(reader, "_tail", b""):  # BLFReader: an object left incomplete at the end
+                raise LogError(f"{p}: truncated: the last frame of the file is incomplete")
+    except CmcanError:
+        raise
+    except NotImplementedError as exc:  # python-can without the package for this format (.mf4: asammdf)
+        how = "the 'mf4' extra: pip install 'cmcan[mf4]'" if fmt.lower() == ".mf4" else "a package python-can lacks"
+        raise CmcanError(f"{p}: reading {fmt} logs needs {how} ({exc})", Kind.UNAVAILABLE) from None
+    except Exception as exc:  # each reader has its own exceptions (BLFParseError, sqlite3, asammdf, struct, ...)
+        where = f" after frame {n}" if n else ""
+        raise LogError(f"{p}: cannot read as a {fmt} log{where}: {type(exc).__name__}: {exc}") from None

@@ -15,6 +15,7 @@ Python's ``float()`` of the same text gives.
 from __future__ import annotations
 
 import gzip
+import zlib
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import BinaryIO
@@ -23,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cmcan.frame import FrameColumns
-from cmcan.io.candump import CAN_ERR_BUSERROR, CAN_ERR_FLAG, parse_candump_line
+from cmcan.io.candump import CAN_ERR_BUSERROR, CAN_ERR_FLAG, MAX_LINE_BYTES, LogError, parse_candump_line
 
 CHUNK_BYTES = 2 << 20
 _NIBBLE = np.full(256, 255, dtype=np.uint8)
@@ -49,32 +50,32 @@ def iter_candump_columns(
         raw = getattr(f, "fileobj", None) or f  # for .gz: the compressed file, as its size on disk counts
         rest = b""
         while True:
-            block = _read(f, chunk_bytes)
+            block = _read(f, chunk_bytes, p, line0)
             if progress is not None:
                 progress(raw.tell())
             if not block:
                 break
             data = rest + block
             cut = data.rfind(b"\n") + 1
-            if cut == 0:  # no newline yet: a very long line, read on
-                rest = data
-                continue
+            if cut:
+                cols, n_lines = parse_chunk(data[:cut], p, line0, channels)
+                line0 += n_lines
+                if len(cols):
+                    yield cols
             rest = data[cut:]
-            cols, n_lines = parse_chunk(data[:cut], p, line0, channels)
-            line0 += n_lines
-            if len(cols):
-                yield cols
+            if len(rest) > MAX_LINE_BYTES:  # no newline in sight: not a text log (and memory stays bounded)
+                raise LogError(f"{p}: line {line0}: longer than {MAX_LINE_BYTES} bytes: not a candump -l log")
         if rest.strip():
             cols, _ = parse_chunk(rest + b"\n", p, line0, channels)
             if len(cols):
                 yield cols
 
 
-def _read(f: BinaryIO, n: int) -> bytes:
+def _read(f: BinaryIO, n: int, path: Path, line: int) -> bytes:
     try:
         return f.read(n)
-    except (EOFError, OSError, gzip.BadGzipFile) as exc:  # a truncated or corrupt .gz
-        raise ValueError(f"{getattr(f, 'name', '')}: cannot read: {exc}") from None
+    except (EOFError, OSError, zlib.error) as exc:  # a truncated or corrupt .gz (BadGzipFile is an OSError)
+        raise LogError(f"{path}: cannot read past line {line}: {exc} (truncated or corrupt compressed log)") from None
 
 
 def parse_chunk(text: bytes, path: Path, line0: int, channels: dict[bytes, int]) -> tuple[FrameColumns, int]:
@@ -272,7 +273,8 @@ def _parse_shape(
     d = first_row.find(b".")
     n_frac = c - 2 - d if d >= 0 else 0
     t = np.zeros(n)
-    if d < 0 or c - 2 > 19:  # no point or more digits than uint64 holds: the slow path decides
+    if d < 1 or n_frac < 1 or c - 2 > 19:  # no digits on a side of the point, or more than uint64 holds:
+        # the slow path decides
         good[:] = False
     elif d == 10 and n_frac == 6:  # candump's own (SSSSSSSSSS.ffffff): two groups of eight digits
         hi, ok_hi = _digits8(_u64(rows[:, 1:9]))

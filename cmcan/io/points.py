@@ -165,7 +165,7 @@ def read_points(
     if unmapped:
         raise PointsError(
             f"{p}: no column or constant for {', '.join(unmapped)} (give columns.ROLE: COLUMN or "
-            f"constants.ROLE: VALUE in the points spec, or --column / --constant)",
+            f"constants.ROLE: VALUE in the points spec {spec.source}, or --column / --constant)",
             "spec",
         )
     if not p.exists():

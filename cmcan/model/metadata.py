@@ -86,11 +86,27 @@ class ModelMeta:
             raise bad("quantity", f"one of {QUANTITY_UNITS} as {{role, unit}}", q)
         if q["role"] == "motor_speed_rpm" and not _positive(self.motor_disp_cc):
             raise bad("motor_disp_cc", "a positive number (cm3/rev) for a motor-speed model", self.motor_disp_cc)
+        if not isinstance(self.model_version, str):
+            raise bad("model_version", "a string", self.model_version)
+        if not isinstance(self.outputs, list) or not all(
+            isinstance(o, dict) and isinstance(o.get("name"), str) and isinstance(o.get("unit"), str)
+            for o in self.outputs
+        ):
+            raise bad("outputs", "a list of {name: str, unit: str}", self.outputs)
+        if not isinstance(self.physics, dict) or not isinstance(self.physics.get("coefficients"), dict):
+            raise bad("physics", "a mapping with the coefficients of the physics terms", self.physics)
+        if not all(_finite(v) for v in self.physics["coefficients"].values()):
+            raise bad("physics.coefficients", "finite numbers", self.physics["coefficients"])
+        if not isinstance(self.correction, dict):
+            raise bad("correction", "a mapping", self.correction)
         if not isinstance(self.envelope, dict):
             raise bad("envelope", "a mapping of input name to [min, max]", self.envelope)
         for name, rng in self.envelope.items():
             if not (isinstance(rng, list) and len(rng) == 2 and all(_finite(v) for v in rng) and rng[0] <= rng[1]):
                 raise bad(f"envelope.{name}", "[min, max] with min <= max", rng)
+        names = {d["name"] for d in self.inputs}
+        if set(self.envelope) != names:
+            raise bad("envelope", f"[min, max] of each input ({', '.join(sorted(names))})", sorted(self.envelope))
         if not isinstance(self.oil, dict) or not all(_positive(self.oil.get(k)) for k in ("nu40_cst", "nu100_cst")):
             raise bad("oil", "{nu40_cst, nu100_cst} in cSt", self.oil)
         if not isinstance(self.training, dict) or not isinstance(self.residual_stats, dict):

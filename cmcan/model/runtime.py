@@ -39,7 +39,10 @@ class GrayBoxModel:
             self.session = ort.InferenceSession(str(self.path), sess_options=opts, providers=["CPUExecutionProvider"])
         except Exception as exc:  # onnxruntime raises its own exception types for bad files
             raise ModelError(f"{self.path}: not a loadable ONNX model: {exc}") from None
-        props = self.session.get_modelmeta().custom_metadata_map
+        try:
+            props = self.session.get_modelmeta().custom_metadata_map
+        except (UnicodeDecodeError, RuntimeError) as exc:  # metadata bytes that are not text
+            raise ModelError(f"{self.path}: metadata is not readable: {exc}") from None
         self.meta = ModelMeta.from_props(props, str(self.path))
         self._check(expected_inputs or MODEL_UNITS, motor_disp_cc)
         self._check_machine(quantity, oil)

@@ -16,7 +16,7 @@ from numpy.typing import NDArray
 
 from cmcan.model.evaluate import auc_lower
 from cmcan.model.features import OperatingPoints
-from cmcan.monitor.gating import EVALUATED, Gate
+from cmcan.monitor.gating import EVALUATED, Gate, GateLimits, predictions_ok
 
 
 class Predictor(Protocol):
@@ -25,7 +25,7 @@ class Predictor(Protocol):
 
 @dataclass(frozen=True)
 class Scores:
-    gate: NDArray[np.int64]  # the verdict per point (a model error turns a point IMPLAUSIBLE_INPUT)
+    gate: NDArray[np.int64]  # the verdict per point (MODEL_ERROR where the model gave no plausible prediction)
     ratio_pct: NDArray[np.float64]  # NaN where not evaluated
     predicted: NDArray[np.float64]
     extra_leak_lpm: NDArray[np.float64]
@@ -46,8 +46,10 @@ class Scores:
         return [names[int(g)] for g in self.gate]
 
 
-def score(model: Predictor, op: OperatingPoints, lpm_per_unit: float) -> Scores:
-    """Predictions for every point the gates pass (``op`` gated with the model's envelope)."""
+def score(model: Predictor, op: OperatingPoints, lpm_per_unit: float, limits: GateLimits | None = None) -> Scores:
+    """Predictions for every point the gates pass (``op`` gated with the model's envelope); a point
+    the model gives no plausible prediction for is ``MODEL_ERROR``, as in the monitor (the output's
+    plausible range from ``limits``; without them, any positive finite prediction passes)."""
     n = len(op)
     codes = op.gate.copy()
     ratio = np.full(n, np.nan)
@@ -56,8 +58,9 @@ def score(model: Predictor, op: OperatingPoints, lpm_per_unit: float) -> Scores:
     idx = np.flatnonzero(np.isin(codes, [int(g) for g in EVALUATED]))
     if idx.size:
         pred, _ = model.predict(op.x[idx])
-        ok = np.isfinite(pred) & (pred > 0.0)
-        codes[idx[~ok]] = Gate.IMPLAUSIBLE_INPUT
+        pred = np.asarray(pred, dtype=np.float64)
+        ok = predictions_ok(pred, limits) if limits is not None else np.isfinite(pred) & (pred > 0.0)
+        codes[idx[~ok]] = Gate.MODEL_ERROR
         good, p = idx[ok], pred[ok]
         meas = op.measured[good]
         pred_all[good] = p

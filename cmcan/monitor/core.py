@@ -16,8 +16,10 @@ the previous ticks left:
 2. the gate (:func:`cmcan.monitor.gating.gate_point`) with the model's envelope: a verdict of
    ``EVALUATING`` or ``EXTRAPOLATED`` (outside the envelope) evaluates the point, any other names why
    not; an erratic input message (:func:`cmcan.monitor.health.tick`) makes it ``IMPLAUSIBLE_INPUT``;
-3. for an evaluated point one model call; a prediction that is not a positive finite number makes
-   the tick ``IMPLAUSIBLE_INPUT`` (counted in ``model_errors``);
+3. for an evaluated point one model call; a prediction that is not a positive finite number within
+   the output's plausible range (:func:`cmcan.monitor.gating.prediction_ok`) makes the tick
+   ``MODEL_ERROR`` (counted in ``model_errors``; for ``fault_after_s`` it is a fault with reason
+   ``model_error``);
 4. raw ratio = measured / predicted * 100 and leakage = (predicted - measured) * ``lpm_per_unit``
    into the moving-average filter, extrapolated points included;
 5. the warning machine steps with the gate and, when the point was evaluated and the filter is
@@ -39,7 +41,7 @@ from __future__ import annotations
 import heapq
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
 from cmcan.frame import Frame
@@ -47,7 +49,7 @@ from cmcan.monitor import health
 from cmcan.monitor.clock import TickClock
 from cmcan.monitor.diagnostics import Dm1Params, Dm1Producer
 from cmcan.monitor.filter import RatioFilter
-from cmcan.monitor.gating import EVALUATED, Gate, GateLimits, gate_point
+from cmcan.monitor.gating import EVALUATED, Gate, GateLimits, gate_point, prediction_ok
 from cmcan.monitor.health import OK, OUT_OF_RANGE, REASONS, Stream
 from cmcan.monitor.inputs import MEMO_MAX, Channels, InputMessage, Matcher
 from cmcan.monitor.payloads import Outputs, Payloads
@@ -332,6 +334,53 @@ class Monitor:
             st.shift(ticks * self.period)
         self.clock.shift(ticks)
 
+    def take_over(self, old: Monitor) -> list[str]:
+        """Go on where ``old`` (this machine's monitor under the previous configuration or model, the
+        daemon's SIGHUP reload) left off: the totals and warning history, the warning machine with
+        its debounce and fault timers (under the new thresholds), the ratio filter (its newest
+        ``filter_samples``), the counters, the alive counter, the DM1 state and the output frames
+        still due carry over. The input windows and input health carry over when the inputs are
+        matched, read and scaled as before, and the tick clock too when the rate is the same;
+        otherwise they start afresh. Returns what started afresh (empty: nothing)."""
+        p = self.params
+        self.totals = old.totals
+        ratios, leaks = old.filter.saved()
+        n = p.filter_samples
+        self.filter = RatioFilter(n, p.filter_min_samples, ratios[-n:], leaks[-n:])
+        self.machine = replace(old.machine, th=p.thresholds)
+        self.counters.update(old.counters)
+        self.payloads.alive = old.payloads.alive
+        self.payloads.last_warning = old.payloads.last_warning
+        self.last_tick = old.last_tick
+        self.transitions_since_save = old.transitions_since_save
+        self._later, self._seq = old._later, old._seq
+        if old._dm1 is not None:
+            self.totals.dtc_active = list(old._dm1.active)
+        if self.dm1 is not None:
+            same_dm1 = old._dm1 is not None and self.dm1 == old.dm1
+            self._dm1 = old._dm1 if same_dm1 else Dm1Producer(self.dm1, self.totals)
+        afresh = []
+        same_inputs = (
+            self.inputs == old.inputs
+            and self.channels == old.channels
+            and p.affine == old.params.affine
+            and p.constants == old.params.constants
+            and p.dp_from_high_low == old.params.dp_from_high_low
+            and set(self.windows) == set(old.windows)
+        )
+        if same_inputs:  # the old windows, and the old plans and streams that point at them
+            self.windows = old.windows
+            self._inputs, self._streams, self._matcher = old._inputs, old._streams, old._matcher
+            self._chans = old._chans
+            self._low = old._low
+        else:
+            afresh.append("the input windows and health (inputs read differently: about a second of warming up)")
+        if same_inputs and self.period == old.period and self.clock.max_gap_s == old.clock.max_gap_s:
+            self.clock = old.clock
+        else:
+            afresh.append("the tick clock (it starts on the next frame)")
+        return afresh
+
     # -- evaluation --------------------------------------------------------------------------------
 
     def _evaluate(self, k: int) -> list[Frame]:
@@ -358,9 +407,9 @@ class Monitor:
                 )
             except Exception:  # a model that fails must not take the daemon down
                 pred = math.nan
-            if not (math.isfinite(pred) and pred > 0.0):
+            if not prediction_ok(pred, p.limits):
                 self.counters["model_errors"] += 1
-                g = Gate.IMPLAUSIBLE_INPUT
+                g = Gate.MODEL_ERROR
                 pred = wb = 0.0
             else:
                 raw = meas / pred * 100.0

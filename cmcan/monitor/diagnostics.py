@@ -46,7 +46,11 @@ class Dm1Params:
     channel: str = ""
 
 
-_FAULT_FMI = {Reason.INPUT_STALE: Fmi.ABNORMAL_UPDATE_RATE, Reason.INPUT_IMPLAUSIBLE: Fmi.DATA_ERRATIC}
+_FAULT_FMI = {
+    Reason.INPUT_STALE: Fmi.ABNORMAL_UPDATE_RATE,
+    Reason.INPUT_IMPLAUSIBLE: Fmi.DATA_ERRATIC,
+    Reason.MODEL_ERROR: Fmi.BAD_DEVICE,
+}
 
 
 class Dm1Producer:

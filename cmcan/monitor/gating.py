@@ -44,6 +44,7 @@ class Gate(IntEnum):
     WARMING_UP = 7
     LOW_DISPLACEMENT = 8  # pump displacement below its minimum
     LOW_FLOW = 9  # measured output (motor speed or flow) below its minimum
+    MODEL_ERROR = 10  # the point was fit to evaluate, the model gave no plausible prediction
 
 
 EVALUATED: frozenset[Gate] = frozenset({Gate.EVALUATING, Gate.EXTRAPOLATED})
@@ -215,6 +216,21 @@ def gate_point(
             if not (lo <= mean[r] <= hi):
                 return Gate.EXTRAPOLATED
     return Gate.EVALUATING
+
+
+def prediction_ok(predicted: float, limits: GateLimits) -> bool:
+    """A prediction the monitor may divide by: a positive finite number within the range the output
+    quantity itself is plausible in (a prediction of 1e30 rpm would read as wear, not as a model
+    gone wrong)."""
+    hi = limits.plausible.get(limits.output_role, (0.0, math.inf))[1]
+    return 0.0 < predicted <= hi  # False for NaN
+
+
+def predictions_ok(predicted: NDArray[np.float64], limits: GateLimits) -> NDArray[np.bool_]:
+    """:func:`prediction_ok` over an array."""
+    hi = limits.plausible.get(limits.output_role, (0.0, math.inf))[1]
+    with np.errstate(invalid="ignore"):
+        return (predicted > 0.0) & (predicted <= hi)
 
 
 def gate_columns(

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from cmcan.errors import CmcanError, Kind
 from cmcan.j1939.dm1 import OC_MAX
+from cmcan.monitor.tick import LEVEL_NAMES
+from cmcan.monitor.warnings import Level, Reason
 
 HISTORY_MAX = 1000
 FORMAT = "cmcan-state/1"
@@ -39,22 +42,30 @@ class Totals:
 
     @classmethod
     def from_dict(cls, d: Any) -> Totals:
+        """Read a saved document back, every field checked: a counter that is not a non-negative
+        integer, a time that is not a finite non-negative number, a ratio that is not finite would be
+        carried on (and written back) for ever; ``StateError`` names the field instead."""
         if not isinstance(d, dict) or d.get("format") != FORMAT:
             raise StateError(f"not a {FORMAT} document")
+        missing = [k for k in _FIELDS if k not in d]
+        if missing:
+            raise StateError(f"field {missing[0]!r} missing")
         t = cls()
-        try:
-            t.warning_count = int(d["warning_count"])
-            t.fault_count = int(d["fault_count"])
-            t.evaluated_s = float(d["evaluated_s"])
-            t.time_in_level_s = {k: float(d["time_in_level_s"][k]) for k in ("ok", "low", "high", "fault")}
-            t.history = [dict(h) for h in d["history"]][-HISTORY_MAX:]
-            t.condition = str(d["condition"])
-            if t.condition not in ("ok", "low", "high"):
-                raise StateError(f"condition {t.condition!r} is not one of ok, low, high")
-            t.filter_ratios = [float(x) for x in d["filter_ratios"]]
-            t.filter_leaks = [float(x) for x in d["filter_leaks"]]
-        except (KeyError, TypeError, ValueError) as exc:
-            raise StateError(f"field {exc} missing or of the wrong type") from None
+        t.warning_count = _count(d["warning_count"], "warning_count")
+        t.fault_count = _count(d["fault_count"], "fault_count")
+        t.evaluated_s = _duration(d["evaluated_s"], "evaluated_s")
+        tl = d["time_in_level_s"]
+        if not isinstance(tl, dict) or set(tl) != set(LEVELS):
+            raise StateError(f"field 'time_in_level_s': expected a mapping of {', '.join(LEVELS)}, got {tl!r:.80}")
+        t.time_in_level_s = {k: _duration(tl[k], f"time_in_level_s.{k}") for k in LEVELS}
+        if not isinstance(d["history"], list):
+            raise StateError(f"field 'history': expected a list, got {d['history']!r:.80}")
+        t.history = [_transition(h, f"history[{i}]") for i, h in enumerate(d["history"])][-HISTORY_MAX:]
+        t.condition = d["condition"]
+        if t.condition not in ("ok", "low", "high"):
+            raise StateError(f"field 'condition': {t.condition!r:.40} is not one of ok, low, high")
+        t.filter_ratios = _finite_list(d["filter_ratios"], "filter_ratios")
+        t.filter_leaks = _finite_list(d["filter_leaks"], "filter_leaks")
         if len(t.filter_ratios) != len(t.filter_leaks):
             raise StateError("filter_ratios and filter_leaks differ in length")
         # absent in state files written before J1939 diagnostics: start with no counts
@@ -79,3 +90,51 @@ def _dtc_key(key: Any) -> None:
     ok = len(parts) == 2 and all(x.isdigit() for x in parts) and int(parts[0]) < 1 << 19 and int(parts[1]) < 32
     if not ok:
         raise StateError(f"DTC key {key!r} is not SPN:FMI (SPN 0..524287, FMI 0..31)")
+
+
+_FIELDS = ("warning_count", "fault_count", "evaluated_s", "time_in_level_s", "history", "condition")
+_FIELDS += ("filter_ratios", "filter_leaks")
+LEVELS = tuple(LEVEL_NAMES[lv] for lv in Level)  # ok, low, high, fault
+_REASONS = tuple(r.name.lower() for r in Reason)  # as the core records them
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _count(v: Any, name: str) -> int:
+    if not (isinstance(v, int) and not isinstance(v, bool) and v >= 0):
+        raise StateError(f"field {name!r}: expected a non-negative integer, got {v!r:.40}")
+    return v
+
+
+def _duration(v: Any, name: str) -> float:
+    if not (_is_number(v) and v >= 0):
+        raise StateError(f"field {name!r}: expected a finite non-negative number of seconds, got {v!r:.40}")
+    return float(v)
+
+
+def _finite_list(v: Any, name: str) -> list[float]:
+    if not isinstance(v, list):
+        raise StateError(f"field {name!r}: expected a list of numbers, got {v!r:.40}")
+    for i, x in enumerate(v):
+        if not _is_number(x):
+            raise StateError(f"field '{name}[{i}]': expected a finite number, got {x!r:.40}")
+    return [float(x) for x in v]
+
+
+def _transition(h: Any, name: str) -> dict[str, Any]:
+    """One warning-level change as the core records it (t_s, from, to, reason, ratio_filt_pct)."""
+    if not isinstance(h, dict):
+        raise StateError(f"field {name!r}: expected a level change, got {h!r:.60}")
+    if not _is_number(h.get("t_s")):
+        raise StateError(f"field '{name}.t_s': expected a finite time, got {h.get('t_s')!r:.40}")
+    for key in ("from", "to"):
+        if h.get(key) not in LEVELS:
+            raise StateError(f"field '{name}.{key}': expected one of {', '.join(LEVELS)}, got {h.get(key)!r:.40}")
+    if h.get("reason") not in _REASONS:
+        raise StateError(f"field '{name}.reason': expected one of {', '.join(_REASONS)}, got {h.get('reason')!r:.40}")
+    r = h.get("ratio_filt_pct")
+    if r is not None and not _is_number(r):
+        raise StateError(f"field '{name}.ratio_filt_pct': expected a finite number or null, got {r!r:.40}")
+    return dict(h)

@@ -9,8 +9,9 @@ Two layers, each debounced in *evaluated* time (the sum of evaluation periods th
   point out of the envelope is still warned about; but they cannot clear a warning: the return to ok
   needs ``debounce_s`` of points inside the envelope (an extrapolated point inside the band leaves
   that count where it is, one outside the band resets it, as any point does);
-- the fault, from the gate: inputs stale or implausible for ``fault_after_s`` of tick time raise it,
-  as many seconds of good input clear it. While faulted the published level is fault; the condition
+- the fault, from the gate: inputs stale or implausible, or a model that gives no plausible
+  prediction, for ``fault_after_s`` of tick time raise it (reason: the cause at the tick it rises), as
+  many seconds of good input clear it. While faulted the published level is fault; the condition
   underneath is kept and comes back when the fault clears.
 Time is the evaluation ticks' own (frame time); nothing here reads a clock.
 """
@@ -63,7 +64,11 @@ class Transition:
 # Durations add up tick by tick in floating point: ten 0.1 s ticks are 0.9999999999999999 s.
 _EPS = 1e-6
 
-_FAULT_GATES = {Gate.STALE_INPUT: Reason.INPUT_STALE, Gate.IMPLAUSIBLE_INPUT: Reason.INPUT_IMPLAUSIBLE}
+_FAULT_GATES = {
+    Gate.STALE_INPUT: Reason.INPUT_STALE,
+    Gate.IMPLAUSIBLE_INPUT: Reason.INPUT_IMPLAUSIBLE,
+    Gate.MODEL_ERROR: Reason.MODEL_ERROR,
+}
 _FAULT_GATE_CODES = np.array(sorted(int(g) for g in _FAULT_GATES), dtype=np.int64)
 _EVALUATED_CODES = np.array(sorted(int(g) for g in EVALUATED), dtype=np.int64)
 

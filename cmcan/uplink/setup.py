@@ -91,14 +91,20 @@ def read_password(m: MqttSettings, source: str = "config") -> str | None:
     return pw
 
 
-def open_for_uplink(path: Path) -> Outbox:
+def open_for_uplink(path: Path, keep_aside: bool = True, source: str = "the configuration") -> Outbox:
     """The outbox for publishing; a corrupt file is kept aside and reported (the next start, or the
-    daemon, begins a new one), a missing folder or a newer format is reported."""
+    daemon, begins a new one), a missing folder or a newer format is reported. Without
+    ``keep_aside`` (``--status``, a query) a corrupt file is reported and left as it is."""
     if not path.parent.is_dir():
-        raise SetupError(f"{path.parent}: state directory does not exist (uplink.outbox.file)", "cantcreat")
+        raise SetupError(
+            f"{path.parent}: state directory does not exist (state.directory, uplink.outbox.file in {source})",
+            "cantcreat",
+        )
     try:
         return open_outbox(path, durable=False, keep_aside=False)
     except OutboxError as exc:
+        if exc.kind == "corrupt" and not keep_aside:
+            raise SetupError(f"{exc}; left as it is (cmcan uplink keeps it aside when it runs)", "data") from None
         if exc.kind == "corrupt":
             try:
                 aside = set_aside(path)

@@ -7,6 +7,7 @@ host without CAN, ``test_vcan.py`` stands in for them and reports what the VM ra
 
 from __future__ import annotations
 
+import itertools
 import os
 import re
 import signal
@@ -599,3 +600,114 @@ def test_two_vcan_channels_with_inputs_split(j1939_run):
     assert parts.monitor.channels_seen() == {"can0": IFACE, "can1": IFACE1}
     assert "unknown channel" not in run["status"] and "bad fd" not in run["status"]
     assert "Traceback" not in run["stderr"] and "failed" not in run["stderr"], run["stderr"]
+
+
+# -- wall-clock steps (issue 17): the daemon keeps sending through each ------------------------------
+#
+# SocketCAN stamps frames with the wall clock; NTP or a GPS fix steps it. The inputs come from cangen
+# (one process per input message, a fixed payload of a steady operating point, paced by nanosleep:
+# unmoved by the steps; canplayer paces by the wall clock and would stall or burst at each one) while
+# the guest's clock is stepped back by 1, 30 and 59 s, forward by one hour, and back to about where
+# it was; candump records the daemon's CM frames.
+
+STEPS_S = (-1.0, -30.0, -59.0, 3600.0, -3510.0)
+
+
+def _steady_payloads(tmp: Path) -> dict[int, str]:
+    """One frame of each input message from the middle of a steady simulated rig point."""
+    frames = list(iter_frames(make_log(tmp / "steady_point.log", 4.0, 0.0)))
+    mid = frames[len(frames) // 2].timestamp_s
+    out: dict[int, str] = {}
+    for f in frames:
+        if f.timestamp_s >= mid and f.arbitration_id not in out:
+            out[f.arbitration_id] = f.data.hex().upper()
+    return out
+
+
+def _decoded_ratio_frames(db, path: Path):
+    msg = db.get_message_by_name("CM_RATIO")
+    return [
+        (f.timestamp_s, msg.decode(f.data, decode_choices=False))
+        for f in iter_frames(path)
+        if f.arbitration_id == RATIO_ID
+    ]
+
+
+@pytest.mark.vcan
+def test_the_daemon_keeps_sending_through_wall_clock_steps(tmp_path):
+    cfg = make_config(tmp_path)
+    (tmp_path / "state").mkdir()
+    payloads = _steady_payloads(tmp_path)
+    assert sorted(payloads) == [0x100, 0x101, 0x102, 0x103]
+    err = open(tmp_path / "steps.stderr", "w")  # noqa: SIM115 - the daemon writes it until it stops
+    daemon = subprocess.Popen(
+        [sys.executable, "-m", "cmcan", "run", "--config", str(cfg)],
+        stdout=subprocess.DEVNULL,
+        stderr=err,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+    gens: list[subprocess.Popen] = []
+    rec = None
+    stepped = 0.0
+    try:
+        deadline = time.monotonic() + 180
+        while "cmcan running on" not in (tmp_path / "steps.stderr").read_text() and time.monotonic() < deadline:
+            assert daemon.poll() is None, (tmp_path / "steps.stderr").read_text()
+            time.sleep(0.2)
+        rec = candump(tmp_path / "steps.log")
+        for fid, data in payloads.items():
+            gap_ms = "100" if fid == 0x103 else "10"
+            gens.append(
+                subprocess.Popen(
+                    ["cangen", IFACE, "-I", f"{fid:03X}", "-L", "8", "-D", data, "-g", gap_ms],
+                    stderr=subprocess.DEVNULL,
+                )
+            )
+        time.sleep(8.0)  # windows filled, filter valid
+        for step in STEPS_S:
+            time.clock_settime(time.CLOCK_REALTIME, time.time() + step)
+            stepped += step
+            time.sleep(5.0)
+    finally:
+        if stepped:  # the guest's clock back where it was, give or take the time the step took
+            time.clock_settime(time.CLOCK_REALTIME, time.time() - stepped)
+        for g in gens:
+            g.terminate()
+            g.wait(5)
+        time.sleep(0.5)
+        if rec is not None:
+            stop(rec)
+        daemon.send_signal(signal.SIGTERM)
+        code = daemon.wait(20)
+        err.close()
+    log = (tmp_path / "steps.stderr").read_text()
+    assert code == 0, log
+    db = dbc_for(cfgmod.load(cfg))
+    ratio = _decoded_ratio_frames(db, tmp_path / "steps.log")
+    head = (tmp_path / "steps.log").read_text()[:300]
+    assert len(ratio) > 10 * (8 + 5 * len(STEPS_S)) * 0.8, (len(ratio), head, log[-2000:])
+    # between two CM frames either a cycle (0.1 s; 0.5 s at most in this slow guest) or a step of the
+    # clock plus a cycle: never a silence
+    gaps = np.diff([t for t, _ in ratio])
+    odd = [g for g in gaps if not 0.0 < g <= 0.5]
+    assert len(odd) == len(STEPS_S), (odd, STEPS_S)
+    for g, step in zip(odd, STEPS_S, strict=True):
+        assert step < g <= step + 0.5, (g, step)
+    # not a frame lost or sent twice (the alive counter goes up by one each cycle), and the ratio is
+    # evaluated on both sides of each step
+    alive = [int(v["cm_alive_counter"]) for _, v in ratio]
+    assert all((b - a) % 16 == 1 for a, b in itertools.pairwise(alive))
+    cut = [0, *(int(np.flatnonzero(gaps == g)[0]) + 1 for g in odd), len(ratio)]
+    for a, b in itertools.pairwise(cut[1:]):
+        after = [v["cm_raw_valid"] for _, v in ratio[a : min(b, a + 30)]]
+        assert sum(after) >= 0.9 * len(after), after
+    print(
+        f"{len(ratio)} CM_RATIO frames; the gaps between two frames at the steps {STEPS_S}: "
+        f"{[round(float(g), 3) for g in odd]} s; every other gap <= {max(g for g in gaps if 0 < g <= 0.5):.3f} s"
+    )
+    # and the daemon says so: each step in the journal, with its size
+    said = [(w, float(x)) for w, x in re.findall(r"the wall clock stepped (forward|back) by ([0-9.]+) s", log)]
+    want = [("back" if s < 0 else "forward", abs(s)) for s in STEPS_S]
+    assert len(said) == len(want) and all(
+        w == v and abs(x - y) < 0.5 for (w, x), (v, y) in zip(said, want, strict=True)
+    ), log

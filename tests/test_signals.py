@@ -1,0 +1,183 @@
+"""Signals (issue 17, item 2): SIGHUP reloads the configuration and model after checking them, keeping
+the monitor's state; SIGTERM and SIGINT stop cleanly; every other signal that would end the daemon at
+once saves the state first and exits 128 + N."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import signal
+
+import pytest
+import yaml
+
+from cmcan import config as cfgmod
+from cmcan.assemble import assemble
+from cmcan.cli import signals as sigmod
+from cmcan.daemon import Daemon, DaemonOptions, Reloaded
+from cmcan.monitor.warnings import Level
+from tests.daemon_proc import DaemonProc, virtual_config
+from tests.helpers import as_frames, messages, monitor, sim_frames
+from tests.test_daemon import ScriptedBus, run_daemon_until
+
+
+@pytest.fixture(scope="module")
+def leak():
+    """The excavator-like run with a leak early: a low warning within the first 0.06 h."""
+    ev = {"type": "leakage", "start_h": 0.02, "extra_lpm": 8.0, "ref_dp_bar": 300}
+    return sim_frames("two_set_validation", duration_h=0.1, events=[ev])[1]
+
+
+def split(frames, at: float):
+    k = int(len(frames.timestamp_s) * at)
+    return as_frames(frames)[:k], as_frames(frames)[k:]
+
+
+# -- the core: what a reload keeps -------------------------------------------------------------------
+
+
+def test_a_reload_of_the_same_configuration_is_seamless(leak):
+    """Reloading an unchanged configuration and model gives, frame for frame, what the daemon would
+    have sent without the reload: nothing started afresh."""
+    first, second = split(leak, 0.5)
+    whole = monitor(keep_timeline=False)
+    want = [f for fr in (*first, *second) for f in whole.feed(fr)] + whole.flush()
+    old = monitor(keep_timeline=False)
+    got = [f for fr in first for f in old.feed(fr)]
+    new = monitor(keep_timeline=False)
+    assert new.take_over(old) == []
+    got += [f for fr in second for f in new.feed(fr)] + new.flush()
+    assert got == want
+    assert new.counters == whole.counters and new.save_totals().to_dict() == whole.save_totals().to_dict()
+
+
+def test_a_reload_keeps_the_warning_and_says_what_starts_afresh(leak):
+    first, second = split(leak, 0.7)
+    old = monitor(keep_timeline=False)
+    for fr in first:
+        old.feed(fr)
+    assert old.machine.level == Level.LOW and old.totals.warning_count == 1
+    # a new mapping scale for the motor speed (a sensor swapped): windows and clock start afresh
+    base = cfgmod.load()
+    sig = dict(base.signals)
+    sig["motor_speed_rpm"] = dataclasses.replace(sig["motor_speed_rpm"], scale=1.0001)
+    th = dataclasses.replace(base.thresholds, debounce_s=30.0)
+    new = assemble(dataclasses.replace(base, signals=sig, thresholds=th)).monitor
+    afresh = new.take_over(old)
+    assert any("input windows" in a for a in afresh) and any("tick clock" in a for a in afresh)
+    assert new.machine.level == Level.LOW and new.machine.th.debounce_s == 30.0
+    assert new.totals is old.totals and new.counters["frames_total"] == old.counters["frames_total"]
+    n_before = old.counters["frames_total"]
+    for fr in second:
+        new.feed(fr)
+    assert new.counters["frames_total"] == n_before + len(second)
+    assert new.totals.warning_count == 1 and new.machine.level == Level.LOW
+
+
+# -- the daemon: reload between two frames ------------------------------------------------------------
+
+
+def test_the_daemon_reloads_between_frames_and_keeps_running_on_a_bad_reload(leak, caplog):
+    cfg = cfgmod.load()
+    msgs = messages(leak)
+    bus = ScriptedBus(list(msgs))
+    d = Daemon(cfg, monitor(keep_timeline=False), None, lambda: bus, options=DaemonOptions(idle_after_s=3600))
+    calls = []
+
+    def reloader():
+        calls.append(d.monitor.counters["frames_total"])
+        if len(calls) == 2:
+            raise cfgmod.SchemaError("machine.yaml", "thresholds.low_pct", "expected a number in [50, 100] %")
+        new_cfg = dataclasses.replace(cfg, thresholds=dataclasses.replace(cfg.thresholds, low_pct=97.5))
+        return Reloaded(new_cfg, assemble(new_cfg).monitor, lambda: bus)
+
+    d.reloader = reloader
+    caplog.set_level(logging.INFO, logger="cmcan.daemon")
+
+    def progress():
+        n = d.monitor.counters["frames_total"]
+        if (n > len(msgs) // 3 and not calls) or (n > 2 * len(msgs) // 3 and len(calls) == 1):
+            d.request_reload()
+        return n == len(msgs)
+
+    run_daemon_until(d, progress)
+    assert len(calls) == 2
+    assert d.monitor.params.thresholds.low_pct == 97.5  # the first reload took, the second did not undo it
+    assert d.monitor.counters["frames_total"] == len(msgs) and d.stats["bus_opens"] == 1
+    assert "reloaded" in caplog.text and "started afresh: nothing" in caplog.text
+    assert "reload failed, running on with the previous configuration: machine.yaml: thresholds.low_pct" in (
+        caplog.text
+    )
+
+
+# -- the real process ---------------------------------------------------------------------------------
+
+
+def test_kill_hup_reloads_a_checked_configuration_and_keeps_the_running_one_on_error(tmp_path):
+    cfg = virtual_config(tmp_path)
+    d = DaemonProc(tmp_path, cfg)
+    try:
+        raw = yaml.safe_load(cfg.read_text())
+        raw["thresholds"]["low_pct"] = 97.0
+        cfg.write_text(yaml.safe_dump(raw))
+        d.signal(signal.SIGHUP)
+        assert d.wait_for(lambda: "reloaded" in d.stderr() and d.count("READY=1") >= 2)
+        assert d.count("RELOADING=1") == 1 and any("MONOTONIC_USEC=" in n for n in d.notes)
+        raw["thresholds"]["low_pct"] = 120.0  # out of range: the running configuration stays
+        cfg.write_text(yaml.safe_dump(raw))
+        d.signal(signal.SIGHUP)
+        assert d.wait_for(lambda: "reload failed" in d.stderr())
+        assert "thresholds.low_pct: expected a number in [50, 100] %, got 120" in d.stderr()
+        assert d.proc.poll() is None and d.count("READY=1") >= 3
+        (tmp_path / "cmcan.yaml").unlink()  # even without its file
+        d.signal(signal.SIGHUP)
+        assert d.wait_for(lambda: "configuration file not found" in d.stderr()) and d.proc.poll() is None
+    finally:
+        d.signal(signal.SIGTERM)
+        code = d.wait()
+    assert code == 0 and "Traceback" not in d.stderr()
+    assert json.loads((tmp_path / "state" / "state.json").read_text())["format"] == "cmcan-state/1"
+
+
+@pytest.mark.parametrize("sig", [signal.SIGUSR1, signal.SIGQUIT, signal.SIGUSR2, signal.SIGRTMIN + 3])
+def test_other_fatal_signals_save_the_state_and_exit_128_plus_n(tmp_path, sig):
+    cfg = virtual_config(tmp_path)
+    d = DaemonProc(tmp_path, cfg)
+    d.signal(sig)
+    assert d.wait() == 128 + sig, d.stderr()
+    err = d.stderr()
+    assert "saving state" in err and "stopped:" in err and "Traceback" not in err
+    assert json.loads((tmp_path / "state" / "state.json").read_text())["format"] == "cmcan-state/1"
+    assert d.count("STOPPING=1") == 1
+
+
+def test_the_fatal_set_leaves_out_faults_and_the_uncatchable():
+    handled = {sigmod.RELOAD, *sigmod.STOP, *sigmod.FATAL}
+    for s in ("SIGKILL", "SIGSTOP", "SIGSEGV", "SIGBUS", "SIGFPE", "SIGILL", "SIGABRT", "SIGSYS", "SIGCHLD"):
+        assert getattr(signal, s) not in handled
+    for s in ("SIGHUP", "SIGTERM", "SIGINT", "SIGQUIT", "SIGUSR1", "SIGUSR2", "SIGALRM", "SIGPWR"):
+        assert getattr(signal, s) in handled
+
+
+def test_the_unit_restarts_on_failure_but_not_on_a_configuration_error():
+    """Every exit code of a problem a restart cannot cure (usage, data, no input, unavailable, cannot
+    create, configuration) is in RestartPreventExitStatus; a temporary failure (75: another daemon
+    holds the state directory) and a crash are restarted; SIGHUP reloads."""
+    from cmcan.cli.errors import EXIT_CODES
+    from cmcan.errors import Kind
+    from tests.conftest import ROOT
+
+    unit = (ROOT / "systemd" / "cmcan.service").read_text().splitlines()
+    keys = {}
+    for line in unit:
+        if "=" in line and not line.startswith("#"):
+            k, v = line.split("=", 1)
+            keys.setdefault(k, []).append(v)
+    prevent = {int(x) for v in keys["RestartPreventExitStatus"] for x in v.split()}
+    for kind, code in EXIT_CODES.items():
+        if kind in (Kind.TEMPFAIL, Kind.SOFTWARE):
+            assert code not in prevent, kind
+        else:
+            assert code in prevent, kind
+    assert keys["Restart"] == ["on-failure"] and keys["ExecReload"] == ["/bin/kill -HUP $MAINPID"]

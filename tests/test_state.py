@@ -1,0 +1,156 @@
+"""The state directory (issue 17, items 5 to 7): every field of a state file checked, ``cmcan check
+--state`` reads and changes nothing, one daemon per directory (a lock; the second exits 75)."""
+
+from __future__ import annotations
+
+import json
+import signal
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from cmcan.cli.errors import EX_DATAERR, EX_TEMPFAIL
+from cmcan.errors import CmcanError, Kind
+from cmcan.monitor.totals import StateError, Totals
+from cmcan.statefile import LOCK_FILE, StateLock, StateStore
+from tests.conftest import run_cli
+from tests.daemon_proc import DaemonProc, virtual_config
+
+
+def good() -> dict:
+    t = Totals(warning_count=2, fault_count=1, evaluated_s=3600.5)
+    t.time_in_level_s = {"ok": 3000.0, "low": 500.0, "high": 0.0, "fault": 100.5}
+    t.history = [{"t_s": 1767225600.0, "from": "ok", "to": "low", "reason": "ratio_low", "ratio_filt_pct": 97.8}]
+    t.condition, t.filter_ratios, t.filter_leaks = "low", [97.8, 97.9], [1.0, 1.1]
+    return t.to_dict()
+
+
+def edit(path: str, value):
+    def apply(d: dict) -> dict:
+        node = d
+        keys = path.split(".")
+        for k in keys[:-1]:
+            node = node[int(k)] if isinstance(node, list) else node[k]
+        last = keys[-1]
+        if value is KeyError:
+            del node[last]
+        else:
+            node[int(last) if isinstance(node, list) else last] = value
+        return d
+
+    return apply
+
+
+@pytest.mark.parametrize(
+    ("change", "field"),
+    [
+        (edit("warning_count", float("nan")), "warning_count"),
+        (edit("warning_count", -1), "warning_count"),
+        (edit("warning_count", 1.5), "warning_count"),
+        (edit("warning_count", "3"), "warning_count"),
+        (edit("fault_count", True), "fault_count"),
+        (edit("evaluated_s", -5.0), "evaluated_s"),
+        (edit("evaluated_s", float("inf")), "evaluated_s"),
+        (edit("time_in_level_s.low", float("nan")), "time_in_level_s.low"),
+        (edit("time_in_level_s.low", KeyError), "time_in_level_s"),
+        (edit("time_in_level_s.warm", 1.0), "time_in_level_s"),
+        (edit("history", {"t_s": 1}), "history"),
+        (edit("history.0.t_s", float("nan")), "history[0].t_s"),
+        (edit("history.0.to", "panic"), "history[0].to"),
+        (edit("history.0.reason", 4), "history[0].reason"),
+        (edit("history.0.ratio_filt_pct", float("-inf")), "history[0].ratio_filt_pct"),
+        (edit("condition", "fault"), "condition"),
+        (edit("filter_ratios.1", float("nan")), "filter_ratios[1]"),
+        (edit("filter_leaks", [1.0]), "differ in length"),
+        (edit("filter_leaks", KeyError), "filter_leaks"),
+    ],
+)
+def test_a_state_document_with_a_bad_field_is_refused_naming_it(change, field):
+    with pytest.raises(StateError, match=field.replace("[", r"\[").replace("]", r"\]")):
+        Totals.from_dict(change(good()))
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    counts=st.tuples(st.integers(0, 10**9), st.integers(0, 10**9)),
+    times=st.lists(st.floats(0, 1e9), min_size=5, max_size=5),
+    ratios=st.lists(st.tuples(st.floats(0, 200), st.floats(-50, 50)), max_size=50),
+    condition=st.sampled_from(["ok", "low", "high"]),
+)
+def test_what_is_saved_reads_back_the_same(counts, times, ratios, condition):
+    t = Totals(warning_count=counts[0], fault_count=counts[1], evaluated_s=times[0])
+    t.time_in_level_s = dict(zip(("ok", "low", "high", "fault"), times[1:], strict=True))
+    t.condition = condition
+    t.filter_ratios = [r for r, _ in ratios]
+    t.filter_leaks = [x for _, x in ratios]
+    assert Totals.from_dict(json.loads(json.dumps(t.to_dict()))) == t
+
+
+def test_nan_in_the_file_is_refused_by_the_reader_and_kept_aside_by_the_daemon(tmp_path, caplog):
+    store = StateStore(tmp_path)
+    store.path.write_text(json.dumps(good()).replace('"warning_count": 2', '"warning_count": NaN'))
+    before = store.path.read_bytes()
+    with pytest.raises(StateError, match=r"state.json: .*NaN"):
+        store.read()
+    assert store.path.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["state.json"]
+    assert store.load() == Totals()  # the daemon: a fresh start, the file kept aside, not lost
+    assert (tmp_path / "state.json.corrupt-1").read_bytes() == before and not store.path.exists()
+    assert "kept as" in caplog.text
+
+
+# -- cmcan check --state: read only ------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("content", [b"{ half a docu", json.dumps({**good(), "fault_count": -3}).encode()])
+def test_check_state_names_a_corrupt_file_and_changes_nothing(tmp_path, content):
+    cfg = virtual_config(tmp_path)
+    state = tmp_path / "state"
+    (state / "state.json").write_bytes(content)
+    res = run_cli("check", "--config", str(cfg), "--state")
+    assert res.returncode == EX_DATAERR, res.stderr
+    assert "state.json" in res.stderr and "cmcan run would keep it aside" in res.stderr
+    assert sorted(p.name for p in state.iterdir()) == ["state.json"]
+    assert (state / "state.json").read_bytes() == content
+
+
+def test_check_state_reports_a_good_file(tmp_path):
+    cfg = virtual_config(tmp_path)
+    (tmp_path / "state" / "state.json").write_text(json.dumps(good()))
+    res = run_cli("check", "--config", str(cfg), "--state", "--json")
+    assert res.returncode == 0, res.stderr
+    st_ = json.loads(res.stdout)["state"]
+    assert st_["warning_count"] == 2 and st_["condition"] == "low" and st_["locked_by_pid"] is None
+    assert sorted(p.name for p in (tmp_path / "state").iterdir()) == ["state.json"]
+
+
+# -- the lock ----------------------------------------------------------------------------------------
+
+
+def test_the_lock_is_exclusive_names_its_holder_and_goes_with_it(tmp_path):
+    a = StateLock(tmp_path).acquire()
+    with pytest.raises(CmcanError, match=rf"{LOCK_FILE}: the state directory is in use .*pid \d+") as exc:
+        StateLock(tmp_path).acquire()
+    assert exc.value.kind == Kind.TEMPFAIL
+    assert StateLock(tmp_path).holder() is not None
+    a.release()
+    assert StateLock(tmp_path).holder() is None
+    StateLock(tmp_path).acquire().release()  # the file left behind blocks nobody
+
+
+def test_a_second_daemon_on_the_same_state_directory_exits_75_naming_the_lock(tmp_path):
+    cfg = virtual_config(tmp_path)
+    first = DaemonProc(tmp_path, cfg, "first")
+    try:
+        res = run_cli("run", "--config", str(cfg), timeout=120)
+        assert res.returncode == EX_TEMPFAIL, res.stderr
+        assert f"{tmp_path / 'state' / LOCK_FILE}" in res.stderr and f"pid {first.proc.pid}" in res.stderr
+        check = run_cli("check", "--config", str(cfg), "--state", "--json")
+        assert json.loads(check.stdout)["state"]["locked_by_pid"] == first.proc.pid
+        assert first.proc.poll() is None
+    finally:
+        first.signal(signal.SIGKILL)  # no clean stop: the kernel still drops the lock
+        first.wait()
+    again = DaemonProc(tmp_path, cfg, "again")
+    again.signal(signal.SIGTERM)
+    assert again.wait() == 0, again.stderr()
