@@ -368,6 +368,7 @@ def input_messages(cfg: Config, db: Database) -> list[InputMessage]:
             nbytes=codec.frame_bytes(msg),
             checksum_name=f"{integ.checksum} ({integ.algorithm})" if check is not None else "",
             algorithm=integ.algorithm or "",
+            checksum_layout=codec.layout(msg, integ.checksum) if check is not None else None,
         )
         out.append(
             InputMessage(

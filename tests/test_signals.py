@@ -181,3 +181,60 @@ def test_the_unit_restarts_on_failure_but_not_on_a_configuration_error():
         else:
             assert code in prevent, kind
     assert keys["Restart"] == ["on-failure"] and keys["ExecReload"] == ["/bin/kill -HUP $MAINPID"]
+
+
+# -- a J1939 machine: input health, DM1 and BAM sessions carry over; a reload that moves an input -------
+
+
+def test_a_reload_of_a_j1939_machine_is_seamless_through_a_fault_and_a_bam():
+    """Input health (the frozen counter's run), DM1 occurrence counts and a BAM session under way
+    carry over: the reloaded monitor sends, frame for frame, what the running one would have."""
+    from tests.test_monitor_j1939 import freeze_counter, j1939_cfg, machine_frames
+
+    cfg = j1939_cfg()
+    frames, plan = machine_frames(cfg, 40.0)
+    t0 = float(frames.timestamp_s[0])
+    frames = freeze_counter(frames, cfg, plan, "HST_MOTOR", t0 + 25.0).to_frames()
+    whole = assemble(cfg).monitor
+    want = [f for fr in frames for f in whole.feed(fr)] + whole.flush()
+    assert whole.totals.history[-1]["to"] == "fault"
+    assert any(len(f.data) == 8 and f.arbitration_id >> 8 & 0xFFFF == 0xECFF for f in want)  # a BAM went out
+    for at_s in (27.0, 31.05):  # during the erratic run; after the fault, a BAM session under way
+        k = next(i for i, f in enumerate(frames) if f.timestamp_s >= t0 + at_s)
+        old = assemble(cfg).monitor
+        got = [f for fr in frames[:k] for f in old.feed(fr)]
+        new = assemble(cfg).monitor
+        assert new.take_over(old) == []
+        got += [f for fr in frames[k:] for f in new.feed(fr)] + new.flush()
+        assert got == want, at_s
+        assert new.snapshot()["inputs"] == whole.snapshot()["inputs"]
+        assert new.save_totals().to_dict() == whole.save_totals().to_dict()
+
+
+def test_a_reload_that_moves_an_input_to_another_channel_reopens_every_bus(leak):
+    """The new configuration adds a channel: the daemon closes its bus and opens one per configured
+    channel with the new openers; monitoring goes on."""
+    from tests.test_monitor_j1939 import j1939_cfg, two_channel_cfg
+
+    cfg = j1939_cfg()
+    two = two_channel_cfg(cfg)
+    opened: list[str] = []
+
+    def opener(name):
+        def open_bus():
+            opened.append(name)
+            return ScriptedBus([])
+
+        return open_bus
+
+    d = Daemon(cfg, assemble(cfg).monitor, None, {"can0": opener("can0")}, options=DaemonOptions(idle_after_s=3600))
+    d.reloader = lambda: Reloaded(two, assemble(two).monitor, {"can0": opener("can0"), "can1": opener("can1")})
+
+    def progress():
+        if opened == ["can0"]:
+            d.request_reload()
+        return len(opened) >= 3
+
+    run_daemon_until(d, progress)
+    assert opened == ["can0", "can0", "can1"]
+    assert [x.name for x in d.links] == ["can0", "can1"] and d.monitor.channels.names == ("can0", "can1")

@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from cmcan.checksums import TSC1_FOLD, id_sum
 from cmcan.codec import Layout, extract
@@ -49,15 +49,17 @@ COUNTED = ("bad_length", "checksum", "counter_frozen", "counter_jump", "out_of_r
 @dataclass(frozen=True)
 class HealthSpec:
     """What to check on one message: its counter (layout, modulo, largest step), its checksum (a
-    ``check(can_id, data) -> bool``), its timeout in seconds (inf: none)."""
+    ``check(can_id, data) -> bool``, made from ``algorithm`` and ``checksum_layout``, which stand for it
+    in comparisons), its timeout in seconds (inf: none)."""
 
     counter: Layout | None = None
     max_step: int = 2
-    checksum: Callable[[int, bytes], bool] | None = None
+    checksum: Callable[[int, bytes], bool] | None = field(default=None, compare=False)
     timeout_s: float = math.inf
     nbytes: int = 8  # the frame as an integer, for the counter's extraction
     checksum_name: str = ""  # the checksum's signal and algorithm, for people
     algorithm: str = ""  # the checksum's algorithm (j1939_tsc1 is checked inline, the common J1939 case)
+    checksum_layout: Layout | None = None
 
     @property
     def modulo(self) -> int:
