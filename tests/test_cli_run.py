@@ -3,6 +3,7 @@ before the bus is touched."""
 
 import json
 import shutil
+import sys
 from pathlib import Path
 
 import pytest
@@ -107,7 +108,9 @@ def test_systemd_unit_verifies():
         pytest.fail("systemd-analyze is not installed (the CI installs the systemd package)")
     import subprocess
 
-    exe = shutil.which("cmcan")
+    # the entry point beside this interpreter (a venv not on PATH), else on PATH
+    beside = Path(sys.executable).parent / "cmcan"
+    exe = str(beside) if beside.exists() else shutil.which("cmcan")
     assert exe, "the cmcan entry point must be installed"
     unit = (ROOT / "systemd" / "cmcan.service").read_text().replace("/usr/local/bin/cmcan", exe)
     for key in (
