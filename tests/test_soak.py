@@ -34,4 +34,4 @@ def test_thirty_minutes_of_a_full_bus():
     # the figures the checks stand on, said again here
     assert f["rss_slope_mb_per_bus_h"] < 1.0 and f["rss_growth_mb_per_bus_h"] < 1.0
     assert f["cpu_per_frame_last_over_first"] < 1.5
-    assert 0 < f["saves"] <= f["saves_allowed"] == 30 + res["transitions"] + 2  # one a minute, one a change
+    assert 0 < f["saves"] <= f["saves_allowed"] <= 30 + res["transitions"] + 2  # one a minute, one a change
