@@ -24,12 +24,11 @@ import time
 from pathlib import Path
 
 import paho.mqtt.client as mqtt
-from cmcan.monitor.build import build_monitor
 from paho.mqtt.enums import CallbackAPIVersion
 
 from cmcan import config as cfgmod
+from cmcan.assemble import assemble
 from cmcan.daemon import Daemon, DaemonOptions
-from cmcan.model import load_model
 from cmcan.uplink.config import UplinkSettings
 from cmcan.uplink.feed import UplinkFeed
 from cmcan.uplink.outbox import Outbox
@@ -117,9 +116,7 @@ def bench_daemon(d: Path, n_frames: int, summary_every_s: float | None) -> float
     frames = sim_frames("two_set_validation", duration_h=n_frames / 310 / 3600 + 0.01)[1]
     msgs = messages(frames)[:n_frames]
     cfg = cfgmod.load()
-    db = cfg.dbc()
-    model = load_model(cfg.model_path, motor_disp_cc=cfg.motor_disp_cc)
-    mon = build_monitor(cfg, db, model, model.envelope)
+    mon = assemble(cfg).monitor
     feed = None
     if summary_every_s is not None:
         w = OutboxWriter(str(d / f"daemon-{summary_every_s}.sqlite"), 10**10, 1e12).start()
@@ -139,26 +136,24 @@ def bench_daemon(d: Path, n_frames: int, summary_every_s: float | None) -> float
 
 def bench_core(d: Path, n_frames: int) -> tuple[float, float, int]:
     """CPU per frame of the core alone and of the core plus the feed's ``observe`` (one thread)."""
-    from tests.helpers import sim_frames
+    from tests.helpers import as_frames, sim_frames
 
-    frames = sim_frames("two_set_validation", duration_h=n_frames / 310 / 3600 + 0.01)[1]
-    ts, ids = frames.timestamp_s.tolist()[:n_frames], frames.arbitration_id.tolist()[:n_frames]
-    data = [bytes(r) for r in frames.data[:n_frames]]
     cfg = cfgmod.load()
-    db = cfg.dbc()
-    model = load_model(cfg.model_path, motor_disp_cc=cfg.motor_disp_cc)
+    frames = sim_frames("two_set_validation", duration_h=n_frames / 310 / 3600 + 0.01)[1]
+    # Frames built before the clock starts, on the configured channel (as the daemon hands them on).
+    fs = as_frames(frames, channel=cfg.bus.channel)[:n_frames]
     out = []
     for with_feed in (False, True):
-        mon = build_monitor(cfg, db, model, model.envelope)
+        mon = assemble(cfg).monitor
         w = OutboxWriter(str(d / f"core-{with_feed}.sqlite"), 10**10, 1e12, queue_size=10**6).start()
         feed = UplinkFeed(mon, w, 900.0)
         stats: dict[str, int] = {}
         c0 = time.thread_time()
-        for t, i, b in zip(ts, ids, data, strict=True):
-            mon.feed(t, i, b)
+        for f in fs:
+            mon.feed(f)
             if with_feed:
                 feed.observe(mon, stats)
-        out.append((time.thread_time() - c0) / len(ts))
+        out.append((time.thread_time() - c0) / len(fs))
         w.close(timeout_s=60)
     return out[0], out[1], mon.counters["ticks"]
 

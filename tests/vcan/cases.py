@@ -33,6 +33,7 @@ from cmcan.sim.run import simulate
 ROOT = Path(__file__).resolve().parents[2]
 IFACE = "vcan0"
 RATIO_ID, SPEED_ID, WARN_ID = 0x3A0, 0x3A1, 0x3A2
+INPUT_MESSAGES = ("PUMP_STATUS", "LOOP_PRESSURE", "MOTOR_STATUS", "OIL_STATUS")
 LEAK_AT_S = 12.0
 
 
@@ -58,9 +59,13 @@ def make_log(path: Path, seconds: float, leak_lpm: float) -> Path:
     return path
 
 
-def make_config(tmp: Path) -> Path:
-    """The shipped configuration on vcan0, with windows short enough for a 30 s test."""
+def make_config(tmp: Path, counters: bool = True) -> Path:
+    """The shipped configuration on vcan0, with windows short enough for a 30 s test; without
+    ``counters`` the inputs' alive counters are not checked (a peer that repeats one payload)."""
     raw = yaml.safe_load((ROOT / "config" / "cmcan.yaml").read_text())
+    if not counters:
+        for name in INPUT_MESSAGES:
+            raw.setdefault("messages", {}).setdefault(name, {})["counter"] = "none"
     raw["dbc"] = str(ROOT / "dbc" / "cmcan.dbc")
     raw["bus"].update(interface="socketcan", channel=IFACE)
     raw["filter"].update(samples=20, min_samples=10)
@@ -635,7 +640,8 @@ def _decoded_ratio_frames(db, path: Path):
 
 @pytest.mark.vcan
 def test_the_daemon_keeps_sending_through_wall_clock_steps(tmp_path):
-    cfg = make_config(tmp_path)
+    # cangen repeats one payload per message: its alive counter stands still, so it is not checked here
+    cfg = make_config(tmp_path, counters=False)
     (tmp_path / "state").mkdir()
     payloads = _steady_payloads(tmp_path)
     assert sorted(payloads) == [0x100, 0x101, 0x102, 0x103]
