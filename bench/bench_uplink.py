@@ -246,6 +246,7 @@ def main() -> None:
         print(f"  baseline: bare sqlite insert, fsync each   {bare_fsync * 1e6:9.2f} us/event")
         print(f"  ratio submit / bare insert without fsync   {submit / bare:9.2f} x")
         print(f"  ratio fsync'd commit / bare fsync insert   {single / bare_fsync:9.2f} x")
+        print(f"  ratio batched commit / bare insert no fsync{batched / bare:9.2f} x")
         core, core_feed, ticks = bench_core(d, args.frames)
         per_tick = (core_feed - core) * args.frames / ticks
         print(f"receive thread CPU ({args.frames} frames, {ticks} ticks, summaries every 900 s)")
