@@ -64,11 +64,11 @@ def _boot_time() -> float:
 @dataclass(frozen=True)
 class Reloaded:
     """What a reload brings: the new configuration, its monitor (built and checked) and an opener per
-    configured channel."""
+    configured channel (one opener: the configuration's bus.channel), as ``Daemon`` takes them."""
 
     cfg: Config
     monitor: Monitor
-    opens: Mapping[str, Callable[[], can.BusABC]]
+    opens: Callable[[], can.BusABC] | Mapping[str, Callable[[], can.BusABC]]
 
 
 @dataclass

@@ -372,3 +372,24 @@ def test_cli_usage_errors(tmp_path):
     r = run_cli("fleet", "query", str(tmp_path), "SELECT 1")
     assert r.returncode == 66 and "not a cmcan fleet data set" in r.stderr
     assert Gate.EVALUATING == 0  # the timeline's 'evaluated' counts this gate
+
+
+def _worker_environ() -> dict:
+    import os
+
+    return {k: os.environ.get(k) for k in ("MALLOC_TRIM_THRESHOLD_", "OMP_NUM_THREADS")}
+
+
+def test_the_embedded_cluster_leaves_glibc_malloc_thresholds_alone():
+    """Dask's nanny would set MALLOC_TRIM_THRESHOLD_, which freezes glibc's mmap threshold: a replay's
+    chunk arrays are then mapped and faulted in afresh (about 1.6x the CPU per log). One thread per
+    worker stays."""
+    pytest.importorskip("distributed")
+    from cmcan.fleet.run import _close, make_client
+
+    client = make_client(None, 1)
+    try:
+        env = client.submit(_worker_environ, pure=False).result(timeout=60)
+    finally:
+        _close(client)
+    assert env == {"MALLOC_TRIM_THRESHOLD_": None, "OMP_NUM_THREADS": "1"}

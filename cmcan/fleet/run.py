@@ -81,6 +81,12 @@ def make_client(scheduler: str | None, workers: int | None, memory_limit: str = 
     n = workers or os.cpu_count() or 1
     # Workers of an embedded cluster die with their parent; no dashboard (no port to take).
     dask.config.set({"distributed.worker.daemon": True, "distributed.admin.tick.limit": "30s"})
+    # Dask's nanny sets MALLOC_TRIM_THRESHOLD_ in its workers, which also freezes glibc's mmap threshold
+    # at 128 KiB: every array of a replay chunk is then mapped and faulted in afresh, and a log costs
+    # about 1.6x the CPU it costs in one process (bench/bench_fleet.py). glibc's own thresholds here.
+    environ = dict(dask.config.get("distributed.nanny.pre-spawn-environ", {}))
+    environ.pop("MALLOC_TRIM_THRESHOLD_", None)
+    dask.config.set({"distributed.nanny.pre-spawn-environ": environ})
     cluster = LocalCluster(
         n_workers=n,
         threads_per_worker=1,
