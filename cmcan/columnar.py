@@ -38,7 +38,7 @@ from cmcan.monitor.payloads import OutputMessage
 from cmcan.monitor.tick import LEVEL_NAMES, Tick
 from cmcan.monitor.warnings import Level, Reason, add_repeat
 from cmcan.monitor.windows import TIME_EPS_S, Affine, RoleWindow, mean_std
-from cmcan.replay import NoFrames, ReplaySummary, Sink, TickColumns, summarize
+from cmcan.replay import CHUNK_TICKS, NoFrames, ReplaySummary, Sink, TickColumns, summarize
 from cmcan.roles import DP, MODEL_INPUTS
 
 _EVALUATED = np.array(sorted(int(g) for g in EVALUATED), dtype=np.int8)
@@ -89,6 +89,7 @@ class _Engine:
         monitor.keep_timeline = self.want_ticks
         self.n_frames_out = 0
         self.pending_frames: list[FrameColumns] = []  # in order: scalar pieces and stretches
+        self._scalar_frames: list[Frame] = []  # from the streaming path, not yet a piece
         # the mapped input messages as the core holds them, and per message the (role or None, kind)
         # of each decoded value as the core routes them, and each value's raw range
         self.inps = list(monitor._inputs.values())
@@ -108,9 +109,18 @@ class _Engine:
     # -- output plumbing ------------------------------------------------------------------------------
 
     def scalar_out(self, frames: list[Frame]) -> None:
-        """Frames (and ticks on the monitor's timeline) from the streaming path, in order."""
+        """Frames (and ticks on the monitor's timeline) from the streaming path, in order: gathered
+        into chunks as the streaming replay does (a sink per tick would cost more than the tick)."""
         if self.want_frames and frames:
-            self.pending_frames.append(FrameColumns.from_frames(frames))
+            self._scalar_frames.extend(frames)
+        if len(self.m.timeline) >= CHUNK_TICKS or len(self._scalar_frames) >= 3 * CHUNK_TICKS:
+            self.flush_scalar()
+
+    def flush_scalar(self) -> None:
+        """What the streaming path gathered goes on, before anything the array path makes."""
+        if self._scalar_frames:
+            self.pending_frames.append(FrameColumns.from_frames(self._scalar_frames))
+            self._scalar_frames = []
         self.drain_timeline()
 
     def drain_timeline(self) -> None:
@@ -136,7 +146,7 @@ class _Engine:
             self.pending_frames = []
 
     def drain(self) -> None:
-        self.drain_timeline()
+        self.flush_scalar()
         self._push_frames()
 
     # -- a chunk --------------------------------------------------------------------------------------
@@ -233,7 +243,6 @@ class _Engine:
         return _UNKNOWN_ID if inp is None else self._index[id(inp)]
 
     def _scalar(self, cols: FrameColumns, i: int) -> None:
-        self.drain_timeline()
         self.scalar_out(self.m.feed(cols.frame(i)))
 
     def _decode(
@@ -711,6 +720,7 @@ class _Engine:
             reason=Reason(int(reason[last])),
             time_below_s=float(below[last]),
         )
+        self.flush_scalar()  # the streaming path's ticks and frames before this stretch's
         if self.want_frames:
             self.pending_frames.append(self._frames(ks, cols, wcount))
         if self.want_ticks:
