@@ -159,6 +159,7 @@ def daemon_cpu(cfg: cfgmod.Config, log: Path) -> float:
     while bare.recv(0) is not None:
         pass
     c_bare = time.process_time() - c0
+    bare.shutdown()
     mon = assemble(cfg).monitor
     bus = MemoryBus(msgs)
     daemon = Daemon(cfg, mon, None, lambda: bus, options=DaemonOptions(idle_after_s=3600))
