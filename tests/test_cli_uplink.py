@@ -21,6 +21,7 @@ from tests.conftest import run_cli
 from tests.uplink_support import (
     Broker,
     Subscriber,
+    closed_port,
     free_port,
     make_certs,
     needs_mosquitto,
@@ -110,15 +111,15 @@ def test_a_corrupt_outbox_is_kept_aside_reported_and_noted_in_the_new_one(tmp_pa
 @pytest.mark.slow
 def test_unreachable_broker_fails_the_check_and_drain_times_out_keeping_entries(tmp_path, state):
     fill(state, 7)
-    port = free_port()  # nothing listens there
-    cfg = uplink_config(tmp_path / "c.yaml", state, port)
-    r = run_cli("uplink", "--config", str(cfg), "--check")
-    assert r.returncode == 69 and f"127.0.0.1:{port}: connection refused" in r.stderr
-    cfg = uplink_config(tmp_path / "c.yaml", state, 1883, mqtt={"host": "no-such-host.invalid"})
-    r = run_cli("uplink", "--config", str(cfg), "--check")
-    assert r.returncode == 69 and "cannot resolve no-such-host.invalid" in r.stderr
-    cfg = uplink_config(tmp_path / "c.yaml", state, port)
-    r = run_cli("uplink", "--config", str(cfg), "--drain", "--timeout", "1.5")
+    with closed_port() as port:  # nothing listens there, and nothing else can take it meanwhile
+        cfg = uplink_config(tmp_path / "c.yaml", state, port)
+        r = run_cli("uplink", "--config", str(cfg), "--check")
+        assert r.returncode == 69 and f"127.0.0.1:{port}: connection refused" in r.stderr
+        cfg = uplink_config(tmp_path / "c.yaml", state, 1883, mqtt={"host": "no-such-host.invalid"})
+        r = run_cli("uplink", "--config", str(cfg), "--check")
+        assert r.returncode == 69 and "cannot resolve no-such-host.invalid" in r.stderr
+        cfg = uplink_config(tmp_path / "c.yaml", state, port)
+        r = run_cli("uplink", "--config", str(cfg), "--drain", "--timeout", "1.5")
     assert r.returncode == 75 and "outbox not empty after 1.5 s" in r.stderr and "connection refused" in r.stderr
     assert "retrying in" in r.stderr  # not fatal at run time: retried with back-off
     assert Outbox(state / "outbox.sqlite").usage().entries == 7
