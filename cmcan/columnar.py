@@ -101,9 +101,6 @@ class _Engine:
         self._m_keys = np.empty(0, dtype=np.int64)
         self._m_codes = np.empty(0, dtype=np.int64)
         self._m_names: tuple[str, ...] = ()
-        # DM1 with its transport sessions is stateful per tick in ways not done with arrays here: such
-        # a machine's frames go through the core one by one.
-        self.plain = monitor._dm1 is None
         self._low_after: int | None = None
 
     # -- output plumbing ------------------------------------------------------------------------------
@@ -155,10 +152,6 @@ class _Engine:
         m = self.m
         c = m.counters
         n = len(cols)
-        if not self.plain:
-            for i in range(n):
-                self._scalar(cols, i)
-            return
         err, rtr = cols.error, cols.remote
         live = ~(err | rtr)
         which = self._match(cols, live)
@@ -289,11 +282,16 @@ class _Engine:
         st, spec = x.stream, x.spec.health
         if st.tsc1 and bool((cols.dlc[rows] == 8).all()):
             # J1939-71's TSC1 layout: counter and checksum in byte 8, the sum over the frame and the id
-            d = data[:, :8].astype(np.int64)
-            d7 = d[:, 7]
-            cid = cols.arbitration_id[rows].astype(np.int64)
-            ids_sum = (cid & 0xFF) + ((cid >> 8) & 0xFF) + ((cid >> 16) & 0xFF) + ((cid >> 24) & 0xFF)
-            cs_ok[:] = (d7 >> 4) == _TSC1_FOLD[d.sum(axis=1) - (d7 & 0xF0) + ids_sum]
+            d7 = data[:, 7]
+            words = np.ascontiguousarray(data[:, :8]).view("<u8")[:, 0]
+            # bytes 1-7, the counter (the low half of byte 8) and the identifier's four bytes
+            s = byte_sums(words & np.uint64(0x0FFF_FFFF_FFFF_FFFF))
+            cid = cols.arbitration_id[rows]
+            if bool((cid == cid[0]).all()):  # one sender address: one identifier sum
+                s += sum(int(cid[0]).to_bytes(4, "little"))
+            else:
+                s += byte_sums(cid)
+            cs_ok[:] = (d7 >> 4) == _TSC1_FOLD[s]
             ctr[:] = d7 & 0x0F
         elif st.tsc1 or st.checksum is not None:  # any other checksum: the stream's own check, per frame
             probe = Stream(spec)
@@ -680,6 +678,7 @@ class _Engine:
             wcount[i] = wc
             i += 1
         totals.warning_count, totals.fault_count = wc, fc
+        dm1_now = self._dm1(ks, t_list, gates, cond, fault, filt, valid) if m._dm1 is not None else []
         level = np.where(fault != 0, np.int8(Level.FAULT), cond).astype(np.int8)
         reason = np.where(fault != 0, fault, creason).astype(np.int8)
         totals.condition = LEVEL_NAMES[machine.condition]
@@ -721,12 +720,57 @@ class _Engine:
             time_below_s=float(below[last]),
         )
         self.flush_scalar()  # the streaming path's ticks and frames before this stretch's
+        # the pending transport packets due by the last tick go out with the ticks' frames, in time order
+        later = m.pop_due(t_list[-1]) if m._later else []
         if self.want_frames:
-            self.pending_frames.append(self._frames(ks, cols, wcount))
+            frames = self._frames(ks, cols, wcount)
+            if dm1_now or later:
+                frames = _merge(frames, dm1_now, later)
+            self.pending_frames.append(frames)
         if self.want_ticks:
             self._push_ticks(cols)
         elif self.want_frames:
             self._push_frames()
+
+    def _dm1(
+        self,
+        ks: NDArray[np.int64],
+        t_list: list[float],
+        gates: NDArray[np.int8],
+        cond: NDArray[np.int8],
+        fault: NDArray[np.int8],
+        filt: NDArray[np.float64],
+        valid: NDArray[np.bool_],
+    ) -> list[Frame]:
+        """DM1 tick by tick through the core's own step: the frames due at their ticks, in order;
+        transport packets for later are queued in the monitor as the streaming core queues them.
+
+        A tick is stepped where the step could do something: a tick due by the period, a change of
+        condition or fault, a change still waiting to go out (``changed``), or anywhere while the
+        severity could move (a ratio beyond a severe threshold, or a severe flag set). Any other tick
+        would find its state unchanged and nothing due, and return nothing."""
+        m = self.m
+        d = m._dm1
+        assert d is not None
+        p = d.p
+        ratio = np.where(valid & (gates == Gate.EVALUATING), filt, np.nan)  # NaN: none
+        with np.errstate(invalid="ignore"):
+            severe = (ratio < p.low_severe_pct) | (ratio > p.high_severe_pct)
+        n = len(ks)
+        if d.low_severe or d.high_severe or severe.any():
+            must = np.ones(n, dtype=bool)
+        else:
+            must = ks % p.every_ticks == 0
+            must[0] = True
+            must[1:] |= (cond[1:] != cond[:-1]) | (fault[1:] != fault[:-1])
+        now: list[Frame] = []
+        step = m.dm1_step
+        rl, cl, fl, kl, ml = ratio.tolist(), cond.tolist(), fault.tolist(), ks.tolist(), must.tolist()
+        for i in range(n):
+            if ml[i] or d.changed:
+                r = rl[i]
+                step(kl[i], t_list[i], cl[i], fl[i], None if r != r else r, now)
+        return now
 
     def _frames(self, ks: NDArray[np.int64], c: TickColumns, wcount: NDArray[np.int64]) -> FrameColumns:
         """The CM frames of the ticks, as :class:`~cmcan.monitor.payloads.Payloads` builds them."""
@@ -814,6 +858,49 @@ class _Engine:
         )
 
 
+def _merge(ticks: FrameColumns, now: list[Frame], later: list[Frame]) -> FrameColumns:
+    """The ticks' CM frames with the DM1 frames of the same ticks (``now``, each after its tick's CM
+    frames) and the transport packets due meanwhile (``later``, before a tick's frames of the same
+    time), in the order the streaming core releases them (:meth:`Monitor._release`)."""
+    ts = ticks.timestamp_s
+    t_now = [f.timestamp_s for f in now]
+    t_later = [f.timestamp_s for f in later]
+    at_now = np.searchsorted(ts, t_now, side="right").tolist()
+    at_later = np.searchsorted(ts, t_later, side="left").tolist()
+    key = [(a, t, 1, i) for i, (a, t) in enumerate(zip(at_now, t_now, strict=True))]
+    key += [(a, t, 0, i) for i, (a, t) in enumerate(zip(at_later, t_later, strict=True))]
+    key.sort()
+    extra = FrameColumns.from_frames([(later if cls == 0 else now)[i] for _, _, cls, i in key])
+    pos = np.array([k[0] for k in key], dtype=np.int64) + np.arange(len(key))  # rows in the result
+    n = len(ticks) + len(extra)
+    mine = np.ones(n, dtype=bool)
+    mine[pos] = False
+    names = tuple(dict.fromkeys(ticks.channel_names + extra.channel_names))
+    code = np.array([names.index(c) for c in extra.channel_names], dtype=np.int16)
+
+    def put(a: NDArray, b: NDArray) -> NDArray:
+        out = np.empty((n, *a.shape[1:]), dtype=a.dtype)
+        out[mine] = a
+        out[pos] = b
+        return out
+
+    at = np.flatnonzero(mine)
+    long = {int(at[r]): d for r, d in ticks.long_data.items()} | {int(pos[r]): d for r, d in extra.long_data.items()}
+    return FrameColumns(
+        timestamp_s=put(ticks.timestamp_s, extra.timestamp_s),
+        channel=put(ticks.channel, code[extra.channel] if len(code) else extra.channel),
+        channel_names=names,
+        arbitration_id=put(ticks.arbitration_id, extra.arbitration_id),
+        extended=put(ticks.extended, extra.extended),
+        remote=put(ticks.remote, extra.remote),
+        error=put(ticks.error, extra.error),
+        fd=put(ticks.fd, extra.fd),
+        dlc=put(ticks.dlc, extra.dlc),
+        data=put(ticks.data, extra.data),
+        long_data=long,
+    )
+
+
 def _encode(
     msg: OutputMessage, rows: NDArray[np.int64], values: dict[str, NDArray[np.float64]]
 ) -> tuple[NDArray[np.int64], NDArray[np.uint8]]:
@@ -847,6 +934,19 @@ def _filter(
     flt.ratios = deque(all_r[-size:], maxlen=size)
     flt.leaks = deque(all_l[-size:], maxlen=size)
     return filt, filt_leak, cnt
+
+
+_LANES = np.uint64(0x00FF_00FF_00FF_00FF)
+_FOLD16 = np.uint64(0x0001_0001_0001_0001)
+
+
+def byte_sums(words: NDArray[np.unsignedinteger]) -> NDArray[np.int64]:
+    """The sum of the bytes of each (up to 64-bit) word, in a few array passes instead of a reduction
+    over rows of 8 bytes: pairs of bytes added into four 16-bit lanes, the lanes added by one
+    multiplication into the top lane (at most 8 x 255 = 2040, no carry out of a lane)."""
+    w = words.astype(np.uint64, copy=False)
+    pairs = (w & _LANES) + ((w >> np.uint64(8)) & _LANES)
+    return ((pairs * _FOLD16) >> np.uint64(48)).astype(np.int64)
 
 
 def _distinct(keys: NDArray[np.int64], few: int = 16) -> NDArray[np.int64]:

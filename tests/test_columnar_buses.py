@@ -14,8 +14,9 @@ from hypothesis import strategies as st
 
 from cmcan import config as cfgmod
 from cmcan.assemble import assemble, bus_plan, dbc_for
-from cmcan.columnar import replay_columns
+from cmcan.columnar import byte_sums, replay_columns
 from cmcan.frame import Frame, FrameColumns
+from cmcan.monitor.core import Monitor
 from cmcan.replay import FrameCollector, TimelineCollector, replay
 from cmcan.sim import scenario as scn
 from cmcan.sim.frames import frames_from_run, with_source_address
@@ -67,6 +68,29 @@ def test_the_j1939_machine_replays_the_same(j1939, dm1, chunk):
     assert counters["counter_frozen"] > 0 and counters["accepted"] > 0
     if dm1:
         assert any(f.arbitration_id & 0x00FF0000 == 0x00EC0000 for f in a[1])  # a BAM announcement
+
+
+def test_the_j1939_machine_with_dm1_takes_the_array_path(j1939, monkeypatch):
+    """DM1 (single frames and BAM) is stepped alongside the ticks of a stretch: only irregular frames
+    (the first, a sender's new address, the frozen counter's edges) go through the core one by one."""
+    cfg, frames = j1939
+    fed = []
+    feed = Monitor.feed
+    monkeypatch.setattr(Monitor, "feed", lambda self, f: fed.append(f) or feed(self, f))
+    mon = assemble(cfg).monitor
+    fr = FrameCollector()
+    replay_columns(mon, [FrameColumns.from_frames(frames)], [fr])
+    assert any(f.arbitration_id & 0x00FF0000 == 0x00EC0000 for f in fr.frames_out)  # BAM went out
+    assert len(fed) < 0.01 * len(frames), f"{len(fed)} of {len(frames)} frames through the streaming core"
+
+
+def test_byte_sums_match_numpys_reduction():
+    rng = np.random.default_rng(7)
+    data = rng.integers(0, 256, (5000, 8), dtype=np.uint8)
+    data[:10] = 0xFF  # the largest sums: no carry may leave a lane
+    assert np.array_equal(byte_sums(data.view("<u8")[:, 0]), data.sum(axis=1))
+    ids = rng.integers(0, 1 << 29, 5000).astype(np.uint32)
+    assert np.array_equal(byte_sums(ids), ids.view(np.uint8).reshape(-1, 4).sum(axis=1))
 
 
 def corrupt(frames: list[Frame], rng: np.random.Generator, share: float) -> list[Frame]:

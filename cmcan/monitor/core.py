@@ -463,12 +463,26 @@ class Monitor:
         if self._dm1 is not None:
             m = self.machine
             ratio = tick.ratio_filt_pct if tick.filt_valid and tick.gate == Gate.EVALUATING else None
-            for f in self._dm1.step(k, tick.t_s, m.condition, m.fault_reason, ratio):
-                if f.timestamp_s > tick.t_s:
-                    heapq.heappush(self._later, (f.timestamp_s, self._seq, f))
-                    self._seq += 1
-                else:
-                    out.append(f)
+            self.dm1_step(k, tick.t_s, m.condition, m.fault_reason, ratio, out)
+        return out
+
+    def dm1_step(self, k: int, t: float, condition: int, fault: int, ratio: float | None, out: list[Frame]) -> None:
+        """DM1 at tick ``k`` (time ``t``): its frames due now go to ``out``, the transport packets due
+        later into the pending queue (the columnar replay steps DM1 through here too)."""
+        assert self._dm1 is not None
+        for f in self._dm1.step(k, t, condition, fault, ratio):  # type: ignore[arg-type]
+            if f.timestamp_s > t:
+                heapq.heappush(self._later, (f.timestamp_s, self._seq, f))
+                self._seq += 1
+            else:
+                out.append(f)
+
+    def pop_due(self, t: float) -> list[Frame]:
+        """The pending frames due by ``t``, in order, taken out of the queue."""
+        later = self._later
+        out = []
+        while later and later[0][0] <= t:
+            out.append(heapq.heappop(later)[2])
         return out
 
     def _record(self, t: float, frm: Level, to: Level, reason: Reason, ratio: float | None) -> None:

@@ -108,8 +108,16 @@ class Dm1Producer:
         """One tick: update the active DTCs and counts; the DM1 frames due (times >= ``t``)."""
         self._severity(ratio_pct)
         state = (int(condition), int(fault), self.low_severe, self.high_severe)
+        if state == self._last and not self.changed:
+            if k % self.p.every_ticks:  # nothing changed, nothing to send: the common tick
+                return []
+            # due, nothing changed since the last DM1 (any change of DTCs, lamp or counts sets
+            # ``changed`` until it is sent): the same single frame again
+            pl = self._payload
+            if pl is not None and len(pl[1]) <= 8 and t > self.busy_until:
+                return [Frame(t, self.p.channel, self.frame_id, True, False, False, False, pl[1])]
         due = k % self.p.every_ticks == 0 or self.changed
-        if state == self._last and not due:  # nothing changed, nothing to send: the common tick
+        if state == self._last and not due:
             return []
         self._last = state
         now = self.dtcs(condition, fault)
