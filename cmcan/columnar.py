@@ -44,7 +44,7 @@ from cmcan.roles import DP, MODEL_INPUTS
 _EVALUATED = np.array(sorted(int(g) for g in EVALUATED), dtype=np.int8)
 
 _I64_SAFE = 1 << 20  # raw values below this: window sums and n*S2 - S1^2 stay exact in int64
-_TSC1_FOLD = np.array(TSC1_FOLD, dtype=np.int64)
+_TSC1_FOLD = np.array(TSC1_FOLD, dtype=np.uint8)
 # why a frame matched no input message (``_Engine._match``); 0 and up: the message's index
 _UNKNOWN_ID, _UNKNOWN_CHANNEL, _BAD_FD, _NOT_DATA = -1, -2, -3, -4
 
@@ -283,7 +283,9 @@ class _Engine:
         if st.tsc1 and bool((cols.dlc[rows] == 8).all()):
             # J1939-71's TSC1 layout: counter and checksum in byte 8, the sum over the frame and the id
             d7 = data[:, 7]
-            words = np.ascontiguousarray(data[:, :8]).view("<u8")[:, 0]
+            words = (
+                data if data.shape[1] == 8 and data.flags.c_contiguous else np.ascontiguousarray(data[:, :8])
+            ).view("<u8")[:, 0]
             # bytes 1-7, the counter (the low half of byte 8) and the identifier's four bytes
             s = byte_sums(words & np.uint64(0x0FFF_FFFF_FFFF_FFFF))
             cid = cols.arbitration_id[rows]
@@ -764,12 +766,19 @@ class _Engine:
             must[0] = True
             must[1:] |= (cond[1:] != cond[:-1]) | (fault[1:] != fault[:-1])
         now: list[Frame] = []
-        step = m.dm1_step
-        rl, cl, fl, kl, ml = ratio.tolist(), cond.tolist(), fault.tolist(), ks.tolist(), must.tolist()
-        for i in range(n):
-            if ml[i] or d.changed:
-                r = rl[i]
-                step(kl[i], t_list[i], cl[i], fl[i], None if r != r else r, now)
+        step, queue = d.step, m.queue
+        todo = np.flatnonzero(must)
+        i = int(todo[0]) if len(todo) else n
+        while i < n:
+            r = float(ratio[i])
+            dm = step(int(ks[i]), t_list[i], int(cond[i]), int(fault[i]), None if r != r else r)  # type: ignore[arg-type]
+            if dm:
+                queue(dm, t_list[i], now)
+            if d.changed:  # a change waits to go out: every tick until it has
+                i += 1
+            else:
+                at = int(np.searchsorted(todo, i, side="right"))
+                i = int(todo[at]) if at < len(todo) else n
         return now
 
     def _frames(self, ks: NDArray[np.int64], c: TickColumns, wcount: NDArray[np.int64]) -> FrameColumns:

@@ -463,14 +463,15 @@ class Monitor:
         if self._dm1 is not None:
             m = self.machine
             ratio = tick.ratio_filt_pct if tick.filt_valid and tick.gate == Gate.EVALUATING else None
-            self.dm1_step(k, tick.t_s, m.condition, m.fault_reason, ratio, out)
+            dm = self._dm1.step(k, tick.t_s, m.condition, m.fault_reason, ratio)
+            if dm:  # most ticks send no DM1
+                self.queue(dm, tick.t_s, out)
         return out
 
-    def dm1_step(self, k: int, t: float, condition: int, fault: int, ratio: float | None, out: list[Frame]) -> None:
-        """DM1 at tick ``k`` (time ``t``): its frames due now go to ``out``, the transport packets due
-        later into the pending queue (the columnar replay steps DM1 through here too)."""
-        assert self._dm1 is not None
-        for f in self._dm1.step(k, t, condition, fault, ratio):  # type: ignore[arg-type]
+    def queue(self, frames: list[Frame], t: float, out: list[Frame]) -> None:
+        """Output frames of the tick at ``t``: those due now go to ``out``, the transport packets due
+        later into the pending queue (the columnar replay queues its DM1 frames here too)."""
+        for f in frames:
             if f.timestamp_s > t:
                 heapq.heappush(self._later, (f.timestamp_s, self._seq, f))
                 self._seq += 1
