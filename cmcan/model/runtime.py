@@ -163,8 +163,8 @@ def _checked_meta(blob: bytes, props: dict[str, str], src: str) -> ModelMeta:
         raise ModelError(f"{src}: not a well-formed model file: {exc}") from None
     if recorded is not None and recorded != actual:
         raise ModelError(
-            f"{src}: the weights do not match their recorded digest ({digest.KEY}): the file is corrupt or "
-            "was edited; copy it again from its source or retrain it"
+            f"{src}: the weights and metadata do not match their recorded digest ({digest.KEY}): "
+            "the file is corrupt or was edited; copy it again from its source or retrain it"
         )
     meta = ModelMeta.from_props(props, src)
     if recorded is None:
