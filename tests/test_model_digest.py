@@ -129,7 +129,7 @@ def test_two_digest_entries_are_refused(tmp_path):
     m = onnx.load(str(DEFAULT_MODEL))
     m.metadata_props.append(onnx.StringStringEntryProto(key=digest.KEY, value=json.dumps("0" * 64)))
     onnx.save(m, str(tmp_path / "two.onnx"))
-    with pytest.raises(ModelError, match=f"two.onnx: not a well-formed model file: 2 entries {digest.KEY}"):
+    with pytest.raises(ModelError, match=f"two.onnx: 2 entries {digest.KEY}, expected one"):
         load_model(tmp_path / "two.onnx")
 
 
@@ -179,3 +179,13 @@ def test_sealing_agrees_with_the_onnx_parser(entries, stale_at, doc):
 def test_bytes_that_are_not_protobuf_are_malformed(junk):
     with pytest.raises(digest.MalformedError):
         digest.recorded_and_actual(DEFAULT_MODEL.read_bytes() + junk)
+
+
+def test_a_file_onnxruntime_takes_but_the_walk_does_not_is_refused(tmp_path):
+    """A protobuf group (wire type 3, not in onnx.proto) before the model: onnxruntime skips it as
+    an unknown field; the digest's walk stops, and the file is refused, not trusted undigested."""
+    group = bytes([0xA3, 0x06, 0xA4, 0x06])  # field 100: start group, end group
+    p = tmp_path / "group.onnx"
+    p.write_bytes(group + DEFAULT_MODEL.read_bytes())
+    with pytest.raises(ModelError, match=r"group\.onnx: not a well-formed model file: wire type 3 at byte 0"):
+        load_model(p)
