@@ -1,12 +1,14 @@
-"""Benchmark: the gray-box model's single-sample inference time and its training time.
+"""Benchmark: the gray-box model's single-sample inference time, its load time and its training time.
 
 Targets on the project's machine: under 20 us per single-sample call; training on one hour of
 100 Hz data under 60 s. Printed side by side with baselines run in the same process:
 - inference: a do-nothing ONNX graph (Identity on the same float64 input) through the same
   onnxruntime session options and the same bound call, i.e. onnxruntime's own per-call floor;
+- load (the daemon's start and SIGHUP reload): ``load_model`` with its checks against an onnxruntime
+  session of the same file alone; the digest check's share (``cmcan.model.digest``) on its own;
 - training: the white-box ("light gray") least-squares fit on the same steady points.
 
-    python bench/bench_model.py [--calls 20000] [--hours 1.0]
+    python bench/bench_model.py [--calls 20000] [--hours 1.0] [--loads 50]
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from cmcan import config as cfgmod
-from cmcan.model import load_model
+from cmcan.model import digest, load_model
 from cmcan.model.features import operating_points, series_from_columns
 from cmcan.model.physics import fit_eta_vol
 from cmcan.model.runtime import default_model_path
@@ -63,10 +65,31 @@ def per_call_us(fn, calls: int) -> float:
     return best
 
 
+def best_ms(fn, repeats: int) -> float:
+    fn()
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, (time.perf_counter() - t0) * 1e3)
+    return best
+
+
+def bare_session(path: Path):
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = 1
+    opts.inter_op_num_threads = 1
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    return ort.InferenceSession(str(path), sess_options=opts, providers=["CPUExecutionProvider"])
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--calls", type=int, default=20000)
     ap.add_argument("--hours", type=float, default=1.0)
+    ap.add_argument("--loads", type=int, default=50, help="model loads timed (best of)")
     args = ap.parse_args()
 
     model = load_model(default_model_path())
@@ -77,6 +100,16 @@ def main() -> None:
     print(f"inference  model predict_one     {t_model:8.2f} us/call (target < 20 us)")
     print(f"           baseline Identity     {t_ident:8.2f} us/call")
     print(f"           ratio model/baseline  {t_model / t_ident:8.2f} x")
+
+    path = default_model_path()
+    blob = path.read_bytes()
+    t_load = best_ms(lambda: load_model(path), args.loads)
+    t_bare = best_ms(lambda: bare_session(path), args.loads)
+    t_digest = best_ms(lambda: digest.recorded_and_actual(blob), args.loads * 20)
+    print(f"load       load_model (all checks)   {t_load:8.3f} ms ({len(blob)} bytes)")
+    print(f"           baseline session alone    {t_bare:8.3f} ms")
+    print(f"           ratio                     {t_load / t_bare:8.2f} x")
+    print(f"           of which the digest       {t_digest:8.3f} ms ({t_digest / t_load * 100:.1f} % of the load)")
 
     cfg = cfgmod.load()
     run = simulate(scn.load(scn.shipped("training_healthy")).with_overrides(duration_h=args.hours))

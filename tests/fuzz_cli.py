@@ -15,6 +15,7 @@ promises for any input:
 - no traceback, on either stream;
 - on failure, one message that names the spoiled file, and nothing written: no output, no temporary
   file, every input byte for byte as it was (the folder is compared before and after);
+- a model file whose bytes changed is refused (its digest, ``cmcan.content_sha256``), never used;
 - ``cmcan run`` either refuses to start (as above) or starts and stops cleanly on SIGTERM (exit 0).
 
 Cases are drawn from ``--seed`` and their number alone, so a failure is reproduced with ``--case``.
@@ -458,6 +459,7 @@ class Case:
     detail: str = ""
     dir: Path = Path()
     argv: list[str] = field(default_factory=list)
+    pristine: str = ""  # SHA-256 of the spoiled input before it was spoiled
 
 
 @dataclass
@@ -508,6 +510,8 @@ def prepare_case(corpus: Corpus, work: Path, seed: int, index: int, targets: lis
                 text = text.replace(b"@CHANNEL@", f"fuzz-{os.getpid()}-{index}".encode())
             dst.write_bytes(text)
     case = Case(index, target, item, how, dir=d, argv=list(target.argv))
+    spoiled = d / Corpus.ITEMS[item][0]
+    case.pristine = hashlib.sha256(spoiled.read_bytes()).hexdigest() if spoiled.is_file() else ""
     case.detail = mutate(d / Corpus.ITEMS[item][0], Corpus.ITEMS[item][1], how, rng, corpus)
     return case
 
@@ -543,6 +547,9 @@ def run_case(case: Case) -> Outcome:
             problems.append("a traceback")
         if "internal error" in stderr:
             problems.append("an internal error")
+        rel, kind = Corpus.ITEMS[case.item]
+        if code == 0 and kind == "onnx" and before.get(rel) != case.pristine:
+            problems.append("a spoiled model was accepted")  # its digest must catch any changed byte
         if code != 0:
             name = Path(Corpus.ITEMS[case.item][0]).name
             lines = [x for x in stderr.splitlines() if x.strip()]

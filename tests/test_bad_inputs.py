@@ -15,6 +15,7 @@ from onnx import numpy_helper
 
 from cmcan.cli.errors import EX_CANTCREAT, EX_CONFIG, EX_DATAERR, EX_UNAVAILABLE
 from cmcan.frame import to_message_kwargs
+from cmcan.model import digest
 from tests.conftest import ROOT, run_cli
 from tests.helpers import as_frames, sim_frames, write_log
 from tests.test_cli_run import config_copy
@@ -70,7 +71,7 @@ def with_metadata(dst, change):
     for k, v in props.items():
         e = m.metadata_props.add()
         e.key, e.value = f"cmcan.{k}", json.dumps(v)
-    onnx.save(m, str(dst))
+    dst.write_bytes(digest.seal(m.SerializeToString()))  # sealed again: a writer's wrong types, not corruption
     return dst
 
 
@@ -96,13 +97,13 @@ def test_model_metadata_of_the_wrong_type_is_named_in_check_run_and_replay(tmp_p
 
 
 def spoiled_model(dst, factor: float):
-    """The default model with its physics coefficients multiplied by ``factor`` (NaN, -1, 1e30):
-    a graph that loads and runs, and predicts nonsense."""
+    """The default model with its physics coefficients multiplied by ``factor`` (NaN, -1, 1e30) and
+    sealed again: a graph that loads and runs, and predicts nonsense (a bad fit, not a bad copy)."""
     m = onnx.load(str(DEFAULT_MODEL))
     for init in m.graph.initializer:
         if init.name == "physics_coef":
             init.CopyFrom(numpy_helper.from_array(numpy_helper.to_array(init) * factor, init.name))
-    onnx.save(m, str(dst))
+    dst.write_bytes(digest.seal(m.SerializeToString()))
     return dst
 
 

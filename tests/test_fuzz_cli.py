@@ -3,6 +3,7 @@ The 10-minute run's figures are in docs/reliability.md."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 
 from tests.fuzz_cli import TARGETS, Case, Corpus, Target, available, fuzz, run_case
@@ -26,3 +27,17 @@ def test_the_harness_sees_a_message_that_does_not_name_the_file(tmp_path):
     t = Target("bogus", ("log",), ("log",), ("replay", "run.log", "--engine", "warp"))
     o = run_case(Case(0, t, "log", "truncate", dir=d, argv=list(t.argv)))
     assert o.code == 64 and o.problems == ["the message does not name run.log"]
+
+
+def test_the_harness_sees_a_spoiled_model_that_was_used(tmp_path):
+    """A command that does not read the spoiled model exits 0: the harness calls that an accepted model."""
+    corpus = Corpus(tmp_path / "base")
+    d = tmp_path / "case"
+    d.mkdir()
+    (d / "run.log").write_bytes(corpus.path("log").read_bytes())
+    model = corpus.path("model").read_bytes()
+    (d / "model.onnx").write_bytes(model[:-1] + bytes([model[-1] ^ 1]))
+    t = Target("bogus", ("log", "model"), ("model",), ("replay", "run.log", "--out", "timeline.csv"))
+    case = Case(0, t, "model", "bitflip", dir=d, argv=list(t.argv), pristine=hashlib.sha256(model).hexdigest())
+    o = run_case(case)
+    assert o.code == 0 and o.problems == ["a spoiled model was accepted"]

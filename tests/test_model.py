@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cmcan import config as cfgmod
-from cmcan.model import ModelError, load_model
+from cmcan.model import ModelError, digest, load_model
 from cmcan.model.features import operating_points, series_from_columns
 from cmcan.model.train import train_on_points
 from cmcan.roles import MODEL_INPUTS
@@ -142,12 +142,14 @@ def test_refuses_other_inputs(trained):
 
 
 def _with_meta(src, dst, **changes):
+    """A copy with metadata changed and sealed again: as a writer would have written it (the digest
+    of an edited file is tests/test_model_digest.py's subject)."""
     m = onnx.load(str(src))
     for p in m.metadata_props:
         key = p.key.removeprefix("cmcan.")
         if key in changes:
             p.value = changes[key]
-    onnx.save(m, str(dst))
+    dst.write_bytes(digest.seal(m.SerializeToString()))
     return dst
 
 

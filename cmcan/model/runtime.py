@@ -8,6 +8,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cmcan.errors import Kind
+from cmcan.model import digest
 from cmcan.model.metadata import INPUT_NAME, OUTPUT_PHYSICS, OUTPUT_PRED, OUTPUT_WHITEBOX, ModelError, ModelMeta
 from cmcan.oil import Oil
 from cmcan.roles import MODEL_INPUTS, MODEL_UNITS
@@ -29,6 +30,12 @@ class GrayBoxModel:
         self.path = Path(path)
         if not self.path.exists():
             raise ModelError(f"{self.path}: model file not found", Kind.NO_INPUT)
+        # Read once: the bytes whose digest is checked are the bytes onnxruntime loads.
+        try:
+            blob = self.path.read_bytes()
+        except OSError as exc:
+            raise ModelError(f"{self.path}: cannot read the model file: {exc.strerror}", Kind.NO_INPUT) from None
+        recorded, malformed = _recorded_digest(blob, str(self.path))  # before onnxruntime: corruption named so
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = 1
         opts.inter_op_num_threads = 1
@@ -36,14 +43,21 @@ class GrayBoxModel:
         opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
         opts.log_severity_level = 3
         try:
-            self.session = ort.InferenceSession(str(self.path), sess_options=opts, providers=["CPUExecutionProvider"])
+            self.session = ort.InferenceSession(blob, sess_options=opts, providers=["CPUExecutionProvider"])
         except Exception as exc:  # onnxruntime raises its own exception types for bad files
             raise ModelError(f"{self.path}: not a loadable ONNX model: {exc}") from None
+        if malformed:  # onnxruntime took what the digest's walk could not: no digest to trust
+            raise ModelError(f"{self.path}: not a well-formed model file: {malformed}")
         try:
             props = self.session.get_modelmeta().custom_metadata_map
         except (UnicodeDecodeError, RuntimeError) as exc:  # metadata bytes that are not text
             raise ModelError(f"{self.path}: metadata is not readable: {exc}") from None
         self.meta = ModelMeta.from_props(props, str(self.path))
+        if recorded is None:  # a cmcan model (the line above named a foreign file), from an older cmcan
+            raise ModelError(
+                f"{self.path}: no digest of its weights ({digest.KEY}): written by an older cmcan; "
+                "retrain it with cmcan train (python -m cmcan.rebuild_default for the shipped model)"
+            )
         self._check(expected_inputs or MODEL_UNITS, motor_disp_cc)
         self._check_machine(quantity, oil)
         self._outputs = [OUTPUT_PRED, OUTPUT_WHITEBOX]
@@ -143,6 +157,27 @@ class GrayBoxModel:
         one[0, 3] = temp_c
         self.session.run_with_iobinding(self._binding)
         return float(self._one_pred[0, 0]), float(self._one_wb[0, 0])
+
+
+def _recorded_digest(blob: bytes, src: str) -> tuple[str | None, str]:
+    """(the digest a file records if its content matches it or None if it records none, why the
+    bytes are not a protobuf message or "").
+
+    A mismatch is named before onnxruntime or the metadata see the file: a flipped bit is then called
+    corruption, not a graph error or a wrong field. Bytes that are not a protobuf message are left to
+    onnxruntime to name first."""
+    try:
+        recorded, actual = digest.recorded_and_actual(blob)
+    except digest.MalformedError as exc:
+        return None, str(exc)
+    except ValueError as exc:
+        raise ModelError(f"{src}: {exc}") from None
+    if recorded is not None and recorded != actual:
+        raise ModelError(
+            f"{src}: the weights and metadata do not match their recorded digest ({digest.KEY}): "
+            "the file is corrupt or was edited; copy it again from its source or retrain it"
+        )
+    return recorded, ""
 
 
 def load_model(

@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cmcan import __version__
-from cmcan.model import correction, physics
+from cmcan.model import correction, digest, physics
 from cmcan.model.metadata import FORMAT, OUTPUT_PHYSICS, OUTPUT_PRED, OUTPUT_WHITEBOX, QUANTITY_UNITS, ModelMeta
 from cmcan.model.physics import Quantity
 from cmcan.oil import VG46, Oil
@@ -95,7 +95,7 @@ def fit(
 
 
 def to_onnx(model: TrainedModel, residual_stats: dict[str, Any], training: dict[str, Any]) -> bytes:
-    """One ONNX graph for the model, its metadata attached and the graph checked."""
+    """One ONNX graph for the model, its metadata attached, the graph checked, the file sealed with its digest."""
     _require_train_extra()
     import onnx
 
@@ -135,7 +135,7 @@ def to_onnx(model: TrainedModel, residual_stats: dict[str, Any], training: dict[
     onx.producer_name = "cmcan"
     onx.producer_version = __version__
     onnx.checker.check_model(onx, full_check=True)
-    return onx.SerializeToString()
+    return digest.seal(onx.SerializeToString())
 
 
 def residual_figures(model: TrainedModel, x: NDArray[np.float64], y: NDArray[np.float64], name: str) -> dict[str, Any]:
