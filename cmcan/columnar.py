@@ -252,6 +252,7 @@ class _Engine:
         ctr = np.zeros(len(idx), dtype=np.int64)
         cs_ok = np.ones(len(idx), dtype=bool)
         raws: dict[int, list[NDArray[np.int64]]] = {}
+        classic = bool(len(cols)) and int(cols.dlc.max()) <= 8  # no frame longer than 8 bytes here
         for j, x in enumerate(self.inps):
             sel = np.flatnonzero(ids == j)
             if not len(sel):
@@ -267,20 +268,22 @@ class _Engine:
             row[sel] = np.arange(len(sel))
             raws[j] = vals
             if x.checked:
-                ctr[sel], cs_ok[sel] = self._integrity(cols, rows, x, data)
+                ctr[sel], cs_ok[sel] = self._integrity(cols, rows, x, data, classic)
         return raws, ok, row, ctr, cs_ok
 
     def _integrity(
-        self, cols: FrameColumns, rows: NDArray[np.int64], x: _Input, data: NDArray[np.uint8]
+        self, cols: FrameColumns, rows: NDArray[np.int64], x: _Input, data: NDArray[np.uint8], classic: bool
     ) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
         """The message counter (0 where none) and whether the checksum holds (True where none) of
         each frame of one checked message, pure functions of the frame, as
-        :meth:`cmcan.monitor.health.Stream.check` reads them. ``data``: the frames' payloads."""
+        :meth:`cmcan.monitor.health.Stream.check` reads them. ``data``: the frames' payloads;
+        ``classic``: no frame of the chunk is longer than 8 bytes."""
         n = len(rows)
         ctr = np.zeros(n, dtype=np.int64)
         cs_ok = np.ones(n, dtype=bool)
         st, spec = x.stream, x.spec.health
-        if st.tsc1 and bool((cols.dlc[rows] == 8).all()):
+        # a TSC1 message is 8 bytes long (the core's length check passed): exactly 8 unless CAN FD
+        if st.tsc1 and (classic or bool((cols.dlc[rows] == 8).all())):
             # J1939-71's TSC1 layout: counter and checksum in byte 8, the sum over the frame and the id
             d7 = data[:, 7]
             words = (
@@ -293,8 +296,8 @@ class _Engine:
                 s += sum(int(cid[0]).to_bytes(4, "little"))
             else:
                 s += byte_sums(cid)
-            cs_ok[:] = (d7 >> 4) == _TSC1_FOLD[s]
-            ctr[:] = d7 & 0x0F
+            cs_ok = (d7 >> 4) == _TSC1_FOLD[s]
+            ctr = d7 & 0x0F
         elif st.tsc1 or st.checksum is not None:  # any other checksum: the stream's own check, per frame
             probe = Stream(spec)
             for i, r in enumerate(rows.tolist()):
@@ -767,18 +770,20 @@ class _Engine:
             must[1:] |= (cond[1:] != cond[:-1]) | (fault[1:] != fault[:-1])
         now: list[Frame] = []
         step, queue = d.step, m.queue
-        todo = np.flatnonzero(must)
-        i = int(todo[0]) if len(todo) else n
-        while i < n:
-            r = float(ratio[i])
-            dm = step(int(ks[i]), t_list[i], int(cond[i]), int(fault[i]), None if r != r else r)  # type: ignore[arg-type]
-            if dm:
-                queue(dm, t_list[i], now)
-            if d.changed:  # a change waits to go out: every tick until it has
-                i += 1
-            else:
-                at = int(np.searchsorted(todo, i, side="right"))
-                i = int(todo[at]) if at < len(todo) else n
+        rl, cl, fl, kl = ratio.tolist(), cond.tolist(), fault.tolist(), ks.tolist()
+        done = -1
+        for i in np.flatnonzero(must).tolist():
+            if i <= done:
+                continue
+            while True:
+                r = rl[i]
+                dm = step(kl[i], t_list[i], cl[i], fl[i], None if r != r else r)  # type: ignore[arg-type]
+                if dm:
+                    queue(dm, t_list[i], now)
+                if not d.changed or i + 1 >= n:
+                    break
+                i += 1  # a change waits to go out: every tick until it has
+            done = i
         return now
 
     def _frames(self, ks: NDArray[np.int64], c: TickColumns, wcount: NDArray[np.int64]) -> FrameColumns:
@@ -949,13 +954,13 @@ _LANES = np.uint64(0x00FF_00FF_00FF_00FF)
 _FOLD16 = np.uint64(0x0001_0001_0001_0001)
 
 
-def byte_sums(words: NDArray[np.unsignedinteger]) -> NDArray[np.int64]:
+def byte_sums(words: NDArray[np.unsignedinteger]) -> NDArray[np.uint64]:
     """The sum of the bytes of each (up to 64-bit) word, in a few array passes instead of a reduction
     over rows of 8 bytes: pairs of bytes added into four 16-bit lanes, the lanes added by one
     multiplication into the top lane (at most 8 x 255 = 2040, no carry out of a lane)."""
     w = words.astype(np.uint64, copy=False)
     pairs = (w & _LANES) + ((w >> np.uint64(8)) & _LANES)
-    return ((pairs * _FOLD16) >> np.uint64(48)).astype(np.int64)
+    return (pairs * _FOLD16) >> np.uint64(48)
 
 
 def _distinct(keys: NDArray[np.int64], few: int = 16) -> NDArray[np.int64]:
