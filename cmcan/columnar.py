@@ -564,7 +564,9 @@ class _Engine:
             if len(live):
                 o = out[live]
                 prev = np.concatenate([[st.timed_out], o[:-1]])
-                st.counts["timeout"] += int(np.count_nonzero(o & ~prev))
+                went = int(np.count_nonzero(o & ~prev))
+                st.counts["timeout"] += went
+                self.m.counters["timeout"] += went
                 st.timed_out = bool(o[-1])
             st.newest_t, st.newest_ok = nt_end, ok_end
         return erratic

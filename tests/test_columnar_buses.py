@@ -147,6 +147,7 @@ def test_corrupted_and_dropped_frames_on_the_shipped_machine_replay_the_same(see
     assert_same(a, b)
     counts = a[3].snapshot()["inputs"]
     assert sum(v["timeout"] for v in counts.values()) > 0
+    assert a[2].counters["timeout"] == sum(v["timeout"] for v in counts.values())  # the monitor's total
     for k in ("counter_jump", "counter_frozen", "out_of_range"):
         if a[2].counters[k]:
             event(f"reached {k}")

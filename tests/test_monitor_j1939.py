@@ -198,6 +198,7 @@ def test_a_missing_message_is_stale_after_its_timeout_fmi_9(leak):
     mon, out = run_monitor(cfg, cut.to_frames())
     assert mon.totals.history[0]["reason"] == "input_stale"
     assert mon.snapshot()["inputs"]["VF"]["timeout"] == 1
+    assert mon.counters["timeout"] == 1  # the monitor's total, as in its summaries and state
     last = dm1s(out)[-1]
     assert [(d.spn, d.fmi) for d in last[2]] == [(520193, 9)]
     assert last[1].amber_warning == dm1.Lamp.OFF  # a fault alone lights no lamp

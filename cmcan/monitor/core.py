@@ -454,7 +454,7 @@ class Monitor:
 
     def _health_gate(self, t: float, g: Gate) -> Gate:
         """An erratic input message makes the point implausible (:mod:`cmcan.monitor.health`)."""
-        return Gate.IMPLAUSIBLE_INPUT if health.tick(self._streams, t) else g
+        return Gate.IMPLAUSIBLE_INPUT if health.tick(self._streams, t, self.counters) else g
 
     def _emit(self, k: int, tick: Tick) -> list[Frame]:
         """The output frames of an evaluated tick: CM frames, and DM1 where configured; frames for

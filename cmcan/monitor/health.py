@@ -184,8 +184,9 @@ class Stream:
         return self.newest_t == -math.inf or t - self.newest_t > self.timeout_s
 
 
-def tick(streams: list[Stream], t: float) -> bool:
-    """The health verdict of a tick at ``t``: True when some stream is erratic. Counts timeouts."""
+def tick(streams: list[Stream], t: float, counters: dict[str, int]) -> bool:
+    """The health verdict of a tick at ``t``: True when some stream is erratic. Counts timeouts, per
+    stream and in the monitor's ``counters``."""
     erratic = False
     alive = False
     for s in streams:
@@ -198,5 +199,6 @@ def tick(streams: list[Stream], t: float) -> bool:
             out = s.newest_t > -math.inf and s.silent(t)
             if out and not s.timed_out:
                 s.counts["timeout"] += 1
+                counters["timeout"] += 1
             s.timed_out = out
     return erratic
