@@ -79,6 +79,9 @@ class DaemonOptions:
     backoff_max_s: float = 10.0
     status_every_s: float = 2.0
     send_timeout_s: float = 0.005
+    # Frames stamped with the wall clock (a kernel bus): a jump of their time against the boot clock is
+    # a step of the wall clock. False where a bus carries a log's own times (the demo's time-lapse).
+    stamps_on_wall_clock: bool = True
 
 
 DRAIN = 256  # frames read from one bus before the others get their turn
@@ -286,7 +289,8 @@ class Daemon:
                         bytes(msg.data).hex(),
                     )
                 try:
-                    self._watch_wall_clock(msg.timestamp)
+                    if opt.stamps_on_wall_clock:
+                        self._watch_wall_clock(msg.timestamp)
                     steps = self.monitor.counters["clock_steps"]
                     out = self.monitor.feed(from_message(msg, link.name))
                     if self.monitor.counters["clock_steps"] != steps:  # the core found a step back

@@ -122,7 +122,9 @@ def stream(frames: Frames, cfg: cfgmod.Config, state_dir: Path, channel: str) ->
         kwargs["preserve_timestamps"] = True  # the daemon stamps its frames with frame time: keep it
         return lambda: can.Bus(**kwargs)
 
-    daemon = Daemon(cfg, monitor, prep.store, {ch.name: opener(ch) for ch in cfg.channel_list}, options=DaemonOptions())
+    # the frames carry the time-lapse's own times: its jumps of 30 min are the log's, not wall-clock steps
+    opts = DaemonOptions(stamps_on_wall_clock=False)
+    daemon = Daemon(cfg, monitor, prep.store, {ch.name: opener(ch) for ch in cfg.channel_list}, options=opts)
     players = {
         ch.name: can.Bus(interface="virtual", channel=ch.name, preserve_timestamps=True) for ch in cfg.channel_list
     }

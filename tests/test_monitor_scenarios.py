@@ -46,6 +46,7 @@ def test_healthy_mixed_duty_100h_with_oil_30_to_90_raises_no_warning():
 def test_demo_reports_lead_times_as_json(tmp_path):
     res = run_cli("demo", "--json", "--out-dir", str(tmp_path), timeout=900)
     assert res.returncode == 0, res.stderr + res.stdout
+    assert "stepped" not in res.stderr  # the time-lapse's jumps are the log's, not wall-clock steps
     doc = json.loads(res.stdout)
     assert doc["passed"] and doc["frames_sent"] == doc["frames_processed"] > 1_000_000
     kinds = {f["kind"]: f for f in doc["failures"]}
