@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cmcan import codec
-from cmcan.checksums import TSC1_FOLD
+from cmcan.checksums import TSC1_FOLD, id_sum
 from cmcan.frame import Frame, FrameColumns
 from cmcan.monitor.clock import STEP_BACK_S
 from cmcan.monitor.core import _HIGH, _LOW, _MISS, _WINDOW, Monitor, _Input
@@ -293,7 +293,7 @@ class _Engine:
             s = byte_sums(words & np.uint64(0x0FFF_FFFF_FFFF_FFFF))
             cid = cols.arbitration_id[rows]
             if bool((cid == cid[0]).all()):  # one sender address: one identifier sum
-                s += sum(int(cid[0]).to_bytes(4, "little"))
+                s += id_sum(int(cid[0]))
             else:
                 s += byte_sums(cid)
             cs_ok = (d7 >> 4) == _TSC1_FOLD[s]
@@ -728,7 +728,7 @@ class _Engine:
         )
         self.flush_scalar()  # the streaming path's ticks and frames before this stretch's
         # the pending transport packets due by the last tick go out with the ticks' frames, in time order
-        later = m.pop_due(t_list[-1]) if m._later else []
+        later = m.due(t_list[-1])
         if self.want_frames:
             frames = self._frames(ks, cols, wcount)
             if dm1_now or later:

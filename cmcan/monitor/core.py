@@ -292,7 +292,8 @@ class Monitor:
         return self._release(out, t) if self._later else out
 
     def due(self, t: float) -> list[Frame]:
-        """The pending transport packets due by ``t``, without evaluating (the daemon's timer)."""
+        """The pending transport packets due by ``t``, without evaluating (the daemon's timer, the
+        columnar replay at the end of a stretch)."""
         return self._release([], t) if self._later else []
 
     @property
@@ -477,14 +478,6 @@ class Monitor:
                 self._seq += 1
             else:
                 out.append(f)
-
-    def pop_due(self, t: float) -> list[Frame]:
-        """The pending frames due by ``t``, in order, taken out of the queue."""
-        later = self._later
-        out = []
-        while later and later[0][0] <= t:
-            out.append(heapq.heappop(later)[2])
-        return out
 
     def _record(self, t: float, frm: Level, to: Level, reason: Reason, ratio: float | None) -> None:
         tot = self.totals

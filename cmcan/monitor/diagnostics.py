@@ -116,9 +116,6 @@ class Dm1Producer:
             pl = self._payload
             if pl is not None and len(pl[1]) <= 8 and t > self.busy_until:
                 return [Frame(t, self.p.channel, self.frame_id, True, False, False, False, pl[1])]
-        due = k % self.p.every_ticks == 0 or self.changed
-        if state == self._last and not due:
-            return []
         self._last = state
         now = self.dtcs(condition, fault)
         keys = [f"{s}:{f}" for s, f in now]
