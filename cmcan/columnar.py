@@ -222,6 +222,14 @@ class _Engine:
         which[sel] = self._m_codes[at]
         return which
 
+    def _one_id(self, x: _Input) -> int | None:
+        """The identifier of every frame matched to ``x`` so far, when there is only one (a sender
+        that kept its address), from the table of matched combinations."""
+        keys = self._m_keys[self._m_codes == self._index[id(x)]]
+        if len(keys) and bool((keys & 0x1FFFFFFF == keys[0] & 0x1FFFFFFF).all()):
+            return int(keys[0] & 0x1FFFFFFF)
+        return None
+
     def _code(self, key: int, names: tuple[str, ...]) -> int:
         m = self.m
         fid, ext, fd, name = key & 0x1FFFFFFF, bool(key >> 29 & 1), bool(key >> 30 & 1), names[key >> 31]
@@ -291,12 +299,12 @@ class _Engine:
             ).view("<u8")[:, 0]
             # bytes 1-7, the counter (the low half of byte 8) and the identifier's four bytes
             s = byte_sums(words & np.uint64(0x0FFF_FFFF_FFFF_FFFF))
-            cid = cols.arbitration_id[rows]
-            if bool((cid == cid[0]).all()):  # one sender address: one identifier sum
-                s += id_sum(int(cid[0]))
+            one_id = self._one_id(x)
+            if one_id is not None:  # one identifier seen for this message in the whole log: one sum
+                s += np.uint64(id_sum(one_id))
             else:
-                s += byte_sums(cid)
-            cs_ok = (d7 >> 4) == _TSC1_FOLD[s]
+                s += byte_sums(cols.arbitration_id[rows])
+            cs_ok = (d7 >> 4) == _TSC1_FOLD[s.view(np.int64)]  # a signed index gathers ~3x faster
             ctr = d7 & 0x0F
         elif st.tsc1 or st.checksum is not None:  # any other checksum: the stream's own check, per frame
             probe = Stream(spec)
@@ -312,7 +320,10 @@ class _Engine:
     @staticmethod
     def _payloads(cols: FrameColumns, rows: NDArray[np.int64], size: int) -> NDArray[np.uint8]:
         if size <= 8:
-            return cols.data[rows]
+            d = cols.data
+            if d.shape[1] == 8 and d.flags.c_contiguous:  # a row as one 64-bit word: a 1-D gather, ~10x faster
+                return d.view("<u8")[:, 0][rows].view(np.uint8).reshape(-1, 8)
+            return d[rows]
         out = np.zeros((len(rows), size), dtype=np.uint8)
         for i, r in enumerate(rows.tolist()):
             d = cols.payload(r)[:size]
@@ -685,7 +696,7 @@ class _Engine:
             wcount[i] = wc
             i += 1
         totals.warning_count, totals.fault_count = wc, fc
-        dm1_now = self._dm1(ks, t_list, gates, cond, fault, filt, valid) if m._dm1 is not None else []
+        dm1_now = self._dm1(ks, t_k, gates, cond, fault, filt, valid) if m._dm1 is not None else None
         level = np.where(fault != 0, np.int8(Level.FAULT), cond).astype(np.int8)
         reason = np.where(fault != 0, fault, creason).astype(np.int8)
         totals.condition = LEVEL_NAMES[machine.condition]
@@ -731,8 +742,8 @@ class _Engine:
         later = m.due(t_list[-1])
         if self.want_frames:
             frames = self._frames(ks, cols, wcount)
-            if dm1_now or later:
-                frames = _merge(frames, dm1_now, later)
+            if dm1_now is not None or later:
+                frames = _merge(frames, dm1_now, FrameColumns.from_frames(later))
             self.pending_frames.append(frames)
         if self.want_ticks:
             self._push_ticks(cols)
@@ -742,20 +753,23 @@ class _Engine:
     def _dm1(
         self,
         ks: NDArray[np.int64],
-        t_list: list[float],
+        t_k: NDArray[np.float64],
         gates: NDArray[np.int8],
         cond: NDArray[np.int8],
         fault: NDArray[np.int8],
         filt: NDArray[np.float64],
         valid: NDArray[np.bool_],
-    ) -> list[Frame]:
-        """DM1 tick by tick through the core's own step: the frames due at their ticks, in order;
-        transport packets for later are queued in the monitor as the streaming core queues them.
+    ) -> FrameColumns | None:
+        """DM1 tick by tick through the core's own step: the frames due at their ticks, in order (None
+        when there are none); transport packets for later are queued in the monitor as the streaming
+        core queues them.
 
         A tick is stepped where the step could do something: a tick due by the period, a change of
         condition or fault, a change still waiting to go out (``changed``), or anywhere while the
         severity could move (a ratio beyond a severe threshold, or a severe flag set). Any other tick
-        would find its state unchanged and nothing due, and return nothing."""
+        would find its state unchanged and nothing due, and return nothing. And a run of due ticks
+        with nothing changed since a step that left one cached single frame resends that frame,
+        which is what the step would do at each of them (its fast path), so they are not stepped."""
         m = self.m
         d = m._dm1
         assert d is not None
@@ -765,28 +779,83 @@ class _Engine:
             severe = (ratio < p.low_severe_pct) | (ratio > p.high_severe_pct)
         n = len(ks)
         if d.low_severe or d.high_severe or severe.any():
-            must = np.ones(n, dtype=bool)
-        else:
-            must = ks % p.every_ticks == 0
-            must[0] = True
-            must[1:] |= (cond[1:] != cond[:-1]) | (fault[1:] != fault[:-1])
+            must = event = np.ones(n, dtype=bool)
+        else:  # the severity flags stay as they are: only these ticks can change anything
+            event = np.zeros(n, dtype=bool)
+            # the first tick against the state the producer was left in (by the stretch before)
+            event[0] = d.changed or d._last != (int(cond[0]), int(fault[0]), d.low_severe, d.high_severe)
+            event[1:] = (cond[1:] != cond[:-1]) | (fault[1:] != fault[:-1])
+            must = event | (ks % p.every_ticks == 0)
         now: list[Frame] = []
+        now_at: list[int] = []  # the tick of each frame in ``now``
+        resend: list[NDArray[np.int64]] = []  # ticks that resend the cached frame
         step, queue = d.step, m.queue
-        rl, cl, fl, kl = ratio.tolist(), cond.tolist(), fault.tolist(), ks.tolist()
-        done = -1
-        for i in np.flatnonzero(must).tolist():
-            if i <= done:
-                continue
+        rl, cl, fl, kl, t_list = ratio.tolist(), cond.tolist(), fault.tolist(), ks.tolist(), t_k.tolist()
+        must_i = np.flatnonzero(must)
+        events = np.flatnonzero(event)
+
+        def stepped(i: int) -> int:  # the last tick stepped
             while True:
                 r = rl[i]
                 dm = step(kl[i], t_list[i], cl[i], fl[i], None if r != r else r)  # type: ignore[arg-type]
                 if dm:
                     queue(dm, t_list[i], now)
+                    now_at.extend([i] * (len(now) - len(now_at)))
                 if not d.changed or i + 1 >= n:
-                    break
+                    return i
                 i += 1  # a change waits to go out: every tick until it has
-            done = i
-        return now
+
+        q = 0
+        while q < len(must_i):
+            i = int(must_i[q])
+            pl = d._payload
+            if (
+                not event[i]
+                and not d.changed
+                and pl is not None
+                and len(pl[1]) <= 8
+                and d._last == (cl[i], fl[i], d.low_severe, d.high_severe)
+                and t_list[i] > d.busy_until
+            ):
+                # the due ticks up to the next event resend the cached frame (times only grow: all of
+                # them are past any transport in progress)
+                end = events[np.searchsorted(events, i)] if len(events) and events[-1] > i else n
+                q_end = int(np.searchsorted(must_i, end))
+                resend.append(must_i[q:q_end])
+                q = q_end
+                continue
+            q = int(np.searchsorted(must_i, stepped(i), side="right"))
+        if not now and not resend:
+            return None
+        parts, at = [], []
+        if now:
+            parts.append(FrameColumns.from_frames(now))
+            at.append(np.array(now_at, dtype=np.int64))
+        if resend:
+            r = np.concatenate(resend)
+            payload = d._payload[1]  # type: ignore[index]
+            data = np.zeros((len(r), 8), dtype=np.uint8)
+            data[:, : len(payload)] = np.frombuffer(payload, dtype=np.uint8)
+            no = np.zeros(len(r), dtype=bool)
+            parts.append(
+                FrameColumns(
+                    timestamp_s=t_k[r],
+                    channel=np.zeros(len(r), dtype=np.int16),
+                    channel_names=(p.channel,),
+                    arbitration_id=np.full(len(r), d.frame_id, dtype=np.uint32),
+                    extended=np.ones(len(r), dtype=bool),
+                    remote=no,
+                    error=no,
+                    fd=no,
+                    dlc=np.full(len(r), len(payload), dtype=np.int16),
+                    data=data,
+                )
+            )
+            at.append(r)
+        cols = FrameColumns.concat(parts) if len(parts) > 1 else parts[0]
+        if len(parts) > 1:  # in tick order; a tick's own frames keep their order
+            cols = cols.take(np.argsort(np.concatenate(at), kind="stable"))
+        return cols
 
     def _frames(self, ks: NDArray[np.int64], c: TickColumns, wcount: NDArray[np.int64]) -> FrameColumns:
         """The CM frames of the ticks, as :class:`~cmcan.monitor.payloads.Payloads` builds them."""
@@ -874,47 +943,24 @@ class _Engine:
         )
 
 
-def _merge(ticks: FrameColumns, now: list[Frame], later: list[Frame]) -> FrameColumns:
+def _merge(ticks: FrameColumns, now: FrameColumns | None, later: FrameColumns) -> FrameColumns:
     """The ticks' CM frames with the DM1 frames of the same ticks (``now``, each after its tick's CM
     frames) and the transport packets due meanwhile (``later``, before a tick's frames of the same
     time), in the order the streaming core releases them (:meth:`Monitor._release`)."""
+    extra = FrameColumns.concat([now, later]) if now is not None else later
+    n_now = len(now) if now is not None else 0
     ts = ticks.timestamp_s
-    t_now = [f.timestamp_s for f in now]
-    t_later = [f.timestamp_s for f in later]
-    at_now = np.searchsorted(ts, t_now, side="right").tolist()
-    at_later = np.searchsorted(ts, t_later, side="left").tolist()
-    key = [(a, t, 1, i) for i, (a, t) in enumerate(zip(at_now, t_now, strict=True))]
-    key += [(a, t, 0, i) for i, (a, t) in enumerate(zip(at_later, t_later, strict=True))]
-    key.sort()
-    extra = FrameColumns.from_frames([(later if cls == 0 else now)[i] for _, _, cls, i in key])
-    pos = np.array([k[0] for k in key], dtype=np.int64) + np.arange(len(key))  # rows in the result
+    t_x = extra.timestamp_s
+    is_later = np.arange(len(extra)) >= n_now
+    at = np.where(is_later, np.searchsorted(ts, t_x, side="left"), np.searchsorted(ts, t_x, side="right"))
+    # at one place: by time, a transport packet before a DM1 frame, each kind in its own order
+    order = np.lexsort((np.arange(len(extra)), ~is_later, t_x, at))
+    extra = extra.take(order)
+    pos = at[order] + np.arange(len(extra))  # rows in the result
     n = len(ticks) + len(extra)
     mine = np.ones(n, dtype=bool)
     mine[pos] = False
-    names = tuple(dict.fromkeys(ticks.channel_names + extra.channel_names))
-    code = np.array([names.index(c) for c in extra.channel_names], dtype=np.int16)
-
-    def put(a: NDArray, b: NDArray) -> NDArray:
-        out = np.empty((n, *a.shape[1:]), dtype=a.dtype)
-        out[mine] = a
-        out[pos] = b
-        return out
-
-    at = np.flatnonzero(mine)
-    long = {int(at[r]): d for r, d in ticks.long_data.items()} | {int(pos[r]): d for r, d in extra.long_data.items()}
-    return FrameColumns(
-        timestamp_s=put(ticks.timestamp_s, extra.timestamp_s),
-        channel=put(ticks.channel, code[extra.channel] if len(code) else extra.channel),
-        channel_names=names,
-        arbitration_id=put(ticks.arbitration_id, extra.arbitration_id),
-        extended=put(ticks.extended, extra.extended),
-        remote=put(ticks.remote, extra.remote),
-        error=put(ticks.error, extra.error),
-        fd=put(ticks.fd, extra.fd),
-        dlc=put(ticks.dlc, extra.dlc),
-        data=put(ticks.data, extra.data),
-        long_data=long,
-    )
+    return FrameColumns.concat([ticks, extra]).take(np.argsort(np.concatenate([np.flatnonzero(mine), pos])))
 
 
 def _encode(

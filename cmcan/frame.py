@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
@@ -92,6 +93,47 @@ class FrameColumns:
 
     def frames(self) -> list[Frame]:
         return [self.frame(i) for i in range(len(self))]
+
+    def take(self, rows: NDArray[np.int64]) -> FrameColumns:
+        """The frames at ``rows``, in that order."""
+        at = {int(r): i for i, r in enumerate(rows.tolist())} if self.long_data else {}
+        return FrameColumns(
+            timestamp_s=self.timestamp_s[rows],
+            channel=self.channel[rows],
+            channel_names=self.channel_names,
+            arbitration_id=self.arbitration_id[rows],
+            extended=self.extended[rows],
+            remote=self.remote[rows],
+            error=self.error[rows],
+            fd=self.fd[rows],
+            dlc=self.dlc[rows],
+            data=self.data[rows],
+            long_data={at[r]: d for r, d in self.long_data.items() if r in at},
+        )
+
+    @classmethod
+    def concat(cls, parts: Sequence[FrameColumns]) -> FrameColumns:
+        """The frames of ``parts`` one after the other (channel codes mapped onto the union of names)."""
+        names = tuple(dict.fromkeys(n for p in parts for n in p.channel_names))
+        chans, long, at = [], {}, 0
+        for p in parts:
+            code = np.array([names.index(n) for n in p.channel_names], dtype=np.int16)
+            chans.append(code[p.channel] if len(code) else p.channel.astype(np.int16))
+            long.update({at + r: d for r, d in p.long_data.items()})
+            at += len(p)
+        return cls(
+            timestamp_s=np.concatenate([p.timestamp_s for p in parts]),
+            channel=np.concatenate(chans),
+            channel_names=names,
+            arbitration_id=np.concatenate([p.arbitration_id for p in parts]),
+            extended=np.concatenate([p.extended for p in parts]),
+            remote=np.concatenate([p.remote for p in parts]),
+            error=np.concatenate([p.error for p in parts]),
+            fd=np.concatenate([p.fd for p in parts]),
+            dlc=np.concatenate([p.dlc for p in parts]),
+            data=np.concatenate([p.data for p in parts]),
+            long_data=long,
+        )
 
     @classmethod
     def from_frames(cls, frames: list[Frame]) -> FrameColumns:

@@ -5,6 +5,7 @@ counters broken the ways a real bus breaks them. The same timeline, frames, summ
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import replace
 
 import numpy as np
@@ -17,6 +18,7 @@ from cmcan.assemble import assemble, bus_plan, dbc_for
 from cmcan.columnar import byte_sums, replay_columns
 from cmcan.frame import Frame, FrameColumns
 from cmcan.monitor.core import Monitor
+from cmcan.monitor.diagnostics import Dm1Producer
 from cmcan.replay import FrameCollector, TimelineCollector, replay
 from cmcan.sim import scenario as scn
 from cmcan.sim.frames import frames_from_run, with_source_address
@@ -84,6 +86,42 @@ def test_the_j1939_machine_with_dm1_takes_the_array_path(j1939, monkeypatch):
     assert len(fed) < 0.01 * len(frames), f"{len(fed)} of {len(frames)} frames through the streaming core"
 
 
+def _frames_of_every_kind(rng: np.random.Generator, n: int) -> list[Frame]:
+    out = []
+    for i in range(n):
+        k = int(rng.integers(4))
+        data = bytes(rng.integers(0, 256, int(rng.integers(9, 65)) if k == 3 else int(rng.integers(0, 9)), np.uint8))
+        out.append(
+            Frame(
+                float(i) / 10,
+                ("can0", "can1", "vcan2")[k % 3],
+                int(rng.integers(1 << 29)),
+                k > 0,
+                False,
+                False,
+                k == 3,
+                data,
+            )
+        )
+    return out
+
+
+def test_frame_columns_concat_and_take_keep_every_field():
+    """Concatenated pieces with their own channel names, and rows taken in any order (CAN FD
+    payloads beyond 8 bytes included), are the frames they were made of."""
+    rng = np.random.default_rng(3)
+    frames = _frames_of_every_kind(rng, 300)
+    cuts = [0, 17, 18, 150, 300]
+    parts = [FrameColumns.from_frames(frames[a:b]) for a, b in itertools.pairwise(cuts)]
+    whole = FrameColumns.concat(parts)
+    assert any(p.channel_names != whole.channel_names for p in parts)  # codes had to be mapped
+    assert whole.long_data  # FD payloads beyond 8 bytes
+    assert whole.frames() == frames
+    order = rng.permutation(len(frames))
+    assert whole.take(order).frames() == [frames[i] for i in order]
+    assert whole.take(order[:0]).frames() == []
+
+
 def test_byte_sums_match_numpys_reduction():
     rng = np.random.default_rng(7)
     data = rng.integers(0, 256, (5000, 8), dtype=np.uint8)
@@ -91,6 +129,25 @@ def test_byte_sums_match_numpys_reduction():
     assert np.array_equal(byte_sums(data.view("<u8")[:, 0]), data.sum(axis=1))
     ids = rng.integers(0, 1 << 29, 5000).astype(np.uint32)
     assert np.array_equal(byte_sums(ids), ids.view(np.uint8).reshape(-1, 4).sum(axis=1))
+
+
+@pytest.mark.parametrize("chunk", [333, 100_000])
+def test_a_quiet_dm1_is_resent_without_stepping_and_replays_the_same(chunk, monkeypatch):
+    """A healthy drive: every second the same single DM1 frame (the all-zero DTC). The columnar
+    engine resends the cached frame for runs of due ticks with nothing changed instead of stepping
+    the producer at each (as the producer's own fast path would send it), with the same output."""
+    cfg = j1939_cfg()
+    frames = machine_frames(cfg, 60.0, leak_lpm=0.0)[0].to_frames()
+    a, b = both(cfg, frames, chunk)
+    assert_same(a, b)
+    singles = [f for f in b[1] if f.arbitration_id & 0x00FFFF00 == 0x00FECA00]
+    assert len(singles) >= 55
+    steps = []
+    step = Dm1Producer.step
+    monkeypatch.setattr(Dm1Producer, "step", lambda self, *a: steps.append(a[0]) or step(self, *a))
+    chunks = [FrameColumns.from_frames(frames[i : i + chunk]) for i in range(0, len(frames), chunk)]
+    replay_columns(assemble(cfg).monitor, chunks)
+    assert len(steps) < len(singles) / 3, (len(steps), len(singles))
 
 
 def corrupt(frames: list[Frame], rng: np.random.Generator, share: float) -> list[Frame]:

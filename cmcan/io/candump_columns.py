@@ -27,6 +27,7 @@ from cmcan.frame import FrameColumns
 from cmcan.io.candump import CAN_ERR_BUSERROR, CAN_ERR_FLAG, MAX_LINE_BYTES, LogError, parse_candump_line
 
 CHUNK_BYTES = 2 << 20
+CHUNK_LINES = 45_000  # the columnar replay's chunk: about 2 MiB of lines with 11-bit identifiers
 _NIBBLE = np.full(256, 255, dtype=np.uint8)
 for _i, _c in enumerate(b"0123456789ABCDEF"):
     _NIBBLE[_c] = _i
@@ -38,9 +39,15 @@ for _i, _c in enumerate(b"0123456789"):
 
 
 def iter_candump_columns(
-    path: str | Path, chunk_bytes: int = CHUNK_BYTES, progress: Callable[[int], None] | None = None
+    path: str | Path,
+    chunk_bytes: int = CHUNK_BYTES,
+    progress: Callable[[int], None] | None = None,
+    chunk_lines: int | None = None,
 ) -> Iterator[FrameColumns]:
-    """The frames of a candump log (``.log`` or ``.log.gz``) in chunks of about ``chunk_bytes``;
+    """The frames of a candump log (``.log`` or ``.log.gz``) in chunks of about ``chunk_bytes``, or
+    with ``chunk_lines``, of about that many lines (read as that many lines' worth of bytes at the
+    first chunk's mean line length, within a quarter and four times ``chunk_bytes``): the replay's
+    work goes by frames, so a log of longer lines (29-bit identifiers) comes in as many chunks.
     ``progress`` is told the bytes of the file read so far."""
     p = Path(path)
     opener = gzip.open if p.suffix == ".gz" else open
@@ -49,8 +56,9 @@ def iter_candump_columns(
     with opener(p, "rb") as f:  # type: ignore[operator]
         raw = getattr(f, "fileobj", None) or f  # for .gz: the compressed file, as its size on disk counts
         rest = b""
+        size = chunk_bytes
         while True:
-            block = _read(f, chunk_bytes, p, line0)
+            block = _read(f, size, p, line0)
             if progress is not None:
                 progress(raw.tell())
             if not block:
@@ -63,6 +71,9 @@ def iter_candump_columns(
                 if len(cols):
                     yield cols
             rest = data[cut:]
+            if chunk_lines and line0 > 1 and chunk_bytes == size:  # after the first chunk: by lines
+                per_line = cut / max(line0 - 1, 1)
+                size = int(min(4 * size, max(size // 4, chunk_lines * per_line)))
             if len(rest) > MAX_LINE_BYTES:  # no newline in sight: not a text log (and memory stays bounded)
                 raise LogError(f"{p}: line {line0}: longer than {MAX_LINE_BYTES} bytes: not a candump -l log")
         if rest.strip():

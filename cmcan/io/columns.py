@@ -17,10 +17,11 @@ def column_chunks(
     chunk_bytes: int | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> Iterator[FrameColumns]:
-    """A log as chunks of columns: candump logs by the array reader, other formats through
-    python-can's readers a chunk at a time. ``progress(bytes_read, frames)`` after each chunk."""
+    """A log as chunks of columns: candump logs by the array reader (chunks of about
+    ``CHUNK_LINES`` lines, or ``chunk_bytes`` bytes when given), other formats through python-can's
+    readers ``chunk_frames`` at a time. ``progress(bytes_read, frames)`` after each chunk."""
     from cmcan.io.candump import iter_frames
-    from cmcan.io.candump_columns import CHUNK_BYTES, iter_candump_columns
+    from cmcan.io.candump_columns import CHUNK_BYTES, CHUNK_LINES, iter_candump_columns
     from cmcan.io.readahead import read_ahead
 
     p = Path(path)
@@ -28,7 +29,9 @@ def column_chunks(
     if p.name.endswith((".log", ".log.gz")):
         done = [0]
         # the next chunk is parsed in a thread while this one is replayed
-        chunks = iter_candump_columns(p, chunk_bytes or CHUNK_BYTES, lambda b: done.__setitem__(0, b))
+        chunks = iter_candump_columns(
+            p, chunk_bytes or CHUNK_BYTES, lambda b: done.__setitem__(0, b), None if chunk_bytes else CHUNK_LINES
+        )
         for cols in read_ahead(chunks):
             frames += len(cols)
             yield cols
