@@ -788,7 +788,7 @@ class _Engine:
             must = event | (ks % p.every_ticks == 0)
         now: list[Frame] = []
         now_at: list[int] = []  # the tick of each frame in ``now``
-        resend: list[NDArray[np.int64]] = []  # ticks that resend the cached frame
+        resend: list[tuple[NDArray[np.int64], bytes]] = []  # ticks that resend a cached frame, and it
         step, queue = d.step, m.queue
         rl, cl, fl, kl, t_list = ratio.tolist(), cond.tolist(), fault.tolist(), ks.tolist(), t_k.tolist()
         must_i = np.flatnonzero(must)
@@ -821,7 +821,7 @@ class _Engine:
                 # them are past any transport in progress)
                 end = events[np.searchsorted(events, i)] if len(events) and events[-1] > i else n
                 q_end = int(np.searchsorted(must_i, end))
-                resend.append(must_i[q:q_end])
+                resend.append((must_i[q:q_end], pl[1]))
                 q = q_end
                 continue
             q = int(np.searchsorted(must_i, stepped(i), side="right"))
@@ -832,10 +832,14 @@ class _Engine:
             parts.append(FrameColumns.from_frames(now))
             at.append(np.array(now_at, dtype=np.int64))
         if resend:
-            r = np.concatenate(resend)
-            payload = d._payload[1]  # type: ignore[index]
+            r = np.concatenate([run for run, _ in resend])
             data = np.zeros((len(r), 8), dtype=np.uint8)
-            data[:, : len(payload)] = np.frombuffer(payload, dtype=np.uint8)
+            dlc = np.zeros(len(r), dtype=np.int16)
+            at_run = 0
+            for run, payload in resend:  # the frame cached when the run began
+                data[at_run : at_run + len(run), : len(payload)] = np.frombuffer(payload, dtype=np.uint8)
+                dlc[at_run : at_run + len(run)] = len(payload)
+                at_run += len(run)
             no = np.zeros(len(r), dtype=bool)
             parts.append(
                 FrameColumns(
@@ -847,7 +851,7 @@ class _Engine:
                     remote=no,
                     error=no,
                     fd=no,
-                    dlc=np.full(len(r), len(payload), dtype=np.int16),
+                    dlc=dlc,
                     data=data,
                 )
             )

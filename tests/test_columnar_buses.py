@@ -17,6 +17,7 @@ from cmcan import config as cfgmod
 from cmcan.assemble import assemble, bus_plan, dbc_for
 from cmcan.columnar import byte_sums, replay_columns
 from cmcan.frame import Frame, FrameColumns
+from cmcan.j1939 import ids
 from cmcan.monitor.core import Monitor
 from cmcan.monitor.diagnostics import Dm1Producer
 from cmcan.replay import FrameCollector, TimelineCollector, replay
@@ -133,15 +134,22 @@ def test_byte_sums_match_numpys_reduction():
 
 @pytest.mark.parametrize("chunk", [333, 100_000])
 def test_a_quiet_dm1_is_resent_without_stepping_and_replays_the_same(chunk, monkeypatch):
-    """A healthy drive: every second the same single DM1 frame (the all-zero DTC). The columnar
-    engine resends the cached frame for runs of due ticks with nothing changed instead of stepping
-    the producer at each (as the producer's own fast path would send it), with the same output."""
+    """A healthy drive: every second a single DM1 frame, the all-zero DTC, then the stale-input DTC
+    while the motor's message is silent for 8 s, then the all-zero DTC again. The columnar engine
+    resends the cached frame for runs of due ticks with nothing changed instead of stepping the
+    producer at each (as the producer's own fast path would send it), with the same output."""
     cfg = j1939_cfg()
     frames = machine_frames(cfg, 60.0, leak_lpm=0.0)[0].to_frames()
+    pgn = ids.pgn(dbc_for(cfg).get_message_by_name("HST_MOTOR").frame_id)
+    t0 = frames[0].timestamp_s
+    frames = [f for f in frames if not (ids.pgn(f.arbitration_id) == pgn and t0 + 20 <= f.timestamp_s < t0 + 28)]
     a, b = both(cfg, frames, chunk)
     assert_same(a, b)
     singles = [f for f in b[1] if f.arbitration_id & 0x00FFFF00 == 0x00FECA00]
     assert len(singles) >= 55
+    payloads = [f.data for f in singles]
+    changes = sum(x != y for x, y in itertools.pairwise(payloads))
+    assert changes >= 2 and payloads[0] == payloads[-1], payloads  # on, then off again
     steps = []
     step = Dm1Producer.step
     monkeypatch.setattr(Dm1Producer, "step", lambda self, *a: steps.append(a[0]) or step(self, *a))
