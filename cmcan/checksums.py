@@ -115,6 +115,20 @@ def verifier(algorithm: str, length: int, checksum: Layout) -> Callable[[int, by
     return check_crc8
 
 
+def crc8_ok(length: int, checksum: Layout, data: NDArray[np.uint8]) -> NDArray[np.bool_] | None:
+    """Whether each frame's CRC-8/SAE-J1850 holds, for rows of ``data`` (n, >= ``length``) of frames
+    at least ``length`` bytes long: what the ``verifier`` says of each, a byte column at a time. None
+    where that verifier reads bytes beyond ``length`` (a checksum byte outside the message)."""
+    at = whole_byte(checksum, max(8, length))
+    if at is None or at >= length or data.shape[1] < length:
+        return None
+    crc = np.full(len(data), 0xFF, dtype=np.uint8)
+    for i in range(length):
+        if i != at:
+            crc = _CRC8_NP[crc ^ data[:, i]]
+    return data[:, at] == (crc ^ 0xFF)
+
+
 def seal(
     algorithm: str, length: int, checksum: Layout, can_id: NDArray[np.int64], data: NDArray[np.uint8]
 ) -> NDArray[np.uint8]:

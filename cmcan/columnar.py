@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cmcan import codec
-from cmcan.checksums import TSC1_FOLD, id_sum
+from cmcan.checksums import TSC1_FOLD, crc8_ok, id_sum
 from cmcan.frame import Frame, FrameColumns
 from cmcan.monitor.clock import STEP_BACK_S
 from cmcan.monitor.core import _HIGH, _LOW, _MISS, _WINDOW, Monitor, _Input
@@ -306,7 +306,15 @@ class _Engine:
                 s += byte_sums(cols.arbitration_id[rows])
             cs_ok = (d7 >> 4) == _TSC1_FOLD[s.view(np.int64)]  # a signed index gathers ~3x faster
             ctr = d7 & 0x0F
-        elif st.tsc1 or st.checksum is not None:  # any other checksum: the stream's own check, per frame
+        elif (
+            spec.algorithm == "crc8_sae_j1850"
+            and spec.checksum_layout is not None
+            and (ok := crc8_ok(x.length, spec.checksum_layout, data)) is not None
+        ):
+            cs_ok = ok
+            if spec.counter is not None:
+                ctr[:] = codec.extract_all(data[:, : spec.nbytes], [spec.counter], spec.nbytes)[0]
+        elif st.tsc1 or st.checksum is not None:  # anything else: the stream's own check, per frame
             probe = Stream(spec)
             for i, r in enumerate(rows.tolist()):
                 f = cols.frame(r)

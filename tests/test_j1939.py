@@ -191,6 +191,32 @@ def test_sealed_frames_verify_and_a_changed_byte_fails(rows, id_list):
             assert not any(check(int(fid[i]), bytes(r)) for i, r in enumerate(bad))
 
 
+CRC_AT_6 = Layout("crc", 48, 8, False, False, 1.0, 0.0, 0.0, 255.0)
+CRC_AT_2_BE = Layout("crc", 40, 8, True, False, 1.0, 0.0, 0.0, 255.0)  # Motorola: byte 2 of 8
+
+
+@pytest.mark.parametrize("lay", [CRC_AT_0, CRC_AT_6, CRC_AT_2_BE], ids=["byte0", "byte6", "byte2-motorola"])
+@pytest.mark.parametrize("length", [8, 7])
+def test_crc8_over_arrays_says_what_the_per_frame_verifier_says(lay, length):
+    """The columnar engine's CRC check (a byte column at a time) against the daemon's, on sealed
+    frames, frames with one flipped bit and random ones."""
+    rng = np.random.default_rng(length)
+    if checksums.whole_byte(lay, 8) >= length:
+        assert checksums.crc8_ok(length, lay, np.zeros((1, 8), np.uint8)) is None  # left to the verifier
+        return
+    data = rng.integers(0, 256, (3000, 8), dtype=np.uint8)
+    data[:, length:] = 0
+    sealed = checksums.seal("crc8_sae_j1850", length, lay, np.zeros(3000, np.int64), data)
+    flipped = sealed.copy()
+    flipped[np.arange(3000), rng.integers(0, length, 3000)] ^= (1 << rng.integers(0, 8, 3000)).astype(np.uint8)
+    check = checksums.verifier("crc8_sae_j1850", length, lay)
+    for rows in (sealed, flipped, data):
+        got = checksums.crc8_ok(length, lay, rows)
+        want = [check(0, bytes(r[:length])) for r in rows]
+        assert got is not None and got.tolist() == want
+    assert checksums.crc8_ok(length, lay, sealed).all() and not checksums.crc8_ok(length, lay, flipped).any()
+
+
 def test_tsc1_checksum_is_the_j1939_71_formula():
     # TSC1 from address 0x11 to the engine: identifier 0x0C000011, counter 5 in byte 8
     data = bytes([0x01, 0x20, 0x30, 0x40, 0xFF, 0xFF, 0xFF, 0x05])
