@@ -287,8 +287,6 @@ class _Engine:
         :meth:`cmcan.monitor.health.Stream.check` reads them. ``data``: the frames' payloads;
         ``classic``: no frame of the chunk is longer than 8 bytes."""
         n = len(rows)
-        ctr = np.zeros(n, dtype=np.int64)
-        cs_ok = np.ones(n, dtype=bool)
         st, spec = x.stream, x.spec.health
         # a TSC1 message is 8 bytes long (the core's length check passed): exactly 8 unless CAN FD
         if st.tsc1 and (classic or bool((cols.dlc[rows] == 8).all())):
@@ -298,7 +296,7 @@ class _Engine:
                 data if data.shape[1] == 8 and data.flags.c_contiguous else np.ascontiguousarray(data[:, :8])
             ).view("<u8")[:, 0]
             # bytes 1-7, the counter (the low half of byte 8) and the identifier's four bytes
-            s = byte_sums(words & np.uint64(0x0FFF_FFFF_FFFF_FFFF))
+            s = byte_sums(words, 0x0FFF_FFFF_FFFF_FFFF)
             one_id = self._one_id(x)
             if one_id is not None:  # one identifier seen for this message in the whole log: one sum
                 s += np.uint64(id_sum(one_id))
@@ -306,7 +304,10 @@ class _Engine:
                 s += byte_sums(cols.arbitration_id[rows])
             cs_ok = (d7 >> 4) == _TSC1_FOLD[s.view(np.int64)]  # a signed index gathers ~3x faster
             ctr = d7 & 0x0F
-        elif (
+            return ctr, cs_ok
+        ctr = np.zeros(n, dtype=np.int64)
+        cs_ok = np.ones(n, dtype=bool)
+        if (
             spec.algorithm == "crc8_sae_j1850"
             and spec.checksum_layout is not None
             and (ok := crc8_ok(x.length, spec.checksum_layout, data)) is not None
@@ -798,16 +799,15 @@ class _Engine:
         now_at: list[int] = []  # the tick of each frame in ``now``
         resend: list[tuple[NDArray[np.int64], bytes]] = []  # ticks that resend a cached frame, and it
         step, queue = d.step, m.queue
-        rl, cl, fl, kl, t_list = ratio.tolist(), cond.tolist(), fault.tolist(), ks.tolist(), t_k.tolist()
         must_i = np.flatnonzero(must)
         events = np.flatnonzero(event)
 
         def stepped(i: int) -> int:  # the last tick stepped
             while True:
-                r = rl[i]
-                dm = step(kl[i], t_list[i], cl[i], fl[i], None if r != r else r)  # type: ignore[arg-type]
+                r, t = float(ratio[i]), float(t_k[i])
+                dm = step(int(ks[i]), t, int(cond[i]), int(fault[i]), None if r != r else r)  # type: ignore[arg-type]
                 if dm:
-                    queue(dm, t_list[i], now)
+                    queue(dm, t, now)
                     now_at.extend([i] * (len(now) - len(now_at)))
                 if not d.changed or i + 1 >= n:
                     return i
@@ -822,8 +822,8 @@ class _Engine:
                 and not d.changed
                 and pl is not None
                 and len(pl[1]) <= 8
-                and d._last == (cl[i], fl[i], d.low_severe, d.high_severe)
-                and t_list[i] > d.busy_until
+                and d._last == (int(cond[i]), int(fault[i]), d.low_severe, d.high_severe)
+                and float(t_k[i]) > d.busy_until
             ):
                 # the due ticks up to the next event resend the cached frame (times only grow: all of
                 # them are past any transport in progress)
@@ -1014,13 +1014,19 @@ _LANES = np.uint64(0x00FF_00FF_00FF_00FF)
 _FOLD16 = np.uint64(0x0001_0001_0001_0001)
 
 
-def byte_sums(words: NDArray[np.unsignedinteger]) -> NDArray[np.uint64]:
-    """The sum of the bytes of each (up to 64-bit) word, in a few array passes instead of a reduction
-    over rows of 8 bytes: pairs of bytes added into four 16-bit lanes, the lanes added by one
-    multiplication into the top lane (at most 8 x 255 = 2040, no carry out of a lane)."""
-    w = words.astype(np.uint64, copy=False)
-    pairs = (w & _LANES) + ((w >> np.uint64(8)) & _LANES)
-    return (pairs * _FOLD16) >> np.uint64(48)
+def byte_sums(words: NDArray[np.unsignedinteger], mask: int | None = None) -> NDArray[np.uint64]:
+    """The sum of the bytes of each (up to 64-bit) word, ``mask`` applied first, in a few array passes
+    instead of a reduction over rows of 8 bytes: pairs of bytes added into four 16-bit lanes, the
+    lanes added by one multiplication into the top lane (at most 8 x 255 = 2040, no carry out of a
+    lane). Two arrays are made; the rest is done in place."""
+    w = words.astype(np.uint64) if mask is None else words & np.uint64(mask)
+    hi = w >> np.uint64(8)
+    hi &= _LANES
+    w &= _LANES
+    w += hi
+    w *= _FOLD16
+    w >>= np.uint64(48)
+    return w
 
 
 def _distinct(keys: NDArray[np.int64], few: int = 16) -> NDArray[np.int64]:
