@@ -23,6 +23,7 @@ from cmcan.gap.diagnose import diagnose
 from cmcan.gap.effects import LIBRARY, Inputs, Scale, simulate
 from cmcan.gap.result import HIGH, LEVELS, Diagnosis
 from cmcan.monitor.gating import GateLimits
+from cmcan.roles import DP, GATED, HIGH_PRESSURE, LOW_PRESSURE, MOTOR_SPEED, PUMP_DISP, PUMP_SPEED, TEMP
 from cmcan.sim import run as simrun
 from cmcan.sim import scenario as scn
 from cmcan.sim.physics import DriveParams, ExtraLosses, steady_motor_speed_rpm
@@ -44,7 +45,7 @@ NATURAL = {
 SIGNED = {"motor_disp_offset"} | {n for n, e in LIBRARY.items() if e.kind == "sensor"} - {"output_sensor_lag"}
 OUTSIDE = ("centrifugal_loss", "high_pressure_leak")  # not in the library
 HP_LEAK_FROM_BAR = 300.0
-MEASURED = ("pump_speed_rpm", "pump_disp_cc", "dp_bar", "temp_c", "motor_speed_rpm")  # what the diagnosis gets
+MEASURED = GATED  # what the diagnosis gets
 # Effects that are (nearly) one constant factor on the output: two of them at once are one factor.
 FACTOR = {"motor_disp_offset", "output_sensor_gain", "pump_speed_sensor_gain", "disp_sensor_gain"}
 
@@ -140,7 +141,7 @@ def _put(doc: dict[str, Any], name: str, value: float) -> None:
         errors.setdefault(ch, {})[key] = errors.get(ch, {}).get(key, 0.0) + value
 
     leak = {"laminar_leakage": "laminar_lpm", "pressure_leakage": "pressure_lpm", "turbulent_leakage": "turbulent_lpm"}
-    role = {"pump_speed": "pump_speed_rpm", "disp": "pump_disp_cc", "temp": "temp_c", "output": "motor_speed_rpm"}
+    role = {"pump_speed": PUMP_SPEED, "disp": PUMP_DISP, "temp": TEMP, "output": MOTOR_SPEED}
     if name in leak:
         extra[leak[name]] = value
     elif name == "compressibility":
@@ -152,12 +153,12 @@ def _put(doc: dict[str, Any], name: str, value: float) -> None:
     elif name == "motor_disp_offset":
         doc.setdefault("events", []).append({"type": "misposition", "mode": "step", "start_h": 0.0, "pct": value})
     elif name == "output_sensor_lag":
-        err("motor_speed_rpm", "lag_s")
+        err(MOTOR_SPEED, "lag_s")
     elif name == "pressure_sensor_offset":
-        err("high_pressure_bar", "offset")
+        err(HIGH_PRESSURE, "offset")
     elif name == "pressure_sensor_gain":  # both transducers: the delta pressure reads pct % high
-        err("high_pressure_bar", "gain_pct")
-        err("low_pressure_bar", "gain_pct")
+        err(HIGH_PRESSURE, "gain_pct")
+        err(LOW_PRESSURE, "gain_pct")
     else:
         prefix, kind = name.rsplit("_sensor_", 1)
         err(role[prefix], "offset" if kind == "offset" else "gain_pct")
@@ -198,7 +199,7 @@ def trial_data(spec: TrialSpec, p: DriveParams | None = None) -> tuple[GapData, 
     """The trial's measured data from the dynamic simulator with its effects inside, and their values."""
     r, values = trial_run(spec, p)
     series = {k: (r["time_s"], r[k]) for k in MEASURED}
-    return from_series(series, "motor_speed_rpm", GateLimits(), f"trial {spec.seed}"), values
+    return from_series(series, MOTOR_SPEED, GateLimits(), f"trial {spec.seed}"), values
 
 
 def trial_run(spec: TrialSpec, p: DriveParams | None = None) -> tuple[simrun.Run, tuple[float, ...]]:
@@ -212,10 +213,10 @@ def trial_run(spec: TrialSpec, p: DriveParams | None = None) -> tuple[simrun.Run
         # Sized on what the sensors show (the pressure sensor sees one side of the loop only).
         x = Inputs(
             t,
-            healthy["pump_speed_rpm"],
-            healthy["pump_disp_cc"],
-            healthy["dp_bar"],
-            healthy["temp_c"],
+            healthy[PUMP_SPEED],
+            healthy[PUMP_DISP],
+            healthy[DP],
+            healthy[TEMP],
             np.zeros(len(t)),
             np.zeros(len(t), dtype=np.int64),
         )
@@ -236,7 +237,7 @@ def score(spec: TrialSpec, values: tuple[float, ...], diag: Diagnosis) -> Score:
     else:  # none, or an effect outside the library: any effect named is wrong
         right = not groups
     dom = diag.where.dominant
-    located = dom is not None and dom.variable == "dp_bar" and dom.lo >= 250.0
+    located = dom is not None and dom.variable == DP and dom.lo >= 250.0
     return Score(
         spec.seed,
         spec.case,

@@ -12,6 +12,7 @@ from cmcan.gap.result import (
     Flag,
 )
 from cmcan.gap.where import varying
+from cmcan.roles import DP, PUMP_DISP, PUMP_SPEED, TEMP
 
 # Calibrated on `cmcan gap bench` (docs/gap.md, "Calibration"): "high" needs all of these.
 HIGH_REDUCTION = 0.6  # withheld gap removed by the selection
@@ -22,11 +23,11 @@ HIGH_SEPARATION = 0.1  # the nearest rival outside the answer leaves this much m
 MEDIUM_ROBUST = 0.3
 
 ROBUSTNESS_SPLITS = (
-    "temp_c:top25",
-    "dp_bar:top25",
-    "pump_speed_rpm:top25",
-    "pump_speed_rpm:bottom25",
-    "pump_disp_cc:bottom25",
+    f"{TEMP}:top25",
+    f"{DP}:top25",
+    f"{PUMP_SPEED}:top25",
+    f"{PUMP_SPEED}:bottom25",
+    f"{PUMP_DISP}:bottom25",
 )
 
 

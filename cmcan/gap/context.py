@@ -10,9 +10,10 @@ from numpy.typing import NDArray
 
 from cmcan.gap.data import GapData
 from cmcan.gap.effects import LIBRARY, Effect, Scale, simulate
+from cmcan.roles import DP, PUMP_DISP, PUMP_SPEED, TEMP
 from cmcan.sim.physics import DriveParams
 
-REGION_VARS = ("dp_bar", "temp_c", "pump_speed_rpm", "pump_disp_cc")
+REGION_VARS = (DP, TEMP, PUMP_SPEED, PUMP_DISP)
 GAP_OVER_NOISE = 1.5  # a gap below this many noise levels is no gap
 MIN_GAP_SHARE = 0.0025  # ... nor is one below this share of the output
 CHUNKS = 20  # stretches of the data over which a candidate's advantage over a rival must hold
@@ -29,7 +30,7 @@ def holdout_mask(d: GapData, spec: str | None) -> tuple[NDArray[np.bool_], str]:
     quarter where the oil temperature hardly varies) so an added effect must extrapolate."""
     x = d.x
     if spec is None:
-        spec = "temp_c:top25" if np.ptp(x.temp_c) >= 15.0 else "dp_bar:top25"
+        spec = f"{TEMP}:top25" if np.ptp(x.temp_c) >= 15.0 else f"{DP}:top25"
         if np.ptp(getattr(x, spec.split(":")[0])) == 0.0:
             spec = "time:last25"
     if spec == "random25":

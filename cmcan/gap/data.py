@@ -26,10 +26,10 @@ from cmcan.model.features import (
     series_from_log,
 )
 from cmcan.monitor.gating import Gate, GateLimits, eval_times, gate, window_stats
-from cmcan.roles import MODEL_INPUTS
+from cmcan.roles import DP, FLOW, MODEL_INPUTS, MOTOR_SPEED, PUMP_DISP, PUMP_SPEED, TEMP
 
 BLOCK_S = 0.1
-QUANTITIES = {"motor_speed_rpm": "rpm", "flow_lpm": "l/min"}
+QUANTITIES = {MOTOR_SPEED: "rpm", FLOW: "l/min"}
 INPUT_ROLES = MODEL_INPUTS
 REQUIRED = ("time_s", *INPUT_ROLES)
 MIN_BLOCKS = 100
@@ -122,7 +122,7 @@ def from_series(
     per_span = [eval_times(a, b, 1.0 / BLOCK_S) for a, b in spans]
     t = np.concatenate(per_span) if per_span else np.empty(0)
     seg = np.concatenate([np.full(len(e), i) for i, e in enumerate(per_span)]) if per_span else np.empty(0, np.int64)
-    roles = [r for r in (*INPUT_ROLES, "motor_speed_rpm") if r in series]
+    roles = [r for r in (*INPUT_ROLES, MOTOR_SPEED) if r in series]
     blocks = window_stats({r: series[r] for r in roles}, t, BLOCK_S)
     y_blocks = window_stats({quantity: series[quantity]}, t, BLOCK_S).mean[quantity]
     ok = np.all([blocks.count[r] > 0 for r in roles], axis=0) & (blocks.count.get(quantity, np.ones(len(t))) > 0)
@@ -130,17 +130,17 @@ def from_series(
     ok &= np.r_[False, seg[1:] == seg[:-1]] if len(seg) else np.zeros(0, dtype=bool)
     ok &= np.isfinite(y_blocks)
     gate_roles = {r: series[r] for r in roles}
-    if "motor_speed_rpm" not in gate_roles:
-        gate_roles["motor_speed_rpm"] = series[quantity]
+    if MOTOR_SPEED not in gate_roles:
+        gate_roles[MOTOR_SPEED] = series[quantity]
     steady = gate(window_stats(gate_roles, t, limits.window_s), limits) == Gate.EVALUATING
-    t_dp, v_dp = series["dp_bar"]
+    t_dp, v_dp = series[DP]
     # The pressure's mean rate over each block from its value at the block's edges: the block's
     # line-compressibility flow (a gradient of block means smears the drive's ~1 Hz pressure swings).
     dp_rate = (_local_mean(t_dp, v_dp, t) - _local_mean(t_dp, v_dp, t - BLOCK_S)) / BLOCK_S
     dp_lo, dp_hi = _block_extremes(t_dp, v_dp, t)
     t, seg, y, steady = t[ok], seg[ok].astype(np.int64), y_blocks[ok], steady[ok]
     m = {r: blocks.mean[r][ok] for r in roles}
-    x = Inputs(t, m["pump_speed_rpm"], m["pump_disp_cc"], m["dp_bar"], m["temp_c"], dp_rate[ok], seg)
+    x = Inputs(t, m[PUMP_SPEED], m[PUMP_DISP], m[DP], m[TEMP], dp_rate[ok], seg)
     if len(t) < MIN_BLOCKS:
         raise DataError(
             f"{source}: only {len(t)} usable 0.1 s blocks of data; need at least {MIN_BLOCKS} "
@@ -159,27 +159,25 @@ def from_points(pts: Points, quantity: str) -> GapData:
     v = pts.values
     x = Inputs(
         pts.rows.astype(float),
-        v["pump_speed_rpm"],
-        v["pump_disp_cc"],
-        v["dp_bar"],
-        v["temp_c"],
+        v[PUMP_SPEED],
+        v[PUMP_DISP],
+        v[DP],
+        v[TEMP],
         np.zeros(n),
         np.arange(n, dtype=np.int64),
     )
     constant = frozenset(r for r in INPUT_ROLES if r not in pts.measured or np.ptp(v[r]) == 0.0)
-    return GapData(
-        x, v[quantity], np.ones(n, dtype=bool), v["dp_bar"], v["dp_bar"], quantity, pts.source, "points", constant
-    )
+    return GapData(x, v[quantity], np.ones(n, dtype=bool), v[DP], v[DP], quantity, pts.source, "points", constant)
 
 
-def load_points(path: str | Path, spec: PointSpec, quantity: str = "motor_speed_rpm") -> GapData:
+def load_points(path: str | Path, spec: PointSpec, quantity: str = MOTOR_SPEED) -> GapData:
     _check_quantity(quantity, str(path))
     return from_points(read_points(path, spec, (*INPUT_ROLES, quantity), min_rows=1), quantity)
 
 
 def load(
     path: str | Path,
-    quantity: str = "motor_speed_rpm",
+    quantity: str = MOTOR_SPEED,
     limits: GateLimits | None = None,
     db: Any = None,
     mapping: Any = None,
@@ -192,7 +190,7 @@ def load(
         raise DataError(f"{p}: file not found")
     _check_quantity(quantity, str(p))
     if is_log(p):
-        if quantity == "flow_lpm":
+        if quantity == FLOW:
             raise DataError(f"{p}: flow_lpm needs a CSV with a measured flow_lpm column")
         if db is None:
             from cmcan.dbc import load_dbc
@@ -206,8 +204,8 @@ def load(
         cols = read_run_csv(p, required=(*REQUIRED, quantity))
     except ValueError as exc:
         raise DataError(str(exc)) from None
-    if "motor_speed_rpm" not in cols:  # a flow machine: the output stands in for the gate's motor speed
-        cols = {**cols, "motor_speed_rpm": cols[quantity]}
+    if MOTOR_SPEED not in cols:  # a flow machine: the output stands in for the gate's motor speed
+        cols = {**cols, MOTOR_SPEED: cols[quantity]}
     series, _ = series_from_columns(cols, str(p))
     if quantity not in series:
         series[quantity] = (cols["time_s"], cols[quantity])

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import NDArray
 
+from cmcan.roles import DP, FLOW, MOTOR_SPEED, PUMP_DISP, PUMP_SPEED, QUANTITIES, TEMP
 from cmcan.sim.physics import REF_DP_BAR, REF_TEMP_C, DriveParams, UnitLosses, steady_motor_speed_rpm
 
 OUTPUT_UNIT = "output unit"  # a parameter in the output's own unit (rpm or l/min)
@@ -136,7 +137,7 @@ class Effect:
     apply: Callable[[DriveParams, Inputs, NDArray[np.float64], Mods], None]
     kind: str = "physical"  # or "sensor"
     needs_time: bool = False  # shows only in a time series (a lag)
-    quantities: tuple[str, ...] = ("motor_speed_rpm", "flow_lpm")
+    quantities: tuple[str, ...] = QUANTITIES
 
     def describe(self) -> dict:
         return {
@@ -150,7 +151,7 @@ class Effect:
 
 def output_scale(p: DriveParams, quantity: str) -> float:
     """Factor from motor speed (rpm) to the output quantity: delivered flow is speed times V_M."""
-    return p.motor_disp_cc / 1000.0 if quantity == "flow_lpm" else 1.0
+    return p.motor_disp_cc / 1000.0 if quantity == FLOW else 1.0
 
 
 def first_order_lag(
@@ -175,7 +176,7 @@ def simulate(
     p: DriveParams,
     x: Inputs,
     effects: list[tuple[Effect, NDArray[np.float64]]],
-    quantity: str = "motor_speed_rpm",
+    quantity: str = MOTOR_SPEED,
 ) -> NDArray[np.float64]:
     """The simulator on measured inputs with ``effects`` (each with its parameter vector) added: the
     flow balance at the measured pressure, minus the flow the high-pressure line takes to build
@@ -188,11 +189,11 @@ def simulate(
     if m.compress_add:
         pump = p.pump
         p = replace(p, pump=UnitLosses(pump.laminar_cs, pump.turbulent_ct, pump.compress_factor + m.compress_add))
-    n = m.true_value("pump_speed_rpm", x.pump_speed_rpm)
-    v = m.true_value("pump_disp_cc", x.pump_disp_cc)
-    dp = m.true_value("dp_bar", x.dp_bar)
-    temp = m.true_value("temp_c", x.temp_c)
-    dp_rate = x.dp_rate_bar_s / (1.0 + m.sensor_gain.get("dp_bar", 0.0))
+    n = m.true_value(PUMP_SPEED, x.pump_speed_rpm)
+    v = m.true_value(PUMP_DISP, x.pump_disp_cc)
+    dp = m.true_value(DP, x.dp_bar)
+    temp = m.true_value(TEMP, x.temp_c)
+    dp_rate = x.dp_rate_bar_s / (1.0 + m.sensor_gain.get(DP, 0.0))
     line_lpm = p.line_volume_l / p.bulk_modulus_bar * dp_rate * 60.0
     relief_lpm = p.relief_gain_lpm_per_bar * np.clip(dp - p.relief_dp_bar, 0.0, None)
     y = steady_motor_speed_rpm(
@@ -289,10 +290,10 @@ def _sensor(prefix: str, role: str, label: str, offset: Param, gain_pct: float) 
 # Sensor errors a calibration would find: speed within 3 % of its top, displacement within 10 % of the
 # pump's size, pressure within 5 % of the top pressure, temperature within 15 C, the output within 5 %.
 _SENSORS = (
-    *_sensor("pump_speed", "pump_speed_rpm", "n_P", Param("offset_rpm", "rpm", -0.03, 0.03, 0.01, "speed_max_rpm"), 5),
-    *_sensor("disp", "pump_disp_cc", "V_P", Param("offset_cc", "cm3/rev", -0.1, 0.1, 0.01, "pump_disp_max_cc"), 10),
-    *_sensor("pressure", "dp_bar", "dp", Param("offset_bar", "bar", -0.05, 0.05, 0.01, "dp_max_bar"), 10),
-    *_sensor("temp", "temp_c", "T", Param("offset_c", "C", -15.0, 15.0, 0.01), 15),
+    *_sensor("pump_speed", PUMP_SPEED, "n_P", Param("offset_rpm", "rpm", -0.03, 0.03, 0.01, "speed_max_rpm"), 5),
+    *_sensor("disp", PUMP_DISP, "V_P", Param("offset_cc", "cm3/rev", -0.1, 0.1, 0.01, "pump_disp_max_cc"), 10),
+    *_sensor("pressure", DP, "dp", Param("offset_bar", "bar", -0.05, 0.05, 0.01, "dp_max_bar"), 10),
+    *_sensor("temp", TEMP, "T", Param("offset_c", "C", -15.0, 15.0, 0.01), 15),
     *_sensor("output", "output", "y", Param("offset", OUTPUT_UNIT, -0.05, 0.05, 0.01, "output_mean"), 10),
 )
 
@@ -334,7 +335,7 @@ LIBRARY: dict[str, Effect] = {
             "the motor's real displacement differs from nominal: a constant factor on speed",
             (Param("pct", "%", -15.0, 15.0, 0.01),),
             _motor_disp,
-            quantities=("motor_speed_rpm",),
+            quantities=(MOTOR_SPEED,),
         ),
         *_SENSORS,
         Effect(

@@ -8,12 +8,13 @@ from pathlib import Path
 from cmcan.gap.data import GapData
 from cmcan.gap.diagnose import REGION_VARS
 from cmcan.gap.result import Arrays, Diagnosis, Regions
+from cmcan.roles import DP, PUMP_DISP, PUMP_SPEED, TEMP
 
 LABELS = {
-    "dp_bar": "delta pressure (bar)",
-    "temp_c": "oil temperature (C)",
-    "pump_speed_rpm": "pump speed (rpm)",
-    "pump_disp_cc": "pump displacement (cm3/rev)",
+    DP: "delta pressure (bar)",
+    TEMP: "oil temperature (C)",
+    PUMP_SPEED: "pump speed (rpm)",
+    PUMP_DISP: "pump displacement (cm3/rev)",
 }
 
 
