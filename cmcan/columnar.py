@@ -176,14 +176,15 @@ class _Engine:
             return
         t = cols.timestamp_s[idx]
         ids = which[idx]
-        raws, ok, row, ctr, cs_ok = self._decode(cols, idx, ids)
+        groups = _groups(ids, len(self.inps))
+        raws, ok, row, ctr, cs_ok = self._decode(cols, idx, groups)
         pos = 0
         while pos < len(idx):
             if m.clock.next_k is None or not math.isfinite(t[pos]):
                 self._scalar(cols, int(idx[pos]))
                 pos += 1
                 continue
-            end = self._stretch(t, ids, raws, row, ok, ctr, cs_ok, pos)
+            end = self._stretch(t, groups, raws, row, ok, ctr, cs_ok, pos)
             if end == pos:  # the first frame is irregular: the streaming core takes it
                 self._scalar(cols, int(idx[pos]))
                 pos += 1
@@ -247,14 +248,14 @@ class _Engine:
         self.scalar_out(self.m.feed(cols.frame(i)))
 
     def _decode(
-        self, cols: FrameColumns, idx: NDArray[np.int64], ids: NDArray[np.int64]
+        self, cols: FrameColumns, idx: NDArray[np.int64], groups: list[NDArray[np.int64]]
     ) -> tuple[
         dict[int, list[NDArray[np.int64]]], NDArray[np.bool_], NDArray[np.int64], NDArray[np.int64], NDArray[np.bool_]
     ]:
         """Per input message the raw values (one array per value, over its frames), the DBC range
         check per frame (on the raw values, as the core's decoder checks them), each frame's row in
         its message's arrays, and its message counter and checksum verdict (:meth:`_integrity`).
-        ``ids`` are the frames' input message indices."""
+        ``groups``: each input message's frames (:func:`_groups`)."""
         ok = np.ones(len(idx), dtype=bool)
         row = np.zeros(len(idx), dtype=np.int64)
         ctr = np.zeros(len(idx), dtype=np.int64)
@@ -262,7 +263,7 @@ class _Engine:
         raws: dict[int, list[NDArray[np.int64]]] = {}
         classic = bool(len(cols)) and int(cols.dlc.max()) <= 8  # no frame longer than 8 bytes here
         for j, x in enumerate(self.inps):
-            sel = np.flatnonzero(ids == j)
+            sel = groups[j]
             if not len(sel):
                 continue
             spec = x.spec
@@ -344,7 +345,7 @@ class _Engine:
     def _stretch(
         self,
         t_all: NDArray[np.float64],
-        ids_all: NDArray[np.int64],
+        groups_all: list[NDArray[np.int64]],
         raws_all: dict[int, list[NDArray[np.int64]]],
         row_all: NDArray[np.int64],
         ok_all: NDArray[np.bool_],
@@ -377,7 +378,10 @@ class _Engine:
         late = t < late_t
         advances = t > due_t
         # the health checks of the frames that reach them (not late), then the DBC range
-        checks = self._counter_checks(t, ids_all[pos:], ~late, ctr_all[pos:], cs_all[pos:])
+        # each message's frames from pos on that reach the checks (not late), in arrival order
+        reach = [g[np.searchsorted(g, pos) :] - pos for g in groups_all] if pos else groups_all
+        reach = [g[~late[g]] for g in reach]
+        checks = self._counter_checks(t, reach, ctr_all[pos:], cs_all[pos:])
         verdict = np.where(checks != OK, checks, np.where(ok, OK, OUT_OF_RANGE)).astype(np.int8)
         accepted = (verdict == OK) & ~late
         lf = np.maximum.accumulate(np.concatenate([[lf0], np.where(accepted, t, -np.inf)]))
@@ -394,7 +398,7 @@ class _Engine:
         t, late, accepted, verdict = t[sl], late[sl], accepted[sl], verdict[sl]
         k_after = np.where(late, k_prev[sl], np.maximum(k_prev[sl], g[sl])).astype(np.int64)
         k_end = int(k_after[-1])
-        ids = ids_all[pos : pos + stop]
+        reach = [g[: np.searchsorted(g, stop)] for g in reach]  # within the stretch
         c = m.counters
         c["frames_total"] += stop
         c["late"] += int(late.sum())
@@ -404,10 +408,10 @@ class _Engine:
         c["accepted"] += int(accepted.sum())
         self._write_counters(stop)
         # samples per role, in arrival order, from the accepted frames
-        samples = self._samples(t, ids, raws_all, row_all[pos : pos + stop], accepted)
+        samples = self._samples(t, reach, raws_all, row_all[pos : pos + stop], accepted)
         ticks_k = np.arange(k0, k_end, dtype=np.int64)
         trig = np.searchsorted(k_after, ticks_k, side="right")  # index of the frame that completes each tick
-        erratic = self._health(t, ids, ~late, verdict, trig, ticks_k.astype(np.float64) * P)
+        erratic = self._health(t, reach, verdict, trig, ticks_k.astype(np.float64) * P)
         if len(ticks_k):
             self._evaluate(ticks_k, trig, samples, erratic)
         # write the state back
@@ -421,7 +425,7 @@ class _Engine:
     def _samples(
         self,
         t: NDArray[np.float64],
-        ids: NDArray[np.int64],
+        reach: list[NDArray[np.int64]],
         raws_all: dict[int, list[NDArray[np.int64]]],
         row: NDArray[np.int64],
         accepted: NDArray[np.bool_],
@@ -432,7 +436,7 @@ class _Engine:
         high_rows: list[tuple[NDArray[np.int64], NDArray[np.int64]]] = []
         low_rows: list[tuple[NDArray[np.int64], NDArray[np.int64]]] = []
         for f, targets in enumerate(self.targets):
-            mine = np.flatnonzero((ids == f) & accepted)
+            mine = reach[f][accepted[reach[f]]]
             if not len(mine):
                 continue
             at = row[mine]
@@ -484,14 +488,14 @@ class _Engine:
     def _counter_checks(
         self,
         t: NDArray[np.float64],
-        ids: NDArray[np.int64],
-        reached: NDArray[np.bool_],
+        reach: list[NDArray[np.int64]],
         ctr: NDArray[np.int64],
         cs_ok: NDArray[np.bool_],
     ) -> NDArray[np.int8]:
-        """Steps 1 and 2 of :mod:`cmcan.monitor.health` for the frames that reach them, in arrival
-        order per stream: a failed checksum, else the counter against the previous frame that passed
-        the checksum (within the timeout). Keeps each stream's passing frames for the write-back."""
+        """Steps 1 and 2 of :mod:`cmcan.monitor.health` for the frames that reach them (``reach``: each
+        stream's, in arrival order): a failed checksum, else the counter against the previous frame
+        that passed the checksum (within the timeout). Keeps each stream's passing frames for the
+        write-back."""
         out = np.zeros(len(t), dtype=np.int8)
         self._passing: list[tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]] | None] = []
         for j, x in enumerate(self.inps):
@@ -499,12 +503,13 @@ class _Engine:
             if not x.checked:
                 self._passing.append(None)
                 continue
-            mine = reached & (ids == j)
-            out[mine & ~cs_ok] = CHECKSUM
+            mine = reach[j]
+            passed = cs_ok[mine]
+            out[mine[~passed]] = CHECKSUM
             if not (st.tsc1 or st._at >= 0 or st._read is not None):  # a checksum and no counter
                 self._passing.append(None)
                 continue
-            p = np.flatnonzero(mine & cs_ok)
+            p = mine[passed]
             self._passing.append((p, ctr[p], t[p]))
             if not len(p):
                 continue
@@ -533,8 +538,7 @@ class _Engine:
     def _health(
         self,
         t: NDArray[np.float64],
-        ids: NDArray[np.int64],
-        reached: NDArray[np.bool_],
+        reach: list[NDArray[np.int64]],
         verdict: NDArray[np.int8],
         trig: NDArray[np.int64],
         t_k: NDArray[np.float64],
@@ -542,8 +546,8 @@ class _Engine:
         """Input health over a stretch (:mod:`cmcan.monitor.health`): each message stream's newest frame
         and its verdict at every tick (the frames before the one that completes the tick), whether
         some stream is erratic there, the timeouts counted at the ticks where some stream is alive;
-        the streams' state and counts written back. ``reached``: the frames that got to the checks
-        (not late); ``verdict``: theirs (OK, or why a frame was rejected)."""
+        the streams' state and counts written back. ``reach``: each stream's frames that got to the
+        checks (not late); ``verdict``: theirs (OK, or why a frame was rejected)."""
         n_ticks = len(t_k)
         erratic = np.zeros(n_ticks, dtype=bool)
         alive = np.zeros(n_ticks, dtype=bool)
@@ -551,7 +555,7 @@ class _Engine:
         ends = []
         for j, x in enumerate(self.inps):
             st = x.stream
-            f = np.flatnonzero(reached & (ids == j))  # this stream's frames, in arrival order
+            f = reach[j]  # this stream's frames, in arrival order
             if len(f):
                 tf, vf = t[f], verdict[f]
                 # newest_t before each of its frames, and the frames that set it (t >= newest_t: later
@@ -1027,6 +1031,18 @@ def byte_sums(words: NDArray[np.unsignedinteger], mask: int | None = None) -> ND
     w *= _FOLD16
     w >>= np.uint64(48)
     return w
+
+
+def _groups(ids: NDArray[np.int64], n: int) -> list[NDArray[np.int64]]:
+    """The positions of each of the ``n`` input messages' frames (``ids``: 0 to n-1), each in arrival
+    order: one stable sort (a radix sort on small integers) instead of a pass over all frames per
+    message."""
+    if n == 1:
+        return [np.arange(len(ids))]
+    small = ids.astype(np.int16 if n < (1 << 15) else np.int64)
+    order = np.argsort(small, kind="stable")
+    bounds = np.searchsorted(small[order], np.arange(n + 1))
+    return [order[bounds[j] : bounds[j + 1]] for j in range(n)]
 
 
 def _distinct(keys: NDArray[np.int64], few: int = 16) -> NDArray[np.int64]:
