@@ -15,7 +15,9 @@ counters and checksums checked, DM1): its time per frame against the 11-bit mach
 engine (the columnar one, and the streaming one, the daemon's core), in rounds of every machine back
 to back (``--repeat`` of them, three times as many for the short columnar runs): the median of the
 rounds' ratios (and the best of each machine's times), once more without the checksum checks and
-without checks and DM1 to tell the 29-bit path's cost from the checks' and the diagnostics';
+without checks and DM1 to tell the 29-bit path's cost from the checks' and the diagnostics'. Each
+round runs the 11-bit log twice: how far the log differs from itself between runs (the median of
+|ratio - 1|) is the noise, and "no slower" means a median ratio not above 1 by more than that;
 and both engines' outputs compared on it. Last, the daemon's loop (recv, core, send) on an
 in-memory bus against a bare recv loop, in CPU seconds per frame.
 
@@ -196,10 +198,13 @@ def j1939_comparison(base_cfg: cfgmod.Config, log: Path, tmp: Path, n_frames: in
         "J1939": (j_cfg, j_log),
         "J1939, no checksum": (replace(j_cfg, messages=no_cs), j_log),
         "J1939, no cs/DM1": (no_features, j_log),  # the 29-bit path alone
+        "11-bit, again": (base_cfg, log),  # the same log once more: how far a log differs from itself
     }
     best: dict[tuple[str, str], float] = {}
     frames: dict[str, int] = {}
-    rounds: dict[str, list[float]] = {"columnar": [], "streaming": []}  # per round: J1939 / 11-bit per frame
+    # per round: J1939 against the mean of the round's two 11-bit runs, and those two against each other
+    rounds: dict[str, list[float]] = {"columnar": [], "streaming": []}
+    same_log: dict[str, list[float]] = {"columnar": [], "streaming": []}
     for engine in ("columnar", "streaming"):
         # rounds of every machine back to back: the best of each, and each round's ratio (the columnar
         # engine's runs are short and spread more: three times the rounds)
@@ -211,7 +216,9 @@ def j1939_comparison(base_cfg: cfgmod.Config, log: Path, tmp: Path, n_frames: in
                 best[engine, name] = min(best.get((engine, name), float("inf")), t)
                 frames[name] = s.counters["frames_total"]
                 this[name] = t / frames[name]
-            rounds[engine].append(this["J1939"] / this["11-bit"])
+            a, a2 = this["11-bit"], this["11-bit, again"]
+            rounds[engine].append(this["J1939"] / ((a + a2) / 2))
+            same_log[engine].append(a2 / a)
     parse: dict[str, float] = {}
     for _ in range(repeat):  # the text alone: a 29-bit identifier is 8 hex digits in a candump line, not 3
         for name, path in (("11-bit", log), ("J1939", j_log)):
@@ -219,16 +226,20 @@ def j1939_comparison(base_cfg: cfgmod.Config, log: Path, tmp: Path, n_frames: in
     met = True
     for engine in ("columnar", "streaming"):
         per = {name: best[engine, name] / frames[name] for name in machines}
-        for name in machines:
+        per["11-bit"] = min(per["11-bit"], per.pop("11-bit, again"))
+        for name in per:
             print(f"per frame, {engine:<9} {name:<18} {per[name] * 1e6:6.3f} us  (best of {len(rounds[engine])})")
         ratio = per["J1939"] / per["11-bit"]
         r = sorted(rounds[engine])
         median = statistics.median(r)
-        # "no slower" at the precision the figures carry (runs of one log spread by more than 1 %)
-        met = met and round(median, 2) <= 1.0
+        # "no slower": not above 1 by more than the 11-bit log differs from itself between two runs
+        noise = statistics.median(abs(x - 1.0) for x in same_log[engine])
+        ok = median <= 1.0 + noise
+        met = met and ok
         print(
-            f"ratio J1939/11-bit, {engine:<9}   {median:7.2f} x  median of {len(r)} rounds ({r[0]:.2f}..{r[-1]:.2f}; "
-            f"best against best {ratio:.2f} x)  (target <= 1)"
+            f"ratio J1939/11-bit, {engine:<9}   {median:7.3f} x  median of {len(r)} rounds ({r[0]:.3f}..{r[-1]:.3f}; "
+            f"best against best {ratio:.3f} x); the 11-bit log against itself differs by {noise:.3f} "
+            f"(median): no slower {'yes' if ok else 'NO'}  (target: <= 1 + that)"
         )
         print(
             f"  without its checksum checks "
