@@ -118,3 +118,22 @@ def test_columnar_reader_on_a_long_uniform_log(tmp_path):
     p.write_text("".join(lines))
     got = [f for c in iter_candump_columns(p, chunk_bytes=1 << 16) for f in c.frames()]
     assert got == list(iter_candump(p))
+
+
+def test_chunks_by_lines_hold_as_many_frames_whatever_the_identifier_length(tmp_path):
+    """With ``chunk_lines`` a log of 29-bit identifiers (longer lines) comes in chunks of as many
+    frames as a log of 11-bit ones, and the frames are those of the line reader."""
+    from cmcan.io.candump_columns import iter_candump_columns
+
+    sizes = {}
+    for name, ident in (("std", "{:03X}"), ("ext", "18FF{:02X}03")):
+        lines = [
+            f"({1767225600 + i * 0.001:017.6f}) can0 {ident.format(i % 4)}#{i % 65536:04X}00FF00AA00BB\n"
+            for i in range(30000)
+        ]
+        p = tmp_path / f"{name}.log"
+        p.write_text("".join(lines))
+        chunks = list(iter_candump_columns(p, chunk_bytes=1 << 17, chunk_lines=4000))
+        assert [f for c in chunks for f in c.frames()] == list(iter_candump(p))
+        sizes[name] = [len(c) for c in chunks]
+    assert sizes["std"][1:-1] and sizes["std"][1:-1] == sizes["ext"][1:-1] == [4000] * len(sizes["std"][1:-1])

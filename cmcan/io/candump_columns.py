@@ -46,7 +46,7 @@ def iter_candump_columns(
 ) -> Iterator[FrameColumns]:
     """The frames of a candump log (``.log`` or ``.log.gz``) in chunks of about ``chunk_bytes``, or
     with ``chunk_lines``, of about that many lines (read as that many lines' worth of bytes at the
-    first chunk's mean line length, within a quarter and four times ``chunk_bytes``): the replay's
+    first chunk's mean line length, within a quarter and twice ``chunk_bytes``): the replay's
     work goes by frames, so a log of longer lines (29-bit identifiers) comes in as many chunks.
     ``progress`` is told the bytes of the file read so far."""
     p = Path(path)
@@ -73,7 +73,7 @@ def iter_candump_columns(
             rest = data[cut:]
             if chunk_lines and line0 > 1 and chunk_bytes == size:  # after the first chunk: by lines
                 per_line = cut / max(line0 - 1, 1)
-                size = int(min(4 * size, max(size // 4, chunk_lines * per_line)))
+                size = int(min(2 * size, max(size // 4, chunk_lines * per_line)))
             if len(rest) > MAX_LINE_BYTES:  # no newline in sight: not a text log (and memory stays bounded)
                 raise LogError(f"{p}: line {line0}: longer than {MAX_LINE_BYTES} bytes: not a candump -l log")
         if rest.strip():
