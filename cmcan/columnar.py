@@ -299,7 +299,7 @@ class _Engine:
             # bytes 1-7, the counter (the low half of byte 8) and the identifier's four bytes
             s = byte_sums(words, 0x0FFF_FFFF_FFFF_FFFF)
             one_id = self._one_id(x)
-            if one_id is not None:  # one identifier seen for this message in the whole log: one sum
+            if one_id is not None:  # one identifier matched to this message so far: one sum
                 s += np.uint64(id_sum(one_id))
             else:
                 s += byte_sums(cols.arbitration_id[rows])

@@ -68,7 +68,7 @@ class FrameColumns:
     error: NDArray[np.bool_]
     fd: NDArray[np.bool_]
     dlc: NDArray[np.int16]  # payload length in bytes
-    data: NDArray[np.uint8]  # (n, 8): the first 8 bytes, zero padded
+    data: NDArray[np.uint8]  # (n, 8): the first 8 bytes of every payload (a longer one's too), zero padded
     long_data: dict[int, bytes] = field(default_factory=dict)  # whole payloads beyond 8 bytes, by row
 
     def __len__(self) -> int:
@@ -145,8 +145,8 @@ class FrameColumns:
             d = f.data
             if len(d) > 8:
                 long[i] = d
-            elif d:
-                data[i, : len(d)] = np.frombuffer(d, dtype=np.uint8)
+            if d:  # the first 8 bytes of any payload, a longer one's too
+                data[i, : min(len(d), 8)] = np.frombuffer(d[:8], dtype=np.uint8)
         return cls(
             timestamp_s=np.fromiter((f.timestamp_s for f in frames), np.float64, n),
             channel=np.fromiter((names.setdefault(f.channel, len(names)) for f in frames), np.int16, n),

@@ -56,7 +56,7 @@ def iter_candump_columns(
     with opener(p, "rb") as f:  # type: ignore[operator]
         raw = getattr(f, "fileobj", None) or f  # for .gz: the compressed file, as its size on disk counts
         rest = b""
-        size = chunk_bytes
+        size, resized = chunk_bytes, False
         while True:
             block = _read(f, size, p, line0)
             if progress is not None:
@@ -71,7 +71,8 @@ def iter_candump_columns(
                 if len(cols):
                     yield cols
             rest = data[cut:]
-            if chunk_lines and line0 > 1 and chunk_bytes == size:  # after the first chunk: by lines
+            if chunk_lines and not resized and line0 > 1:  # after the first chunk: by lines
+                resized = True
                 per_line = cut / max(line0 - 1, 1)
                 size = int(min(2 * size, max(size // 4, chunk_lines * per_line)))
             if len(rest) > MAX_LINE_BYTES:  # no newline in sight: not a text log (and memory stays bounded)
@@ -159,8 +160,8 @@ class _Out:
         self.dlc[i] = len(f.data)
         if len(f.data) > 8:
             self.long[i] = f.data
-        else:
-            self.data[i, : len(f.data)] = np.frombuffer(f.data, dtype=np.uint8)
+        if f.data:  # the first 8 bytes of any payload (FrameColumns.data)
+            self.data[i, : min(len(f.data), 8)] = np.frombuffer(f.data[:8], dtype=np.uint8)
 
     def columns(self, channels: dict[bytes, int]) -> FrameColumns:
         keep = slice(None) if self.present.all() else self.present
@@ -358,9 +359,8 @@ def _parse_shape(
             continue
         vals = (nib[:, 0::2].astype(np.uint8) << 4) | nib[:, 1::2]
         dlc[sel] = nbytes
-        if nbytes <= 8:
-            data[sel, :nbytes] = vals
-        else:
+        data[sel, : min(nbytes, 8)] = vals[:, :8]  # a longer (CAN FD) payload: its first 8 bytes too
+        if nbytes > 8:
             for j, r in zip(sel.tolist(), vals, strict=True):
                 long_rows[j] = bytes(r)
     # CAN FD flags digit must be hex, remote frames carry nothing
