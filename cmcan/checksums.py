@@ -122,11 +122,17 @@ def crc8_ok(length: int, checksum: Layout, data: NDArray[np.uint8]) -> NDArray[n
     at = whole_byte(checksum, max(8, length))
     if at is None or at >= length or data.shape[1] < length:
         return None
+    return data[:, at] == _crc8_columns(data, length, at)
+
+
+def _crc8_columns(data: NDArray[np.uint8], length: int, at: int) -> NDArray[np.uint8]:
+    """The CRC-8/SAE-J1850 of each row's first ``length`` bytes but the one at ``at``, a byte column
+    at a time (what ``crc8_sae_j1850`` gives for each row)."""
     crc = np.full(len(data), 0xFF, dtype=np.uint8)
     for i in range(length):
         if i != at:
             crc = _CRC8_NP[crc ^ data[:, i]]
-    return data[:, at] == (crc ^ 0xFF)
+    return crc ^ 0xFF
 
 
 def seal(
@@ -144,10 +150,6 @@ def seal(
     if algorithm == "crc8_sae_j1850":
         at = whole_byte(checksum, max(8, length))
         assert at is not None
-        crc = np.full(len(out), 0xFF, dtype=np.uint8)
-        for i in range(length):
-            if i != at:
-                crc = _CRC8_NP[crc ^ out[:, i]]
-        out[:, at] = crc ^ 0xFF
+        out[:, at] = _crc8_columns(out, length, at)
         return out
     raise ValueError(f"unknown checksum algorithm {algorithm!r}")
