@@ -55,7 +55,12 @@ _FAULT_FMI = {
 
 class Dm1Producer:
     __slots__ = (
+        "_every",
+        "_hi_off",
+        "_hi_on",
         "_last",
+        "_lo_off",
+        "_lo_on",
         "_payload",
         "active",
         "busy_until",
@@ -78,19 +83,10 @@ class Dm1Producer:
         self.changed = False
         self._last: tuple[int, int, bool, bool] | None = None  # the inputs of the last DTC list
         self._payload: tuple[tuple[int, ...], bytes] | None = None  # the last DM1 payload and what made it
-
-    def _severity(self, ratio_pct: float | None) -> None:
-        p = self.p
-        if ratio_pct is None:
-            return
-        if ratio_pct < p.low_severe_pct:
-            self.low_severe = True
-        elif ratio_pct >= p.low_severe_pct + p.hysteresis_pct:
-            self.low_severe = False
-        if ratio_pct > p.high_severe_pct:
-            self.high_severe = True
-        elif ratio_pct <= p.high_severe_pct - p.hysteresis_pct:
-            self.high_severe = False
+        # read at every tick (the daemon's hot path): the severity's thresholds with their hysteresis
+        self._lo_on, self._lo_off = p.low_severe_pct, p.low_severe_pct + p.hysteresis_pct
+        self._hi_on, self._hi_off = p.high_severe_pct, p.high_severe_pct - p.hysteresis_pct
+        self._every = p.every_ticks
 
     def dtcs(self, condition: Level, fault: Reason) -> list[tuple[int, int]]:
         """(SPN, FMI) of the active DTCs, condition first."""
@@ -106,10 +102,19 @@ class Dm1Producer:
 
     def step(self, k: int, t: float, condition: Level, fault: Reason, ratio_pct: float | None) -> list[Frame]:
         """One tick: update the active DTCs and counts; the DM1 frames due (times >= ``t``)."""
-        self._severity(ratio_pct)
-        state = (int(condition), int(fault), self.low_severe, self.high_severe)
+        if ratio_pct is not None:  # the severity (kept while nothing is evaluated), inline: every tick
+            if ratio_pct < self._lo_on:
+                self.low_severe = True
+            elif ratio_pct >= self._lo_off:
+                self.low_severe = False
+            if ratio_pct > self._hi_on:
+                self.high_severe = True
+            elif ratio_pct <= self._hi_off:
+                self.high_severe = False
+        # condition and fault as given (Level and Reason, or their ints: the columnar engine's)
+        state = (condition, fault, self.low_severe, self.high_severe)
         if state == self._last and not self.changed:
-            if k % self.p.every_ticks:  # nothing changed, nothing to send: the common tick
+            if k % self._every:  # nothing changed, nothing to send: the common tick
                 return []
             # due, nothing changed since the last DM1 (any change of DTCs, lamp or counts sets
             # ``changed`` until it is sent): the same single frame again
