@@ -4,12 +4,14 @@ The streaming filter averages its ring with ``math.fsum`` (the correctly rounded
 replay needs that sum at every tick, over windows of a long array: prefix sums of the values as exact
 integers give every window's exact sum, rounded once at the end.
 
-Each float is an integer times a power of two. When the values' exponents lie within a few bits of
-each other (the usual case: ratios near 100 %, leakages of one order) those integers fit int64 split
-into 32-bit halves, whose prefix sums cannot overflow, and the window's exact sum ``hi * 2^32 + lo``
-is rounded by one float addition of two exactly representable parts. Anything else (zeros aside:
-they add nothing; wide exponent ranges, subnormal results, non-finite values) takes Python's big
-integers, which are exact for all finite floats.
+Each float is an integer times a power of two. When the values' exponents lie within 25 bits of
+each other (the usual case: ratios near 100 %, leakages of a few orders of magnitude), each value is
+that integer shifted onto a common base, cut into three 26-bit limbs held in int64, whose prefix sums
+cannot overflow; a window's exact sum is its limb sums with the carries propagated, and the two
+lower limbs together (below 2^52) and the top one are exact floats, so one float addition rounds the
+exact sum once, as ``fsum`` does. Anything else (zeros aside: they add nothing; wider exponent
+ranges, subnormal results, non-finite values) takes Python's big integers, which are exact for all
+finite floats.
 """
 
 from __future__ import annotations
@@ -17,9 +19,11 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-_SPREAD_BITS = 9  # mantissa (53 bits) shifted by at most this stays below 2^62
+_SPREAD_BITS = 25  # a 53-bit mantissa shifted by at most this fits three 26-bit limbs
+_LIMB = 26
+_LIMB_MASK = (1 << _LIMB) - 1
 _MIN_NORMAL_EXP = -1021  # frexp exponent of the smallest normal float
-_MAX_LEN = 1 << 20  # prefix sums of up to this many halves, and any window's, stay below 2^53
+_MAX_LEN = 1 << 20  # prefix sums of up to this many limbs, and any window's, stay below 2^48
 
 
 def window_fsums(values: NDArray[np.float64], lo: NDArray[np.int64], hi: NDArray[np.int64]) -> NDArray[np.float64]:
@@ -40,15 +44,29 @@ def window_fsums(values: NDArray[np.float64], lo: NDArray[np.int64], hi: NDArray
     if e_max - e_min > _SPREAD_BITS or e_min - 53 < _MIN_NORMAL_EXP - 53:
         return _python_sums(values, lo, hi)
     base = e_min - 53
-    x = ints << np.where(nz, expo - e_min, 0)  # value = x * 2^base, |x| < 2^62
-    # 32-bit halves (hi half signed, lo half in [0, 2^32)): their prefix sums stay far from overflow
-    x_hi = x >> 32
-    x_lo = x & 0xFFFFFFFF
-    p_hi = np.concatenate([[0], np.cumsum(x_hi)])
-    p_lo = np.concatenate([[0], np.cumsum(x_lo)])
-    s_hi = (p_hi[hi] - p_hi[lo]).astype(np.float64) * float(1 << 32)  # exact (|s_hi| < 2^53)
-    s_lo = (p_lo[hi] - p_lo[lo]).astype(np.float64)  # exact (< 2^53)
-    total = s_hi + s_lo  # the one rounding of the exact sum
+    shift = np.where(nz, expo - e_min, 0)  # value = ints * 2^shift * 2^base, shift <= 25
+    sign = np.sign(ints)
+    mag = np.abs(ints)  # < 2^53, as a low part of 26 bits and a high part of 27, each shifted < 2^52
+    a = (mag & _LIMB_MASK) << shift
+    b = (mag >> _LIMB) << shift  # weighs 2^26 more than a
+    limbs = (
+        sign * (a & _LIMB_MASK),
+        sign * ((a >> _LIMB) + (b & _LIMB_MASK)),
+        sign * (b >> _LIMB),
+    )  # the value * 2^-base = limbs[0] + limbs[1] * 2^26 + limbs[2] * 2^52, each |limb| < 2^27
+    w = []
+    for limb in limbs:  # prefix sums below 2^47 (up to 2^20 values): a window's limb sums are exact
+        prefix = np.concatenate([[0], np.cumsum(limb)])
+        w.append(prefix[hi] - prefix[lo])
+    w0, w1, w2 = w
+    carry = w0 >> _LIMB  # the carries up (floor: the lower limbs become 0..2^26-1)
+    w0 = w0 - (carry << _LIMB)
+    w1 = w1 + carry
+    carry = w1 >> _LIMB
+    w1 = w1 - (carry << _LIMB)
+    w2 = w2 + carry
+    low = w1.astype(np.float64) * float(1 << _LIMB) + w0.astype(np.float64)  # exact: below 2^52
+    total = w2.astype(np.float64) * float(1 << (2 * _LIMB)) + low  # exact terms: the one rounding
     out = np.ldexp(total, base)
     # scaling by a power of two is exact unless the result leaves the normal range
     tiny = (out != 0.0) & (np.abs(out) < np.finfo(np.float64).tiny)
