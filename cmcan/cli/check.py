@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import json
-import sys
 from typing import Any
 
 from cmcan.cli.errors import exit_code
+from cmcan.cli.jsonout import print_json
 from cmcan.errors import CmcanError
 from cmcan.monitor.totals import StateError
 from cmcan.preflight import check_channel, load_config, prepare
@@ -44,8 +43,7 @@ def run(args: argparse.Namespace) -> int:
             check_channel(cfg)
     except CmcanError as exc:
         if args.json:
-            json.dump({"ok": False, "error": str(exc), "exit_code": exit_code(exc)}, sys.stdout, indent=2)
-            sys.stdout.write("\n")
+            print_json({"ok": False, "error": str(exc), "exit_code": exit_code(exc)})
             return exit_code(exc)
         raise
     m = prep.parts.model.meta
@@ -94,8 +92,7 @@ def run(args: argparse.Namespace) -> int:
             "locked_by_pid": StateLock(prep.store.dir).holder(),
         }
     if args.json:
-        json.dump(result, sys.stdout, indent=2)
-        sys.stdout.write("\n")
+        print_json(result)
     else:
         print(f"ok: {cfg.source}")
         print(f"  dbc    {result['dbc']}")

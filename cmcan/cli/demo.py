@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import json
-import sys
 from pathlib import Path
 
+from cmcan.cli.jsonout import print_json
 from cmcan.errors import CmcanError, Kind
 
 
@@ -48,8 +47,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.no_plot:
         d["plot"] = str(out / "demo.png")
     if args.json:
-        json.dump(d, sys.stdout, indent=2)
-        sys.stdout.write("\n")
+        print_json(d)
     else:
         print(
             f"{res.frames_sent} frames sent, {res.frames_processed} processed by the daemon on {res.bus}, "

@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import json
-import sys
 
 from cmcan.cli.common import load_config, load_model, load_points
 from cmcan.cli.errors import ensure_writable, require_extra
+from cmcan.cli.jsonout import print_json
 from cmcan.errors import CmcanError, Kind
 from cmcan.model.evaluate import format_report, protocol
 
@@ -52,8 +51,7 @@ def run(args: argparse.Namespace) -> int:
         plot_residuals(sets, report, plot_path)
         report["plot"] = str(plot_path)
     if args.json:
-        json.dump(report, sys.stdout, indent=2)
-        sys.stdout.write("\n")
+        print_json(report)
     else:
         print(format_report(report))
     return 0 if report["passed"] else 1

@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
 from cmcan.cli.errors import EX_DATAERR, ensure_writable, require_extra
+from cmcan.cli.jsonout import print_json
 from cmcan.errors import CmcanError, Kind
 
 
@@ -124,8 +124,7 @@ def run_replay(args: argparse.Namespace) -> int:
         raise
     d = rep.to_dict()
     if args.json:
-        json.dump(d, sys.stdout, indent=2)
-        sys.stdout.write("\n")
+        print_json(d)
     else:
         rate = f", {d['frames_per_s'] / 1e3:.0f} k frames/s" if d["frames_per_s"] else ""
         print(

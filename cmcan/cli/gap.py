@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 from typing import Any
 
+from cmcan.cli.jsonout import print_json
 from cmcan.errors import CmcanError, Kind
 from cmcan.roles import MODEL_INPUTS, QUANTITIES
 
@@ -228,8 +228,7 @@ def run_bench(args: argparse.Namespace) -> int:
         out = asdict(s)
         for row, lv in zip(out["by_level"], s.by_level, strict=True):
             row["rate"] = lv.rate
-        json.dump(out, sys.stdout, indent=2)
-        sys.stdout.write("\n")
+        print_json(out)
         return 0
     for line in bench_table(s, args):
         print(line)
@@ -272,8 +271,7 @@ def run_effects(args: argparse.Namespace) -> int:
 
     lib = [e.describe() for e in LIBRARY.values()]
     if args.json:
-        json.dump(lib, sys.stdout, indent=2)
-        sys.stdout.write("\n")
+        print_json(lib)
     else:
         for e in lib:
             pars = ", ".join(f"{q['name']} [{q['unit']}] {q['plausible']}" for q in e["parameters"])

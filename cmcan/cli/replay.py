@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 from typing import Any
@@ -11,6 +10,7 @@ from typing import Any
 from cmcan.assemble import assemble
 from cmcan.cli.common import load_config
 from cmcan.cli.errors import ensure_writable, require_extra
+from cmcan.cli.jsonout import print_json
 from cmcan.errors import CmcanError, Kind
 from cmcan.replay import ENGINES, EmitWriter, TimelineCollector, TimelineWriter, replay_file
 
@@ -120,8 +120,7 @@ def run(args: argparse.Namespace) -> int:
         "frames_emitted": res.frames_emitted if args.emit else None,
     }
     if args.json:
-        json.dump(summary, sys.stdout, indent=2)
-        sys.stdout.write("\n")
+        print_json(summary)
     else:
         c = res.counters
         print(

@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import json
-import sys
 from pathlib import Path
 
 from cmcan.cli.errors import ensure_writable
+from cmcan.cli.jsonout import print_json
 from cmcan.dbc import load_dbc
 from cmcan.errors import CmcanError, Kind
 from cmcan.io.candump import write_candump
@@ -117,8 +116,7 @@ def run(args: argparse.Namespace) -> int:
         "scheduled_failures": r.meta["scheduled_failures"],
     }
     if args.json:
-        json.dump(summary, sys.stdout, indent=2)
-        sys.stdout.write("\n")
+        print_json(summary)
     else:
         print(
             f"{s.name}: {len(r)} samples ({summary['operating_h']:.2f} h) -> {out}"
@@ -160,8 +158,7 @@ def run_fleet(args: argparse.Namespace) -> int:
         remove_outputs(out)
     summary = write_fleet(spec, out, force=args.force, progress=None if args.json else print)
     if args.json:
-        json.dump(summary, sys.stdout, indent=2)
-        sys.stdout.write("\n")
+        print_json(summary)
     else:
         print(
             f"{out}: {summary['machines']} machines ({summary['degrading']} degrading), {summary['logs']} logs, "

@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import signal
 import sys
 import time
 from types import FrameType
 
+from cmcan.cli.jsonout import print_json
 from cmcan.errors import CmcanError, Kind
 from cmcan.preflight import load_config
 from cmcan.sdnotify import Notifier
@@ -56,8 +56,7 @@ def run(args: argparse.Namespace) -> int:
             box = open_for_uplink(settings.outbox.path, keep_aside=False, source=cfg.source)
             out = {"outbox": str(box.path), "stream_id": box.stream_id, **describe(box.usage(), time.time())}
             box.close()
-            json.dump(out, sys.stdout, indent=2)
-            sys.stdout.write("\n")
+            print_json(out)
             return 0
         if not settings.enabled:
             raise CmcanError(
