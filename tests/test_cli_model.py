@@ -85,3 +85,12 @@ def test_train_refuses_to_overwrite_a_model(tmp_path, data):
 def test_train_too_short_span(tmp_path, data):
     res = run_cli("train", str(data / "training_healthy.csv"), "--t-trn-h", "0.001", "--out", str(tmp_path / "m.onnx"))
     assert res.returncode == EX_DATAERR and "steady points before t_trn" in res.stderr
+
+
+def test_evaluate_with_no_point_left_to_check_fails(data):
+    """--t-trn-h past the end of the run leaves D_tst empty: nothing was checked, so nothing passed."""
+    res = run_cli("evaluate", str(data / "training_healthy.csv"), "--t-trn-h", "10", "--json")
+    assert res.returncode == 1, res.stderr + res.stdout
+    rep = json.loads(res.stdout)
+    assert rep["sets"]["D_tst"]["points"] == 0 and rep["passed"] is False
+    assert list(rep["checks"].values()) == [False]

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import argparse
 import csv
-import json
-import sys
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -13,9 +12,14 @@ import numpy as np
 
 from cmcan.cli.common import add_data_options, load_config, load_data, load_model
 from cmcan.cli.errors import ensure_writable, require_extra
+from cmcan.cli.jsonout import print_json
 from cmcan.errors import CmcanError, Kind
 
 SCORE_COLUMNS = ("cm_ratio_pct", "predicted", "extra_leak_lpm", "status")
+# A worn drive reads a few percent low before it stops working: a median outside this is no wear but
+# data that do not match the configuration (a unit, a column), said as a warning.
+PLAUSIBLE_MEDIAN_PCT = (50.0, 150.0)
+log = logging.getLogger("cmcan")
 
 
 def add_subparser(sub: argparse._SubParsersAction) -> None:
@@ -137,10 +141,36 @@ def run(args: argparse.Namespace) -> int:
         )
         result["plot"] = str(plot_path)
     if args.json:
-        json.dump(result, sys.stdout, indent=2)
-        sys.stdout.write("\n")
+        print_json(result)
     else:
         print(_text(result))
+    rated = result["ratio"]
+    if not rated["points"]:  # the scores say why per point; a run that rates nothing is not a success
+        gated = ", ".join(f"{k} {n}" for k, n in result["status"]["gated"].items()) or "none"
+        raise CmcanError(
+            f"{args.data}: none of its {result['points']} points could be rated (gated: {gated}); "
+            f"each point's status is in {out}",
+            Kind.DATA,
+        )
+    measured = op.measured[s.rated]
+    if len(measured) > 1 and not np.ptp(measured) > 0.0:
+        log.warning(
+            "%s: the measured %s is %g at every rated point: a stuck sensor or a constant column; the ratios "
+            "only follow the model's prediction",
+            args.data,
+            cfg.quantity,
+            float(measured[0]),
+        )
+    median = rated["ratio_p50_pct"]
+    if not PLAUSIBLE_MEDIAN_PCT[0] <= median <= PLAUSIBLE_MEDIAN_PCT[1]:
+        log.warning(
+            "%s: the median CM ratio is %.1f %%: no drive that still runs is that far from its model; check the "
+            "data's units and columns against the configuration (the output %s, pressures in bar, speeds in rpm, "
+            "temperatures in degrees C)",
+            args.data,
+            median,
+            cfg.quantity,
+        )
     return 0
 
 
@@ -162,7 +192,12 @@ def _text(r: dict[str, Any]) -> str:
         if not g["points"]:
             lines.append(f"  {r['label']['column']} = {v}: no rated points")
             continue
-        auc = f", AUC vs healthy {g['auc_vs_healthy']:.4f}" if "auc_vs_healthy" in g else " (healthy)"
+        if "auc_vs_healthy" not in g:
+            auc = " (healthy)"
+        elif g["auc_vs_healthy"] is None:
+            auc = ", no AUC (no healthy point rated to compare with)"
+        else:
+            auc = f", AUC vs healthy {g['auc_vs_healthy']:.4f}"
         lines.append(
             f"  {r['label']['column']} = {v}: {g['points']} points, median {g['ratio_p50_pct']:.2f} %, "
             f"{g['below_low_pct']:.1f} % below {r['thresholds_pct'][0]:g} %{auc}"

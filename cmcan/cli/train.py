@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import argparse
-import json
+import logging
 import math
-import sys
 
 from cmcan.cli.common import add_data_options, load_config, load_data
 from cmcan.cli.errors import ensure_writable, require_extra
+from cmcan.cli.jsonout import print_json
 from cmcan.errors import CmcanError, Kind
+
+log = logging.getLogger("cmcan")
 
 
 def add_subparser(sub: argparse._SubParsersAction) -> None:
@@ -76,10 +78,12 @@ def run(args: argparse.Namespace) -> int:
         "envelope": model.envelope,
         "residual_stats": stats,
         "gates": report.to_dict(),
+        "warnings": list(model.doubts),
     }
+    for doubt in model.doubts:  # the model is written: a warning, not a refusal (the physics may be unusual)
+        log.warning("%s: %s", args.data, doubt)
     if args.json:
-        json.dump(summary, sys.stdout, indent=2)
-        sys.stdout.write("\n")
+        print_json(summary)
     else:
         print(
             f"wrote {out}: {cfg.quantity} model; {stats['set']} RMSE {stats['rmse']:.4g} {stats['unit']} over "

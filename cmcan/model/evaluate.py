@@ -102,6 +102,8 @@ def protocol(
         checks["D_val: |shift after t_dam| >= 3 healthy p1..p99 half-widths"] = bool(
             report["damage_shift_in_halfwidths"] >= 3.0
         )
+    if not checks:  # every set to check is empty (e.g. t_trn_h at or past the run's end): nothing passed
+        checks["a set with steady points to check (D_tst, D_val_healthy or a healthy run)"] = False
     report["checks"] = checks
     report["passed"] = all(checks.values())
     return report, sets

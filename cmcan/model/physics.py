@@ -109,6 +109,33 @@ def fit_coefficients(x: NDArray[np.float64], flow_lpm: NDArray[np.float64], oil:
     return _nnls(aug, np.concatenate([y / sigma, mean / std]))
 
 
+# A coefficient this many prior standard deviations from its prior is no healthy drive of the
+# configured size: data in other units, a wrong displacement, or data that cannot tell terms apart.
+PRIOR_WARN_SIGMAS = 5.0
+
+
+def prior_doubts(
+    x: NDArray[np.float64], flow_lpm: NDArray[np.float64], coef: NDArray[np.float64], oil: Oil
+) -> list[str]:
+    """One sentence per fitted coefficient more than ``PRIOR_WARN_SIGMAS`` prior standard deviations
+    from its prior (none for a fit the physics believes)."""
+    mean, std = priors(features(x, oil), np.asarray(flow_lpm, dtype=np.float64))
+    out = []
+    for term, c, m, s in zip(TERMS, coef, mean, std, strict=True):
+        z = (float(c) - m) / s
+        if abs(z) > PRIOR_WARN_SIGMAS:
+            out.append(
+                f"physics term {term} = {c:.4g} is {abs(z):.1f} prior standard deviations "
+                f"{'above' if z > 0 else 'below'} its prior {m:.4g} +- {s:.3g}"
+                + (
+                    ": the flow is not the configured pump's (check the data's units and the pump displacement)"
+                    if term == "ideal_flow"
+                    else ": more than a healthy unit loses (check units, or whether the data separate this term)"
+                )
+            )
+    return out
+
+
 def flow_lpm(x: NDArray[np.float64], coef: NDArray[np.float64], oil: Oil) -> NDArray[np.float64]:
     return features(x, oil) @ coef
 

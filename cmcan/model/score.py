@@ -110,8 +110,9 @@ def summary(
             m = labels == v
             f = _ratio_figures(s.ratio_pct[s.rated & m], low_pct, high_pct)
             f["without_ratio"] = int(np.sum(m & ~s.rated))
-            if v != healthy_label:
-                f["auc_vs_healthy"] = auc_lower(healthy, s.ratio_pct[s.rated & m])
+            if v != healthy_label:  # None: no rated point on one side, nothing to separate
+                auc = auc_lower(healthy, s.ratio_pct[s.rated & m])
+                f["auc_vs_healthy"] = auc if np.isfinite(auc) else None
             by[f"{v:g}"] = f
         out["labels"] = by
     return out

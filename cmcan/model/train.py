@@ -46,6 +46,7 @@ class TrainedModel:
     envelope: dict[str, list[float]]
     width: float = correction.WIDTH
     fade_span: float = correction.FADE_SPAN
+    doubts: tuple[str, ...] = ()  # what looks wrong in the fit (physics.prior_doubts), for the user
 
     def physics(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
         return physics.flow_lpm(x, self.coef, self.oil) / self.quantity.lpm_per_unit
@@ -85,13 +86,19 @@ def fit(
     _, _, active = correction.envelope_box(x)
     if not active.any():
         raise ValueError("the training points do not vary in any input: record a run over the machine's duty")
+    if not np.ptp(flow) > 1e-9 * float(np.max(np.abs(flow))):  # also all zero
+        raise ValueError(
+            f"the measured {quantity} is {float(y[0]):g} at every training point while the inputs vary: "
+            "a stuck sensor or a constant column, nothing to learn the drive from"
+        )
     try:
         coef = physics.fit_coefficients(x, flow, oil)
     except RuntimeError as exc:  # scipy's NNLS gives up only on degenerate data
         raise ValueError(f"the physics fit did not converge: {exc}") from None
     corr = correction.fit(x, flow - physics.flow_lpm(x, coef, oil))
     envelope = {name: [float(x[:, i].min()), float(x[:, i].max())] for i, name in enumerate(MODEL_INPUTS)}
-    return TrainedModel(q, oil, coef, corr, physics.fit_eta_vol(x, flow), envelope)
+    doubts = tuple(physics.prior_doubts(x, flow, coef, oil))
+    return TrainedModel(q, oil, coef, corr, physics.fit_eta_vol(x, flow), envelope, doubts=doubts)
 
 
 def to_onnx(model: TrainedModel, residual_stats: dict[str, Any], training: dict[str, Any]) -> bytes:
