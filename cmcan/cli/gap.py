@@ -144,7 +144,9 @@ def _point_spec(args: argparse.Namespace) -> Any:
     return spec.merged(cli)
 
 
-def _load_data(args: argparse.Namespace, spec: Any) -> Any:
+def _load_data(args: argparse.Namespace, spec: Any, drive: Any) -> Any:
+    """The real data, gated as the drive ``drive`` is sized (the configuration's gates where it has the
+    same output)."""
     from cmcan.gap import data as gapdata
     from cmcan.io.points import PointsError
     from cmcan.model.features import DataError
@@ -153,13 +155,15 @@ def _load_data(args: argparse.Namespace, spec: Any) -> Any:
         raise CmcanError(f"{args.real}: file not found", Kind.NO_INPUT)
     try:
         if spec is not None:
-            return gapdata.load_points(args.real, spec, args.quantity)
+            return gapdata.load_points(args.real, spec, args.quantity, drive=drive)
         from cmcan.assemble import dbc_for, frame_matcher
         from cmcan.cli.common import load_config
 
         cfg = load_config(args.config)
         db = dbc_for(cfg)
-        return gapdata.load(args.real, args.quantity, cfg.gate_limits, db, cfg.signals, frame_matcher(cfg, db))
+        return gapdata.load(
+            args.real, args.quantity, cfg.gate_limits, db, cfg.signals, frame_matcher(cfg, db), drive=drive
+        )
     except PointsError as exc:
         code = {"noinput": Kind.NO_INPUT, "spec": Kind.CONFIG if args.points else Kind.USAGE}.get(
             exc.problem, Kind.DATA
@@ -181,7 +185,7 @@ def run_diagnose(args: argparse.Namespace) -> int:
         raise CmcanError(f"{out}: folder exists and is not empty; pass --force to write into it", Kind.CANT_CREATE)
     spec = _point_spec(args)
     p = load_drive(args.drive)
-    d = _load_data(args, spec)
+    d = _load_data(args, spec, p)
     try:
         diag, arrays = diagnose(d, p, args.holdout)
     except ValueError as exc:  # a --holdout the data cannot serve

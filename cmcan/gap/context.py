@@ -8,7 +8,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from cmcan.gap.data import GapData
+from cmcan.errors import CmcanError, Kind
+from cmcan.gap.data import MIN_BLOCKS, MIN_POINTS, GapData
 from cmcan.gap.effects import LIBRARY, Effect, Scale, simulate
 from cmcan.roles import DP, PUMP_DISP, PUMP_SPEED, TEMP
 from cmcan.sim.physics import DriveParams
@@ -27,14 +28,22 @@ def rmse(e: NDArray[np.float64]) -> float:
 
 def holdout_mask(d: GapData, spec: str | None) -> tuple[NDArray[np.bool_], str]:
     """Withheld points by operating region (default: the hottest quarter, or the highest-pressure
-    quarter where the oil temperature hardly varies) so an added effect must extrapolate."""
+    quarter where the oil temperature hardly varies) so an added effect must extrapolate. Where neither
+    varies: a time series's last quarter; a table's top quarter of the first input that varies, else a
+    random quarter (a table has no time order)."""
     x = d.x
     if spec is None:
         spec = f"{TEMP}:top25" if np.ptp(x.temp_c) >= 15.0 else f"{DP}:top25"
         if np.ptp(getattr(x, spec.split(":")[0])) == 0.0:
-            spec = "time:last25"
-    if spec == "random25":
+            moving = [v for v in REGION_VARS if np.ptp(getattr(x, v)) > 0.0]
+            spec = "time:last25" if d.has_time else f"{moving[0]}:top25" if moving else "random25"
+    if spec == "random25":  # a table is in its canonical order, so the same rows draw the same quarter
         return np.random.default_rng(0).random(len(d.y)) < 0.25, spec
+    if spec.split(":")[0] == "time" and not d.has_time:
+        raise ValueError(
+            f"--holdout {spec!r}: an operating-point table has no time order; withhold by "
+            f"{', '.join(REGION_VARS)} or random25"
+        )
     try:
         var, side = spec.split(":")
         share = float(side[-2:]) / 100.0
@@ -61,11 +70,37 @@ def holdout_mask(d: GapData, spec: str | None) -> tuple[NDArray[np.bool_], str]:
     return mask, spec
 
 
-def noise_level(g: NDArray[np.float64], steady: NDArray[np.bool_], segment: NDArray[np.int64]) -> float:
-    """Point-to-point noise of the gap from successive steady points (robust MAD estimate)."""
-    both = steady[1:] & steady[:-1] & (segment[1:] == segment[:-1])
-    d = np.diff(g)[both] if both.sum() > 20 else np.diff(g)
+def _mad_of_differences(d: NDArray[np.float64]) -> float:
+    """The noise level behind differences of two noisy values each (robust: MAD, / sqrt 2)."""
     return float(np.median(np.abs(d - np.median(d))) / 0.6745 / np.sqrt(2)) if len(d) else 0.0
+
+
+def noise_level(g: NDArray[np.float64], steady: NDArray[np.bool_], segment: NDArray[np.int64]) -> float:
+    """Point-to-point noise of the gap from successive steady points of a time series (robust MAD)."""
+    both = steady[1:] & steady[:-1] & (segment[1:] == segment[:-1])
+    return _mad_of_differences(np.diff(g)[both] if both.sum() > 20 else np.diff(g))
+
+
+def table_noise_level(g: NDArray[np.float64], mask: NDArray[np.bool_], d: GapData) -> float:
+    """Noise of the gap in an operating-point table, which has no time order: each point against its
+    nearest neighbour in operating-point space (the inputs that vary, each in units of its standard
+    deviation; a replicate is a neighbour at distance 0), robust MAD of those differences. Where no
+    input varies, every point is a replicate: the scatter about the median."""
+    idx = np.flatnonzero(mask)
+    if len(idx) < 2:
+        return 0.0
+    cols = [getattr(d.x, v)[idx] for v in REGION_VARS]
+    z = [(c - c.mean()) / c.std() for c in cols if np.ptp(c) > 0.0]
+    gi = g[idx]
+    if not z:
+        return float(np.median(np.abs(gi - np.median(gi))) / 0.6745)
+    from scipy.spatial import cKDTree
+
+    pts = np.column_stack(z)
+    _, nn = cKDTree(pts).query(pts, k=2)
+    # The nearest other point (a replicate at distance 0 may come before the point itself).
+    other = np.where(nn[:, 0] == np.arange(len(idx)), nn[:, 1], nn[:, 0])
+    return _mad_of_differences(gi - gi[other])
 
 
 def followable(d: GapData, p: DriveParams) -> NDArray[np.bool_]:
@@ -76,7 +111,9 @@ def followable(d: GapData, p: DriveParams) -> NDArray[np.bool_]:
 
 
 def chunks(n: int, k: int = CHUNKS) -> NDArray[np.int64]:
-    """Contiguous stretches of the points in data order, of (nearly) equal size."""
+    """Contiguous stretches of the points in data order, of (nearly) equal size: stretches of time in
+    a time series, slabs of operating points (by oil temperature, then delta pressure, ...) in a table,
+    whose rows are in their canonical order (:data:`cmcan.gap.data.CANONICAL`)."""
     return (np.arange(n) * k // max(n, 1)).astype(np.int64)
 
 
@@ -122,9 +159,13 @@ def prepare(
     fol = followable(d, p)
     steady = d.steady & fol
     static_pts = steady if steady.sum() >= MIN_STEADY or not d.has_time else fol
+    _enough_judged(d, p, fol, hold, spec)
     y0 = simulate(p, d.x, [], d.quantity)
-    sigma = noise_level(d.y - y0, static_pts, d.x.segment)
-    sigma_dyn = max(noise_level(d.y - y0, fol, d.x.segment), sigma)
+    if d.has_time:
+        sigma = noise_level(d.y - y0, static_pts, d.x.segment)
+        sigma_dyn = max(noise_level(d.y - y0, fol, d.x.segment), sigma)
+    else:
+        sigma = sigma_dyn = table_noise_level(d.y - y0, static_pts, d)
     mean_y = float(np.mean(np.abs(d.y))) or 1.0
     # Below this a gap is within sensor noise or too small to matter.
     floor = max(GAP_OVER_NOISE * sigma, MIN_GAP_SHARE * mean_y)
@@ -144,6 +185,37 @@ def prepare(
         mean_y,
         chunks(len(d.y)),
     )
+
+
+class NotJudgeable(CmcanError):
+    """Too few points the simulator can follow to diagnose (a data error, exit 65; deliberately not a
+    ValueError, which the command line reads as a bad --holdout)."""
+
+    kind = Kind.DATA
+
+
+def _enough_judged(d: GapData, p: DriveParams, fol: NDArray[np.bool_], hold: NDArray[np.bool_], spec: str) -> None:
+    need = MIN_BLOCKS if d.has_time else MIN_POINTS
+    n = int(fol.sum())
+    if n < need:
+        near = int(np.sum(d.dp_hi_bar >= RELIEF_MARGIN * p.relief_dp_bar))
+        zero = int(np.sum(d.dp_lo_bar <= 0.0))
+        why = []
+        if near:
+            why.append(
+                f"{near} with {DP} up to {float(np.max(d.dp_hi_bar)):.4g} bar, within "
+                f"{100 * (1 - RELIEF_MARGIN):.0f} % of the relief setting ({p.relief_dp_bar:.4g} bar)"
+            )
+        if zero:
+            why.append(f"{zero} with {DP} at or below 0 bar")
+        raise NotJudgeable(
+            f"{d.source}: only {n} of {len(d.y)} points can be judged (need at least {need}): "
+            + ("; ".join(why) or "the simulator cannot follow the rest")
+        )
+    if not (hold & fol).any():
+        raise NotJudgeable(
+            f"{d.source}: no point of the withheld part ({spec}) can be judged; choose another --holdout"
+        )
 
 
 def _varies_for(e: Effect, d: GapData) -> bool:

@@ -130,6 +130,8 @@ def diagnose(
         ),
         robustness=answer.robustness,
         residual_structure=answer.structure,
+        refused_points=d.refused,
+        refused_why=d.refused_why,
     )
     return diag, Arrays(ctx.y0, y1, ctx.hold)
 

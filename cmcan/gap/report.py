@@ -71,6 +71,10 @@ def markdown(r: Diagnosis, figs: list[str]) -> str:
     kind = "0.1 s block means" if r.data_kind == "series" else "operating points (one per row)"
     lines += [
         f"- Output quantity: `{r.quantity}` ({u}); {r.points} points ({kind}); noise level {r.noise_level:.3g} {u}",
+    ]
+    if r.refused_points:
+        lines.append(f"- Left out as implausible (the monitor's gate): {r.refused_points} points; {r.refused_why}")
+    lines += [
         f"- Withheld for judging: `{r.holdout.spec}` ({r.holdout.points} points, {r.holdout.judged_points} judged "
         f"on {r.holdout.judged_on})",
         f"- Gap before: RMSE {gb.rmse:.3g} {u} ({gb.rmse_pct:.2f} %), mean {gb.mean:+.3g} {u}; withheld "

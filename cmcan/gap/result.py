@@ -168,6 +168,8 @@ class Diagnosis:
     holdout: Holdout
     robustness: Mapping[str, float]  # withheld reduction with each region withheld in turn
     residual_structure: Mapping[str, float]  # RMS of residual decile means per input, in noise levels
+    refused_points: int = 0  # points left out by the plausibility gate (not in ``points``)
+    refused_why: str = ""  # ... which values, outside which plausible ranges
 
     @property
     def selected(self) -> tuple[str, ...]:
