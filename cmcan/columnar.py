@@ -261,7 +261,6 @@ class _Engine:
         ctr = np.zeros(len(idx), dtype=np.int64)
         cs_ok = np.ones(len(idx), dtype=bool)
         raws: dict[int, list[NDArray[np.int64]]] = {}
-        classic = bool(len(cols)) and int(cols.dlc.max()) <= 8  # no frame longer than 8 bytes here
         for j, x in enumerate(self.inps):
             sel = groups[j]
             if not len(sel):
@@ -277,21 +276,22 @@ class _Engine:
             row[sel] = np.arange(len(sel))
             raws[j] = vals
             if x.checked:
-                ctr[sel], cs_ok[sel] = self._integrity(cols, rows, x, data, classic)
+                ctr[sel], cs_ok[sel] = self._integrity(cols, rows, x, data)
         return raws, ok, row, ctr, cs_ok
 
     def _integrity(
-        self, cols: FrameColumns, rows: NDArray[np.int64], x: _Input, data: NDArray[np.uint8], classic: bool
+        self, cols: FrameColumns, rows: NDArray[np.int64], x: _Input, data: NDArray[np.uint8]
     ) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
         """The message counter (0 where none) and whether the checksum holds (True where none) of
         each frame of one checked message, pure functions of the frame, as
-        :meth:`cmcan.monitor.health.Stream.check` reads them. ``data``: the frames' payloads;
-        ``classic``: no frame of the chunk is longer than 8 bytes."""
+        :meth:`cmcan.monitor.health.Stream.check` reads them. ``data``: the frames' payloads (the
+        message's bytes: a frame longer than its message is checked on those, as in the core)."""
         n = len(rows)
         st, spec = x.stream, x.spec.health
-        # a TSC1 message is 8 bytes long (the core's length check passed): exactly 8 unless CAN FD
-        if st.tsc1 and (classic or bool((cols.dlc[rows] == 8).all())):
-            # J1939-71's TSC1 layout: counter and checksum in byte 8, the sum over the frame and the id
+        # a TSC1 message is 8 bytes long (the core's length check passed): its checksum covers those 8,
+        # the first 8 of any CAN FD frame padded beyond them (``data`` holds them)
+        if st.tsc1:
+            # J1939-71's TSC1 layout: counter and checksum in byte 8, the sum over the message and the id
             d7 = data[:, 7]
             words = (
                 data if data.shape[1] == 8 and data.flags.c_contiguous else np.ascontiguousarray(data[:, :8])
@@ -321,7 +321,7 @@ class _Engine:
             for i, r in enumerate(rows.tolist()):
                 f = cols.frame(r)
                 probe.prev = None
-                cs_ok[i] = probe.check(0.0, f.arbitration_id, f.data) != CHECKSUM
+                cs_ok[i] = probe.check(0.0, f.arbitration_id, f.data[: x.length]) != CHECKSUM  # as the core
                 ctr[i] = probe.prev if probe.prev is not None else 0
         elif spec.counter is not None:
             ctr[:] = codec.extract_all(data[:, : spec.nbytes], [spec.counter], spec.nbytes)[0]

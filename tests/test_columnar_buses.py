@@ -297,6 +297,28 @@ def test_fd_frames_longer_than_8_bytes_replay_the_same(tmp_path, pad):
     assert_same(*out)
 
 
+@pytest.mark.parametrize("pad", [b"\xaa" * 4, b"\xff" * 8, b"\xcc" * 56])
+def test_j1939_checksums_of_fd_frames_padded_beyond_8_bytes(j1939, pad):
+    """The TSC1 checksum covers the 8-byte message: a CAN FD frame padded to 12, 16 or 64 bytes (0xAA
+    as FD controllers pad, or anything else) is checked on its first 8 bytes by both engines. It was
+    summed over the padding: rejected, or past the checksum table (an IndexError, exit 70)."""
+    cfg, frames = j1939
+    cfg = replace(cfg, frames=replace(cfg.frames, fd=True))
+    fd = padded_fd(frames, 1, pad)
+    assert sum(len(f.data) > 8 for f in fd) > 50
+    a, b = both(cfg, fd, 1000)
+    assert_same(a, b)
+    plain = both(cfg, [f._replace(fd=True) for f in frames], 1000)[0]
+    assert a[2].counters == plain[2].counters  # padding changes nothing: the same frames accepted, rejected
+    # and a byte changed under the padding fails as it does without the padding
+    bad = [f._replace(data=bytes([f.data[0] ^ 0x10]) + f.data[1:]) if len(f.data) > 8 else f for f in fd]
+    a, b = both(cfg, bad, 1000)
+    assert_same(a, b)
+    unpadded = [f._replace(data=f.data[:8]) for f in bad]
+    assert a[2].counters == both(cfg, unpadded, 1000)[0][2].counters
+    assert a[2].counters["checksum"] > 0
+
+
 def test_two_channels_replay_the_same():
     base = cfgmod.load()
     cfg = replace(

@@ -226,6 +226,12 @@ def test_tsc1_checksum_is_the_j1939_71_formula():
     assert sealed[0, 7] == (want << 4) | 5
     check = checksums.verifier("j1939_tsc1", 8, TSC1_SUM)
     assert check(0x0C000011, bytes(sealed[0])) and not check(0x0C000012, bytes(sealed[0]))
+    # a CAN FD frame padded beyond the 8-byte message: checked on the message (the sum of 64 bytes of
+    # padding used to run past the fold table)
+    for pad in (b"\xaa" * 4, b"\xff" * 56):
+        assert check(0x0C000011, bytes(sealed[0]) + pad)
+        assert not check(0x0C000011, bytes([data[0] ^ 1]) + bytes(sealed[0])[1:] + pad)
+    assert not check(0x0C000011, bytes(sealed[0])[:7])
 
 
 def test_checksum_layouts_the_algorithms_cannot_check_are_named():

@@ -222,10 +222,15 @@ class Monitor:
         if inp is None:
             c["unknown_id"] += 1
             return []
-        if len(data) < inp.length:
-            c["bad_length"] += 1
-            inp.stream.counts["bad_length"] += 1
-            return []
+        n = len(data)
+        if n != inp.length:
+            if n < inp.length:
+                c["bad_length"] += 1
+                inp.stream.counts["bad_length"] += 1
+                return []
+            # longer than its message (a CAN FD frame padded to the next FD length): the message is its
+            # first bytes, and only they are checked (a J1939 checksum covers the 8-byte message)
+            data = data[: inp.length]
         out: list[Frame] = []
         clock = self.clock
         if not clock.in_step(t):  # a tick is due, or the frame is late (or its time is not a number)
