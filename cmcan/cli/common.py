@@ -12,8 +12,6 @@ from cmcan.assemble import check_against_dbc, dbc_for, frame_matcher, load_model
 from cmcan.errors import CmcanError, Kind
 from cmcan.preflight import load_config as _load_config
 
-_POINTS_KINDS = {"noinput": Kind.NO_INPUT, "data": Kind.DATA, "spec": Kind.CONFIG}
-
 
 def load_config(path: str | None, check_dbc: bool = True) -> cfgmod.Config:
     """The configuration, with its DBC loaded and the mapping checked (errors carry their kind)."""
@@ -118,9 +116,10 @@ def load_data(
             raise CmcanError(f"--column/--constant {role}: not a role of this machine ({', '.join(roles)})", Kind.USAGE)
     spec = cfg.points.merged(PointSpec(cols, consts, conds, "the command line"))
     try:
-        # A row with a missing value is judged on its own: the gates refuse it (implausible input).
+        # A row with a missing value is judged on its own: the gates refuse it (implausible input);
+        # a cell that is neither a number nor a missing value is an error (cmcan.io.points).
         pts = read_points(args.data, spec, roles, missing_as_nan=True)
-    except PointsError as exc:
-        raise CmcanError(str(exc), _POINTS_KINDS.get(exc.kind, Kind.DATA)) from None
+    except PointsError as exc:  # its kind says whose fault: the file (65, 66) or the points mapping (78)
+        raise CmcanError(str(exc), exc.kind) from None
     op = table_points(pts, cfg.gate_limits, envelope)
     return op, np.ones(len(op), dtype=bool)

@@ -1,10 +1,19 @@
 """Operating-point tables: a CSV whose rows are already operating points (cycle means, test-rig
-logs, spreadsheets), read into per-role arrays.
+logs, spreadsheets), read into per-role arrays; and the CSV vocabulary it shares with run CSVs.
 
 Such files name their columns their own way and often lack a sensor for a quantity the machine holds
 constant (a pump on a constant-speed electric motor). A :class:`PointSpec` says which column holds
 each role, which roles are constants, and which rows to keep (``pump_leak=0``). The reader is shared
-by everything that takes operating points (the gap diagnosis; training on real data later).
+by everything that takes operating points (training, scoring, the gap diagnosis).
+
+What both CSV readers (this one and :mod:`cmcan.io.runcsv`) accept, defined once below: UTF-8 with or
+without a byte-order mark, LF or CRLF, separator ``,``, ``;`` or tab (whichever the header line holds
+most of), blank lines skipped, columns in any order, extra columns ignored. A cell is a number with
+a ``.`` decimal point, or a missing value: blank or one of :data:`MISSING_CELLS` (any case). Anything
+else in a column cmcan reads is an error naming the file, the line (the header is line 1, as an
+editor or a spreadsheet numbers it), the column and the cell; a decimal comma gets a hint. A row with
+fewer or more cells than the header has columns is an error; so is a column cmcan reads whose name
+appears twice in the header (a duplicated name cmcan does not read is ignored).
 """
 
 from __future__ import annotations
@@ -13,7 +22,7 @@ import csv
 import math
 import operator
 import re
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -68,7 +77,9 @@ class Condition:
         return cls(col, "==" if op == "=" else op, value)
 
     def holds(self, values: NDArray[np.float64]) -> NDArray[np.bool_]:
-        return np.asarray(_OPS[self.op](values, self.value), dtype=bool)
+        """Where the condition holds; a missing value (NaN) meets no condition, ``!=`` included."""
+        values = np.asarray(values, dtype=np.float64)
+        return np.asarray(_OPS[self.op](values, self.value), dtype=bool) & ~np.isnan(values)
 
     def __str__(self) -> str:
         return f"{self.column}{'=' if self.op == '==' else self.op}{self.value:g}"
@@ -157,8 +168,9 @@ def read_points(
     path: str | Path, spec: PointSpec, roles: Iterable[str], min_rows: int = 1, missing_as_nan: bool = False
 ) -> Points:
     """The roles ``roles`` from the CSV ``path`` as ``spec`` maps them; every one must be mapped.
-    An empty or non-numeric cell of a role's column is an error, or NaN with ``missing_as_nan`` (for
-    readers that judge each row on its own, such as scoring: one bad row must not lose the others)."""
+    A missing value (:data:`MISSING_CELLS`) in a role's column is an error, or NaN with
+    ``missing_as_nan`` (for readers that judge each row on its own, such as scoring: one bad row must
+    not lose the others). A cell that is neither a number nor a missing value is always an error."""
     p = Path(path)
     roles = tuple(roles)
     unmapped = [r for r in roles if r not in spec.columns and r not in spec.constants]
@@ -168,81 +180,158 @@ def read_points(
             f"constants.ROLE: VALUE in the points spec {spec.source}, or --column / --constant)",
             "spec",
         )
-    if not p.exists():
-        raise PointsError(f"{p}: file not found", "noinput")
     try:
-        with open(p, encoding="utf-8-sig", newline="") as f:
-            sample = f.read(65536)
-            f.seek(0)
-            delim = _delimiter(sample)
-            reader = csv.reader(f, delimiter=delim)
-            header = next(reader, None)
-            body = list(reader)
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
-        raise PointsError(f"{p}: cannot read as CSV: {exc}", "data") from None
-    if not header:
-        raise PointsError(f"{p}: empty file, expected a header line with column names", "data")
-    names = [h.strip() for h in header]
-    index = {n: i for i, n in enumerate(names)}
-    wanted = {spec.columns[r] for r in roles if r in spec.columns} | {c.column for c in spec.where}
-    missing = sorted(c for c in wanted if c not in index)
-    if missing:
-        fields = [f"columns.{r}" for r in roles if spec.columns.get(r) == missing[0]] or ["where"]
-        raise PointsError(
-            f"{p}: no column {missing[0]!r} ({fields[0]} in {spec.source}); the file has {', '.join(names)}", "data"
-        )
-    body = [row for row in body if any(cell.strip() for cell in row)]
-    keep = np.ones(len(body), dtype=bool)
-    for cond in spec.where:  # filter first: a row left out may hold anything in the other columns
-        keep &= cond.holds(_numeric(p, body, index[cond.column], cond.column, keep))
-    rows = np.flatnonzero(keep).astype(np.int64) + 1
-    kept = [body[i] for i in np.flatnonzero(keep)]
-    values: dict[str, NDArray[np.float64]] = {}
-    for r in roles:
-        if r in spec.columns:
-            v = _numeric(p, kept, index[spec.columns[r]], spec.columns[r], None, rows, missing_as_nan)
-            bad = np.flatnonzero(~np.isfinite(v))
-            if len(bad) and not missing_as_nan:
-                raise PointsError(f"{p}: row {rows[bad[0]]}: column {spec.columns[r]!r} ({r}) is empty", "data")
-            values[r] = v
-        else:
-            values[r] = np.full(len(kept), float(spec.constants[r]))
+        table = read_csv_table(p)
+        names = table.names
+        wanted = {spec.columns[r] for r in roles if r in spec.columns} | {c.column for c in spec.where}
+        missing = sorted(c for c in wanted if c not in names)
+        if missing:
+            fields = [f"columns.{r}" for r in roles if spec.columns.get(r) == missing[0]] or ["where"]
+            raise PointsError(
+                f"{p}: no column {missing[0]!r} ({fields[0]} in {spec.source}); the file has {', '.join(names)}",
+                "data",
+            )
+        index = {c: column_index(p, names, c) for c in sorted(wanted)}
+        keep = np.ones(len(table.rows), dtype=bool)
+        for cond in spec.where:  # filter first: a row left out may hold anything in the other columns
+            keep &= cond.holds(table.numbers(index[cond.column], keep))
+        kept = np.flatnonzero(keep)
+        values: dict[str, NDArray[np.float64]] = {}
+        for r in roles:
+            if r in spec.columns:
+                col = index[spec.columns[r]]
+                v = table.numbers(col, keep)[kept]
+                bad = np.flatnonzero(np.isnan(v))
+                if len(bad) and not missing_as_nan:
+                    k = int(kept[bad[0]])
+                    cell = table.rows[k][col].strip()
+                    what = f"holds no value ({cell!r})" if cell else "is empty"
+                    raise PointsError(f"{p}: line {table.lines[k]}: column {spec.columns[r]!r} ({r}) {what}", "data")
+                values[r] = v
+            else:
+                values[r] = np.full(len(kept), float(spec.constants[r]))
+    except CsvError as exc:
+        raise PointsError(str(exc), "noinput" if exc.kind is Kind.NO_INPUT else "data") from None
     if len(kept) < min_rows:
         cond = " and ".join(str(c) for c in spec.where) or "no filter"
-        raise PointsError(f"{p}: {len(kept)} of {len(body)} rows kept ({cond}); need at least {min_rows}", "data")
+        raise PointsError(f"{p}: {len(kept)} of {len(table.rows)} rows kept ({cond}); need at least {min_rows}", "data")
     measured = frozenset(r for r in roles if r in spec.columns)
-    cells = tuple((*(c.strip() for c in row[: len(names)]), *("",) * (len(names) - len(row))) for row in kept)
-    return Points(str(p), values, measured, rows, len(body), spec, tuple(names), cells)
+    cells = tuple(tuple(c.strip() for c in table.rows[i]) for i in kept)
+    return Points(str(p), values, measured, kept.astype(np.int64) + 1, len(table.rows), spec, names, cells)
 
 
-def _delimiter(sample: str) -> str:
-    first = sample.splitlines()[0] if sample else ""
-    return max((",", ";", "\t"), key=first.count)
+# -- CSV files: one vocabulary for operating-point tables and run CSVs -----------------------------
+
+SEPARATORS = (",", ";", "\t")
+# Spellings of a missing value (compared in lower case): blank, and what spreadsheets, pandas and
+# loggers write for one. "-" and "?" are left out: too often a placeholder for something else.
+MISSING_CELLS = frozenset({"", "nan", "na", "n/a", "#n/a", "null", "none"})
+# A number as numpy's loadtxt (the run CSV's fast path) reads one: ASCII digits, '.' decimals.
+_NUMBER = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+_DECIMAL_COMMA = re.compile(r"[+-]?[0-9]*,[0-9]+(?:[eE][+-]?[0-9]+)?")
 
 
-def _numeric(
-    p: Path,
-    body: list[list[str]],
-    col: int,
-    name: str,
-    keep: NDArray[np.bool_] | None = None,
-    rows: NDArray[np.int64] | None = None,
-    lenient: bool = False,
-) -> NDArray[np.float64]:
-    """Column ``col`` as numbers (NaN where empty); only where ``keep`` (the rest NaN); errors name the
-    file's data row (``rows`` maps positions to it)."""
-    out = np.full(len(body), np.nan)
-    for k, row in enumerate(body):
-        if keep is not None and not keep[k]:
-            continue
-        cell = row[col].strip() if col < len(row) else ""
-        if not cell:
-            continue
-        try:
-            out[k] = float(cell)
-        except ValueError:
-            if lenient:
+class CsvError(CmcanError, ValueError):
+    """A CSV file cannot be read as cmcan reads CSV files; ``str()`` names the file, line and column."""
+
+    kind = Kind.DATA
+
+
+def cell_value(cell: str) -> float | None:
+    """The number a cell holds, None for a missing value; ValueError (saying why) for anything else."""
+    text = cell.strip()
+    if text.lower() in MISSING_CELLS:
+        return None
+    if not _NUMBER.fullmatch(text):
+        hint = " (decimal comma? cmcan reads '.' decimals)" if _DECIMAL_COMMA.fullmatch(text) else ""
+        raise ValueError(f"is not a number{hint}")
+    value = float(text)
+    if not math.isfinite(value):  # only an exponent beyond float range gets here
+        raise ValueError("is not a finite number")
+    return value
+
+
+@dataclass(frozen=True)
+class CsvTable:
+    """A CSV's header and its non-blank data rows, each with a cell for every column."""
+
+    path: Path
+    names: tuple[str, ...]
+    rows: list[list[str]]
+    lines: list[int]  # each row's line in the file (the header is line 1)
+
+    def numbers(self, col: int, where: NDArray[np.bool_] | None = None) -> NDArray[np.float64]:
+        """Column ``col`` as numbers, NaN for a missing value (and for the rows ``where`` leaves out)."""
+        out = np.full(len(self.rows), np.nan)
+        for k, row in enumerate(self.rows):
+            if where is not None and not where[k]:
                 continue
-            at = int(rows[k]) if rows is not None else k + 1
-            raise PointsError(f"{p}: row {at}: column {name!r}: {cell!r} is not a number", "data") from None
-    return out
+            try:
+                value = cell_value(row[col])
+            except ValueError as exc:
+                raise CsvError(
+                    f"{self.path}: line {self.lines[k]}: column {self.names[col]!r}: {row[col].strip()!r} {exc}"
+                ) from None
+            if value is not None:
+                out[k] = value
+        return out
+
+
+def column_index(path: Path, names: Sequence[str], name: str) -> int:
+    """The position of the column ``name`` (which must be there); a name given twice is an error."""
+    at = [i for i, n in enumerate(names) if n == name]
+    if len(at) > 1:
+        times = "twice" if len(at) == 2 else f"{len(at)} times"
+        where = ", ".join(str(i + 1) for i in at[:-1]) + f" and {at[-1] + 1}"
+        raise CsvError(f"{path}: column {name!r} appears {times} (columns {where}); rename all but one")
+    return at[0]
+
+
+def csv_header(path: str | Path) -> tuple[tuple[str, ...], str]:
+    """The column names (stripped) and the separator of the CSV ``path``."""
+    names, sep, _ = _read_csv(Path(path), header_only=True)
+    return names, sep
+
+
+def read_csv_table(path: str | Path) -> CsvTable:
+    """The whole CSV ``path``: header, rows (blank lines skipped) and each row's line."""
+    p = Path(path)
+    names, _, (rows, lines) = _read_csv(p, header_only=False)
+    return CsvTable(p, names, rows, lines)
+
+
+def _read_csv(p: Path, header_only: bool) -> tuple[tuple[str, ...], str, tuple[list[list[str]], list[int]]]:
+    if not p.exists():
+        raise CsvError(f"{p}: file not found", Kind.NO_INPUT)
+    if p.is_dir():
+        raise CsvError(f"{p}: is a folder, expected a CSV file", Kind.NO_INPUT)
+    rows: list[list[str]] = []
+    lines: list[int] = []
+    try:
+        with open(p, encoding="utf-8-sig", newline="") as f:
+            first = f.readline()
+            sep = max(SEPARATORS, key=first.count)
+            f.seek(0)
+            reader = csv.reader(f, delimiter=sep)
+            header = next(reader, None)
+            if not header or not any(h.strip() for h in header):
+                raise CsvError(f"{p}: empty file, expected a header line with column names")
+            names = tuple(h.strip() for h in header)
+            if not header_only:
+                for row in reader:
+                    if not any(cell.strip() for cell in row):
+                        continue
+                    if len(row) != len(names):
+                        raise CsvError(
+                            f"{p}: line {reader.line_num}: {len(row)} cells, but the header (line 1) has "
+                            f"{len(names)} columns ({sep!r} separated)"
+                        )
+                    rows.append(row)
+                    lines.append(reader.line_num)
+    except UnicodeDecodeError:
+        raise CsvError(f"{p}: not a text CSV file (not UTF-8)") from None
+    except csv.Error as exc:
+        raise CsvError(f"{p}: cannot read as CSV: {exc}") from None
+    except OSError as exc:
+        raise CsvError(f"{p}: cannot read: {exc.strerror or exc}", Kind.NO_INPUT) from None
+    return names, sep, (rows, lines)

@@ -1,8 +1,13 @@
-"""Run CSVs: one column per quantity with its unit in the name, one row per sample."""
+"""Run CSVs: one column per quantity with its unit in the name, one row per sample.
+
+Read with the CSV vocabulary of :mod:`cmcan.io.points` (separators, missing values, errors naming
+the line and column), like operating-point tables."""
 
 from __future__ import annotations
 
+import contextlib
 import io
+import warnings
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -10,6 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cmcan.errors import CmcanError, Kind
+from cmcan.io.points import CsvError, CsvTable, column_index, csv_header, read_csv_table
 
 # Decimals written per column: finer than any sensor resolution, coarse enough to keep files small.
 _DECIMALS = {"time_s": 4, "operating_h": 7, "true_failed": 0, "true_misposition_pct": 4}
@@ -37,29 +43,71 @@ def write_run_csv(path: str | Path, columns: dict[str, NDArray[np.float64]]) -> 
     tmp.replace(p)
 
 
-def read_run_csv(path: str | Path, required: Iterable[str] = ()) -> dict[str, NDArray[np.float64]]:
+class RunColumns(dict[str, NDArray[np.float64]]):
+    """A run CSV's numeric columns by name; ``skipped_lines`` are the lines (the header is line 1) left
+    out because a column cmcan reads had no value there."""
+
+    skipped_lines: tuple[int, ...] = ()
+
+
+def read_run_csv(path: str | Path, required: Iterable[str] = ()) -> RunColumns:
+    """The columns of the run CSV ``path`` (the CSV vocabulary of :mod:`cmcan.io.points`).
+
+    Each ``required`` column must be there once and hold numbers; a row with a missing value in one of
+    them is left out (a sample lost: the windows downstream take irregular samples). Any other column
+    is returned when it holds only numbers and missing values (NaN), and ignored otherwise (an
+    operator's name, a note), as is a column whose name appears twice."""
     p = Path(path)
-    if not p.exists():
-        raise RunCsvError(f"{p}: file not found", Kind.NO_INPUT)
+    required = tuple(dict.fromkeys(required))
     try:
-        with open(p, encoding="utf-8") as f:
-            header = f.readline().strip()
-    except UnicodeDecodeError:
-        raise RunCsvError(f"{p}: not a text CSV file (not UTF-8)") from None
-    except IsADirectoryError:
-        raise RunCsvError(f"{p}: is a folder, expected a CSV file", Kind.NO_INPUT) from None
-    if not header:
-        raise RunCsvError(f"{p}: empty file, expected a header line with column names")
-    names = [h.strip() for h in header.split(",")]
-    missing = [k for k in required if k not in names]
-    if missing:
-        raise RunCsvError(f"{p}: missing column(s) {', '.join(missing)}; the file has {', '.join(names)}")
+        names, sep = csv_header(p)
+        missing = [k for k in required if k not in names]
+        if missing:
+            raise RunCsvError(f"{p}: missing column(s) {', '.join(missing)}; the file has {', '.join(names)}")
+        for k in required:
+            column_index(p, names, k)
+        single = {k: i for i, k in enumerate(names) if k and names.count(k) == 1}
+        data = _numeric_fast(p, sep, len(names))
+        if data is not None:
+            return RunColumns({k: data[:, i] for k, i in single.items()})
+        return _read_slow(read_csv_table(p), single, required)
+    except CsvError as exc:
+        raise RunCsvError(str(exc), exc.kind) from None
+
+
+def _numeric_fast(p: Path, sep: str, width: int) -> NDArray[np.float64] | None:
+    """The whole file parsed by numpy when every cell is a finite number and every row full, else None
+    (the slow path then finds what is missing or wrong, and where)."""
     try:
-        data = np.loadtxt(p, delimiter=",", skiprows=1, ndmin=2)
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise RunCsvError(f"{p}: not numeric CSV below the header: {exc}") from None
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)  # "input contained no data": a header-only file
+            data = np.loadtxt(p, delimiter=sep, skiprows=1, ndmin=2, comments=None, encoding="utf-8-sig")
+    except (ValueError, UnicodeDecodeError):
+        return None
     if data.size == 0:
-        return {k: np.empty(0) for k in names}
-    if data.shape[1] != len(names):
-        raise RunCsvError(f"{p}: rows have {data.shape[1]} values, the header names {len(names)} columns")
-    return {k: data[:, i] for i, k in enumerate(names)}
+        return np.empty((0, width))
+    if data.shape[1] != width or not np.isfinite(data).all():
+        return None
+    return data
+
+
+def _read_slow(table: CsvTable, single: dict[str, int], required: tuple[str, ...]) -> RunColumns:
+    cols: dict[str, NDArray[np.float64]] = {}
+    for k, i in single.items():
+        if k in required:
+            cols[k] = table.numbers(i)
+        else:
+            with contextlib.suppress(CsvError):  # a column cmcan does not need may hold text
+                cols[k] = table.numbers(i)
+    complete = np.ones(len(table.rows), dtype=bool)
+    for k in required:
+        complete &= ~np.isnan(cols[k])
+    if len(table.rows) and not complete.any():
+        worst = max(required, key=lambda k: int(np.isnan(cols[k]).sum()))
+        raise RunCsvError(
+            f"{table.path}: no row has a value in every column cmcan reads ({', '.join(required)}); "
+            f"{worst!r} is missing in {int(np.isnan(cols[worst]).sum())} of {len(table.rows)} rows"
+        )
+    out = RunColumns({k: v[complete] for k, v in cols.items()})
+    out.skipped_lines = tuple(table.lines[i] for i in np.flatnonzero(~complete))
+    return out
