@@ -734,6 +734,7 @@ class _Engine:
             level=level,
             reason=reason,
             time_below_s=below,
+            run_shift_s=np.full(n, m.run_shift_s),  # no clock step within a stretch
         )
         last = n - 1
         m.last_tick = Tick(
@@ -749,6 +750,7 @@ class _Engine:
             level=Level(int(level[last])),
             reason=Reason(int(reason[last])),
             time_below_s=float(below[last]),
+            run_shift_s=m.run_shift_s,
         )
         self.flush_scalar()  # the streaming path's ticks and frames before this stretch's
         # the pending transport packets due by the last tick go out with the ticks' frames, in time order

@@ -33,7 +33,7 @@ def plot_ratio(
     """CM ratio over operating hours with the thresholds (the paper's Figure 9); ``tl`` is a
     :class:`cmcan.replay.TickColumns`."""
     plt = _pyplot()
-    h_all = (tl.t_s - t0) / 3600.0
+    h_all = (tl.t_run_s - t0) / 3600.0  # operating hours: the wall clock's steps undone
     ev = tl.ratio_raw_pct > 0
     fv = tl.filt_valid
     fig, ax = plt.subplots(figsize=(11, 4.2))

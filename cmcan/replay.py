@@ -68,9 +68,21 @@ class TickColumns:
     level: NDArray[np.int8]
     reason: NDArray[np.int8]
     time_below_s: NDArray[np.float64]
+    # t_s + this: each tick on the run's continuous time base (the wall clock's steps undone); zeros
+    # when not given
+    run_shift_s: NDArray[np.float64] = None  # type: ignore[assignment]
+
+    def __post_init__(self) -> None:
+        if self.run_shift_s is None:
+            object.__setattr__(self, "run_shift_s", np.zeros(len(self.t_s)))
 
     def __len__(self) -> int:
         return len(self.t_s)
+
+    @property
+    def t_run_s(self) -> NDArray[np.float64]:
+        """The ticks' times on the run's continuous time base, which operating hours count on."""
+        return self.t_s + self.run_shift_s
 
     @classmethod
     def from_ticks(cls, ticks: Sequence[Tick]) -> TickColumns:
@@ -90,6 +102,7 @@ class TickColumns:
             level=col("level", np.int8),
             reason=col("reason", np.int8),
             time_below_s=col("time_below_s", np.float64),
+            run_shift_s=col("run_shift_s", np.float64),
         )
 
     @classmethod
@@ -97,6 +110,7 @@ class TickColumns:
         names = cls.__dataclass_fields__
         if not chunks:
             return cls.from_ticks([])
+
         return cls(**{n: np.concatenate([getattr(c, n) for c in chunks]) for n in names})
 
 
@@ -166,7 +180,7 @@ class TimelineWriter(_FileSink):
             [
                 tc.fixed(c.t_s, 3),
                 comma,
-                tc.fixed((c.t_s - self.t0) / 3600.0, 6),
+                tc.fixed((c.t_run_s - self.t0) / 3600.0, 6),  # operating hours: clock steps undone
                 comma,
                 tc.Column.of_names(c.gate, _GATE_NAMES),
                 comma,
@@ -345,6 +359,14 @@ class ReplaySummary:
     snapshot: dict[str, Any]
     totals: dict[str, Any]
     frames_emitted: int
+    run_shift_s: float = 0.0  # the wall clock's steps undone at the last frame (Monitor.run_shift_s)
+
+    @property
+    def duration_h(self) -> float:
+        """First to last frame in operating hours (the wall clock's steps undone)."""
+        if self.first_t is None or self.last_t is None:
+            return 0.0
+        return (self.last_t + self.run_shift_s - self.first_t) / 3600.0
 
 
 def replay(monitor: Monitor, frames_in: Iterable[Frame], sinks: Sequence[Sink] = ()) -> ReplaySummary:
@@ -401,16 +423,24 @@ def replay(monitor: Monitor, frames_in: Iterable[Frame], sinks: Sequence[Sink] =
     return summarize(monitor, first, last, n_out)
 
 
+def operating(h: dict[str, Any], t0: float) -> dict[str, Any]:
+    """A level change with its operating hours since ``t0`` (the first frame), counted on the run's
+    continuous time base (a step of the wall clock is no operating time), without that base's time."""
+    entry = {k: v for k, v in h.items() if k != "t_run_s"}
+    return {**entry, "operating_h": (h.get("t_run_s", h["t_s"]) - t0) / 3600.0}
+
+
 def summarize(monitor: Monitor, first: float | None, last: float | None, n_out: int) -> ReplaySummary:
     t0 = first if first is not None else 0.0
     return ReplaySummary(
         first_t=first,
         last_t=last,
         counters=dict(monitor.counters),
-        warnings=[{**h, "operating_h": (h["t_s"] - t0) / 3600.0} for h in monitor.totals.history],
+        warnings=[operating(h, t0) for h in monitor.totals.history],
         snapshot=monitor.snapshot(),
         totals={k: v for k, v in monitor.save_totals().to_dict().items() if not k.startswith("filter_")},
         frames_emitted=n_out,
+        run_shift_s=monitor.run_shift_s,
     )
 
 

@@ -4,9 +4,11 @@ import csv
 import json
 
 import can
+import numpy as np
 import pytest
 
 from cmcan.cli.errors import EX_CANTCREAT, EX_DATAERR, EX_NOINPUT
+from cmcan.io.candump import write_candump
 from tests.conftest import run_cli
 from tests.helpers import sim_frames, write_log
 
@@ -83,3 +85,33 @@ def test_replay_missing_and_garbage_logs(tmp_path):
     bad.write_text("this is not a candump line\n")
     res = run_cli("replay", str(bad))
     assert res.returncode == EX_DATAERR and "bad.log" in res.stderr
+
+
+def test_operating_hours_go_on_through_a_step_back_of_the_wall_clock(logs, tmp_path):
+    """An NTP or GPS fix sets the clock back 3 days half an hour into the log: the monitor re-bases
+    (one clock step), and operating hours (the warnings', the timeline's, the duration) go on as if the
+    clock had not moved, the same from both engines. They used to go 72 h negative."""
+    _, frames = sim_frames("two_set_validation", duration_h=1.2)
+    t = frames.timestamp_s.copy()
+    t0 = float(t[0])
+    t[t >= t0 + 1800.0] -= 3 * 86400.0
+    write_candump(tmp_path / "step.log", t, frames.arbitration_id, frames.dlc, frames.data)
+    _d, log, _run = logs
+    plain = json.loads(run_cli("replay", str(log), "--json").stdout)
+    out = {}
+    for engine in ("columnar", "streaming"):
+        tl, em = tmp_path / f"{engine}.csv", tmp_path / f"{engine}.log"
+        res = run_cli(
+            "replay", str(tmp_path / "step.log"), "--engine", engine, "--out", str(tl), "--emit", str(em), "--json"
+        )
+        assert res.returncode == 0, res.stderr
+        out[engine] = (res.stdout, tl.read_bytes(), em.read_bytes())
+    assert out["columnar"] == out["streaming"]
+    stepped = json.loads(out["columnar"][0])
+    assert stepped["final"]["counters"]["clock_steps"] == 1
+    assert abs(stepped["duration_h"] - plain["duration_h"]) < 1e-6
+    lows = [w["operating_h"] for w in stepped["warnings"] if w["to"] == "low"]
+    assert lows == pytest.approx([w["operating_h"] for w in plain["warnings"] if w["to"] == "low"], abs=1e-6)
+    with open(tmp_path / "columnar.csv") as f:
+        hours = np.array([float(r["operating_h"]) for r in csv.DictReader(f)])
+    assert hours[0] >= 0 and (np.diff(hours) > 0).all() and hours[-1] == pytest.approx(plain["duration_h"], abs=1e-3)

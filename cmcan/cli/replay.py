@@ -113,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
         "channels": {k: v for k, v in sorted(seen.items())},
         "channels_renamed": merged,
         "first_timestamp_s": t0,
-        "duration_h": ((res.last_t or t0) - t0) / 3600.0,
+        "duration_h": res.duration_h,
         "warnings": res.warnings,
         "final": res.snapshot,
         "totals": res.totals,

@@ -60,8 +60,13 @@ def reduction_of(name: str, dtype: np.dtype) -> tuple[str, str]:
     return name, "last"
 
 
+# Not a timeline column: the clock's steps undone, which only the rows' log time takes (RUN_SHIFT)
+_NOT_COLUMNS = ("t_s", "run_shift_s")
+RUN_SHIFT = "_run_shift_s"
+
+
 def _fields(c: TickColumns) -> list[str]:
-    return [f.name for f in fields(c) if f.name != "t_s"]
+    return [f.name for f in fields(c) if f.name not in _NOT_COLUMNS]
 
 
 def _slice(c: TickColumns, a: int, b: int | None = None) -> TickColumns:
@@ -87,6 +92,8 @@ def reduce_runs(c: TickColumns, rate_hz: float) -> dict[str, NDArray[Any]]:
         "time_s": bins[starts] / rate_hz,
         "ticks": count,
         "evaluated": n_ev,
+        # time_s + this: the row on the log's continuous time base (the wall clock's steps undone)
+        RUN_SHIFT: c.run_shift_s[ends - 1],
     }
     for name in _fields(c):
         x = getattr(c, name)
@@ -197,7 +204,8 @@ class LogStats:
         ev = np.isin(c.gate, _EVALUATED)
         if not ev.any():
             return
-        h = (c.t_s[ev] - self.t0) / 3600.0
+        t_run = c.t_run_s  # operating hours: the wall clock's steps undone
+        h = (t_run[ev] - self.t0) / 3600.0
         r = c.ratio_raw_pct[ev]
         idx = np.clip(np.rint(r / RATIO_HIST_STEP_PCT), 0, len(self.hist) - 1).astype(np.int64)
         self.hist += np.bincount(idx, minlength=len(self.hist))
@@ -206,7 +214,7 @@ class LogStats:
         if fv.any():
             f = c.ratio_filt_pct[fv]
             leak = c.extra_leak_lpm[fv]
-            self.leak_fit.add((c.t_s[fv] - self.t0) / 3600.0, leak)
+            self.leak_fit.add((t_run[fv] - self.t0) / 3600.0, leak)
             if math.isnan(self.filt_first):
                 self.filt_first = float(f[0])
             self.filt_last = float(f[-1])

@@ -25,7 +25,7 @@ from cmcan import config as cfgmod
 from cmcan.assemble import build_monitor, dbc_for, load_model_for, model_file
 from cmcan.errors import CmcanError
 from cmcan.fleet import dataset as ds
-from cmcan.fleet.aggregate import Downsampler, LogStats
+from cmcan.fleet.aggregate import RUN_SHIFT, Downsampler, LogStats
 from cmcan.frame import Frame
 from cmcan.monitor.gating import Gate
 from cmcan.monitor.tick import LEVEL_NAMES
@@ -117,7 +117,12 @@ class FleetSink:
             if col in rows:
                 rows[col] = names[np.asarray(rows[col], dtype=np.int64)]
         t = rows["time_s"]
-        out = {"time_s": t, "log_time_h": (t - self.t0) / 3600.0, **{k: v for k, v in rows.items() if k != "time_s"}}
+        shift = rows.pop(RUN_SHIFT)  # the wall clock's steps undone: log time never runs backwards
+        out = {
+            "time_s": t,
+            "log_time_h": (t + shift - self.t0) / 3600.0,
+            **{k: v for k, v in rows.items() if k != "time_s"},
+        }
         self.writer.add_rows("timeline", out)
 
     def ticks(self, chunk: TickColumns) -> None:
@@ -262,7 +267,7 @@ def _replay_and_commit(
             "events",
             {
                 "time_s": np.array([w["t_s"] for w in ev], dtype=np.float64),
-                "log_time_h": np.array([(w["t_s"] - t0) / 3600.0 for w in ev], dtype=np.float64),
+                "log_time_h": np.array([w["operating_h"] for w in ev], dtype=np.float64),
                 "from_level": np.array([w["from"] for w in ev], dtype=object),
                 "to_level": np.array([w["to"] for w in ev], dtype=object),
                 "reason": np.array([w["reason"] for w in ev], dtype=object),
@@ -281,7 +286,7 @@ def _replay_and_commit(
         "log_size_bytes": st.st_size,
         "first_time_s": t0,
         "last_time_s": t1,
-        "duration_h": (t1 - t0) / 3600.0,
+        "duration_h": res.duration_h,
         "ticks": c["ticks"],
         "evaluated": c["evaluated"],
         "evaluated_h": tot["evaluated_s"] / 3600.0,

@@ -173,6 +173,9 @@ class Monitor:
         self._low: int | None = None
         self.counters = dict.fromkeys(COUNTERS, 0)
         self.counters.update(ticks=0, evaluated=0, extrapolated=0, model_errors=0, clock_steps=0)
+        # The wall clock's steps undone: frame time t is ``t + run_shift_s`` on the run's own continuous
+        # time base (a clock correction is no time the machine ran), which operating hours count on.
+        self.run_shift_s = 0.0
         self.machine = WarningMachine(p.thresholds)
         self.machine.condition = {"ok": Level.OK, "low": Level.LOW, "high": Level.HIGH}[self.totals.condition]
         self.machine.condition_reason = {
@@ -334,6 +337,7 @@ class Monitor:
         steps back itself; the daemon tells it of steps forward."""
         self.counters["clock_steps"] += 1
         ticks = self.clock.whole_ticks(delta_s)
+        self.run_shift_s -= ticks * self.period
         for w in self.windows.values():
             w.shift(ticks * self.period)
         for st in self._streams:
@@ -355,6 +359,7 @@ class Monitor:
         self.filter = RatioFilter(n, p.filter_min_samples, ratios[-n:], leaks[-n:])
         self.machine = replace(old.machine, th=p.thresholds)
         self.counters.update(old.counters)
+        self.run_shift_s = old.run_shift_s
         self.payloads.alive = old.payloads.alive
         self.payloads.last_warning = old.payloads.last_warning
         self.last_tick = old.last_tick
@@ -452,6 +457,7 @@ class Monitor:
             level=level,
             reason=reason,
             time_below_s=m.time_below_s,
+            run_shift_s=self.run_shift_s,
         )
         self.last_tick = tick
         if self.keep_timeline:
@@ -493,6 +499,7 @@ class Monitor:
                 "to": LEVEL_NAMES[to],
                 "reason": reason.name.lower(),
                 "ratio_filt_pct": ratio,
+                "t_run_s": t + self.run_shift_s,  # on the continuous time base (``run_shift_s``)
             }
         )
         del tot.history[:-HISTORY_MAX]

@@ -26,3 +26,4 @@ class Tick:
     level: Level
     reason: Reason
     time_below_s: float
+    run_shift_s: float = 0.0  # t_s + this: the tick on the run's continuous time base (Monitor.run_shift_s)
