@@ -208,6 +208,16 @@ def test_a_truncated_gzipped_candump_log(tmp_path, logs, engine):
     refused(run_cli("replay", str(cut), "--engine", engine), EX_DATAERR, "cut.log.gz", "truncated or corrupt")
 
 
+def test_both_engines_name_the_same_line_of_a_truncated_gzipped_log(tmp_path, logs):
+    """The columnar reader fails a whole chunk at a time: it names the line the line reader stops at,
+    not the chunk's first line."""
+    gz = gzip.compress(logs["log"].read_bytes() * 40)  # a log of several chunks
+    cut = tmp_path / "cut.log.gz"
+    cut.write_bytes(gz[: len(gz) * 2 // 3])
+    said = {e: run_cli("replay", str(cut), "--engine", e).stderr for e in ENGINES}
+    assert said["columnar"] == said["streaming"] and "cannot read past line" in said["columnar"]
+
+
 def test_mf4_replays_with_its_extra_and_names_the_extra_without_it(tmp_path, logs):
     res = run_cli("replay", str(logs["mf4"]), "--json")
     assert res.returncode == 0, res.stderr

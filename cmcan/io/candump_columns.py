@@ -24,7 +24,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cmcan.frame import FrameColumns
-from cmcan.io.candump import CAN_ERR_BUSERROR, CAN_ERR_FLAG, MAX_LINE_BYTES, LogError, parse_candump_line
+from cmcan.io.candump import (
+    CAN_ERR_BUSERROR,
+    CAN_ERR_FLAG,
+    MAX_LINE_BYTES,
+    LogError,
+    lines_before_failure,
+    parse_candump_line,
+)
 
 CHUNK_BYTES = 2 << 20
 CHUNK_LINES = 45_000  # the columnar replay's chunk: about 2 MiB of lines with 11-bit identifiers
@@ -87,6 +94,8 @@ def _read(f: BinaryIO, n: int, path: Path, line: int) -> bytes:
     try:
         return f.read(n)
     except (EOFError, OSError, zlib.error) as exc:  # a truncated or corrupt .gz (BadGzipFile is an OSError)
+        # the chunk failed somewhere after ``line``: the line as the line reader names it
+        line = lines_before_failure(path)
         raise LogError(f"{path}: cannot read past line {line}: {exc} (truncated or corrupt compressed log)") from None
 
 
