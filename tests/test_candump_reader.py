@@ -137,3 +137,23 @@ def test_chunks_by_lines_hold_as_many_frames_whatever_the_identifier_length(tmp_
         assert [f for c in chunks for f in c.frames()] == list(iter_candump(p))
         sizes[name] = [len(c) for c in chunks]
     assert sizes["std"][1:-1] and sizes["std"][1:-1] == sizes["ext"][1:-1] == [4000] * len(sizes["std"][1:-1])
+
+
+def test_error_frames_of_every_class_are_error_frames(tmp_path):
+    """candump writes an error frame's class bits with CAN_ERR_FLAG: a controller problem (0x04) or
+    bus-off (0x40) is an error frame as much as a bus error (0x80), as the daemon receives them
+    (python-can's reader reads the former as frames of identifier 0x4 and 0x40)."""
+    from cmcan.io.candump_columns import iter_candump_columns
+
+    p = tmp_path / "err.log"
+    p.write_text(
+        "(1.000000) can0 20000004#0004000000000000\n"
+        "(1.100000) can0 20000040#0000000000000000\n"
+        "(1.200000) can0 20000080#0000000000000000\n"
+        "(1.300000) can0 100#0011\n"
+    )
+    lines = list(iter_candump(p))
+    cols = [f for c in iter_candump_columns(p) for f in c.frames()]
+    assert lines == cols
+    assert [f.error for f in lines] == [True, True, True, False]
+    assert all(f.arbitration_id == 0 and f.channel == "can0" for f in lines[:3])

@@ -168,7 +168,8 @@ _STAMP = re.compile(r"\(([0-9]+(?:\.[0-9]*)?(?:[eE][+-]?[0-9]+)?)\)")
 
 def parse_candump_line(line: str, path: Path | str, n: int) -> Frame | None:
     """One ``candump -l`` line as python-can's ``CanutilsLogReader`` reads it (None for a blank
-    line), except that the timestamp must be one; ValueError names the file and line."""
+    line), except that the timestamp must be one and that every error frame is one (see below);
+    ValueError names the file and line."""
     parts = line.split()
     if not parts:
         return None
@@ -195,8 +196,10 @@ def parse_candump_line(line: str, path: Path | str, n: int) -> Frame | None:
             payload = bytes.fromhex(data)
         except ValueError:
             raise ValueError(f"{path}: line {n}: bad data {data[:40]!r}") from None
-    if cid & CAN_ERR_FLAG and cid & CAN_ERR_BUSERROR:
-        # as python-can builds it: Message(is_error_frame=True)
+    if cid & CAN_ERR_FLAG:
+        # SocketCAN marks an error frame by CAN_ERR_FLAG in its identifier, whatever its class (bus
+        # error, controller problem, bus-off...), as the daemon receives it; python-can's reader takes
+        # only bus errors for one and reads the others as frames of identifier 0x4, 0x40...
         return Frame(t, channel, 0, True, False, True, False, b"")
     return Frame(t, channel, cid & 0x1FFFFFFF, len(cid_s) > 3, remote, False, fd, payload)
 

@@ -25,7 +25,6 @@ from numpy.typing import NDArray
 
 from cmcan.frame import FrameColumns
 from cmcan.io.candump import (
-    CAN_ERR_BUSERROR,
     CAN_ERR_FLAG,
     MAX_LINE_BYTES,
     LogError,
@@ -375,7 +374,7 @@ def _parse_shape(
     # CAN FD flags digit must be hex, remote frames carry nothing
     if fd.any():
         good[fd] &= _NIBBLE[tail[fd, 1]] != 255
-    err = ((cid & np.uint64(CAN_ERR_FLAG)) != 0) & ((cid & np.uint64(CAN_ERR_BUSERROR)) != 0)
+    err = (cid & np.uint64(CAN_ERR_FLAG)) != 0  # an error frame of any class (parse_candump_line)
     # the channel name
     ch_bytes = rows[:, a + 1 : b]
     if ch_bytes.shape[1] <= 8:  # a name of up to 8 characters is one integer
