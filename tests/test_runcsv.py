@@ -74,13 +74,15 @@ def test_an_unused_text_column_is_ignored(tmp_path):
 
 
 @pytest.mark.parametrize("cell", ["", "nan", "NA", "n/a", "#N/A", " null "])
-def test_a_missing_value_in_a_column_cmcan_reads_skips_that_row(tmp_path, cell):
+def test_a_missing_value_in_a_column_cmcan_reads_skips_that_row(tmp_path, cell, caplog):
     rows = small()
     rows[2][1] = cell  # line 3
     rows[4][4] = ""  # a column cmcan does not require: NaN, the row stays
-    cols = read_run_csv(write(tmp_path / "b.csv", rows), REQUIRED)
+    with caplog.at_level("WARNING", logger="cmcan.io"):
+        cols = read_run_csv(write(tmp_path / "b.csv", rows), REQUIRED)
     assert cols["time_s"].tolist() == [0.0, 2.0, 3.0, 4.0]
     assert cols.skipped_lines == (3,)
+    assert "b.csv: 1 of 5 rows left out: a value cmcan reads is missing (lines 3)" in caplog.text
     assert np.isnan(cols["pump_leak"]).tolist() == [False, False, True, False]
 
 
@@ -222,3 +224,13 @@ def test_gap_diagnose_reads_the_same_files(tmp_path):
     p = write(tmp_path / "bad.csv", rows, ";")
     res = run_cli("gap", "diagnose", str(p), *args, "--out", str(tmp_path / "b"), "--no-plots")
     refused(res, EX_DATAERR, "bad.csv", "line 201", "column 'flow_lpm'", "'6.6 l/min' is not a number")
+
+
+def test_a_time_that_does_not_increase_is_named_by_its_line_after_left_out_rows(tmp_path):
+    from cmcan.model.features import DataError, series_from_csv
+
+    rows = small()
+    rows[2][1] = ""  # line 3 left out
+    rows[5][0] = rows[4][0]  # line 6 repeats line 5's time
+    with pytest.raises(DataError, match=r"b.csv: time_s must increase from row to row \(line 6 does not\)"):
+        series_from_csv(write(tmp_path / "b.csv", rows), "flow_lpm", {"pump_speed_rpm": 1450.0, "pump_disp_cc": 4.6})

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import logging
 import warnings
 from collections.abc import Iterable
 from pathlib import Path
@@ -20,6 +21,7 @@ from cmcan.io.points import CsvError, CsvTable, column_index, csv_header, read_c
 # Decimals written per column: finer than any sensor resolution, coarse enough to keep files small.
 _DECIMALS = {"time_s": 4, "operating_h": 7, "true_failed": 0, "true_misposition_pct": 4}
 _DEFAULT_DECIMALS = 4
+log = logging.getLogger("cmcan.io")
 
 
 class RunCsvError(CmcanError, ValueError):
@@ -45,9 +47,10 @@ def write_run_csv(path: str | Path, columns: dict[str, NDArray[np.float64]]) -> 
 
 class RunColumns(dict[str, NDArray[np.float64]]):
     """A run CSV's numeric columns by name; ``skipped_lines`` are the lines (the header is line 1) left
-    out because a column cmcan reads had no value there."""
+    out because a column cmcan reads had no value there; ``lines`` the line of each row kept."""
 
     skipped_lines: tuple[int, ...] = ()
+    lines: tuple[int, ...] = ()
 
 
 def read_run_csv(path: str | Path, required: Iterable[str] = ()) -> RunColumns:
@@ -110,4 +113,14 @@ def _read_slow(table: CsvTable, single: dict[str, int], required: tuple[str, ...
         )
     out = RunColumns({k: v[complete] for k, v in cols.items()})
     out.skipped_lines = tuple(table.lines[i] for i in np.flatnonzero(~complete))
+    out.lines = tuple(table.lines[i] for i in np.flatnonzero(complete))
+    if out.skipped_lines:  # said, not silent: those samples are lost to every command reading the file
+        shown = ", ".join(map(str, out.skipped_lines[:5])) + (", ..." if len(out.skipped_lines) > 5 else "")
+        log.warning(
+            "%s: %d of %d rows left out: a value cmcan reads is missing (lines %s)",
+            table.path,
+            len(out.skipped_lines),
+            len(table.rows),
+            shown,
+        )
     return out

@@ -165,8 +165,10 @@ def series_from_columns(
     if len(t) < 2:
         raise DataError(f"{path}: fewer than two rows of data")
     if np.any(np.diff(t) <= 0):
-        k = int(np.flatnonzero(np.diff(t) <= 0)[0]) + 2
-        raise DataError(f"{path}: time_s must increase from row to row (row {k + 1} does not)")
+        k = int(np.flatnonzero(np.diff(t) <= 0)[0]) + 1  # the row that does not increase
+        lines = getattr(cols, "lines", ())  # a run CSV's: rows left out do not shift the number
+        line = lines[k] if k < len(lines) else k + 2  # else: the header is line 1, no row left out
+        raise DataError(f"{path}: time_s must increase from row to row (line {line} does not)")
     constants = constants or {}
     series = {
         r: (t, np.full(len(t), float(constants[r])) if r in constants else cols[r]) for r in gated_roles(quantity)
