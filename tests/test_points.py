@@ -331,3 +331,12 @@ def test_the_cli_says_a_missing_table_is_no_input(tmp_path):
     out = tmp_path / "s.csv"
     res = run_cli("score", str(tmp_path / "gone.csv"), "--points", "--config", str(RIG_CONFIG), "--out", str(out))
     refused(res, EX_NOINPUT, "gone.csv", "file not found")
+
+
+def test_a_tables_other_columns_are_numbers_by_the_same_rule(tmp_path):
+    """Label columns (score's --label, --where on the operating points) read cells as the readers do:
+    'inf' or '1_000' is no number there either, a text label is NaN."""
+    from cmcan.model.features import _floats
+
+    got = _floats(["1.5", "", "n/a", "inf", "1_000", "healthy", " -2e3 "])
+    assert np.isnan(got[[1, 2, 3, 4, 5]]).all() and got[0] == 1.5 and got[6] == -2000.0

@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 from cmcan import codec
 from cmcan.errors import CmcanError, Kind
 from cmcan.frame import Frame, FrameColumns
-from cmcan.io.points import Condition, Points
+from cmcan.io.points import Condition, Points, cell_value
 from cmcan.io.runcsv import read_run_csv
 from cmcan.monitor.gating import Gate, GateLimits, WindowStats, eval_times, gate, table_stats, window_stats
 from cmcan.monitor.windows import dp_affine, dp_raw, role_affine
@@ -129,10 +129,13 @@ class OperatingPoints:
 
 
 def _floats(cells: Sequence[str]) -> NDArray[np.float64]:
+    """A table column's cells as numbers by the CSV readers' rule (:func:`cmcan.io.points.cell_value`);
+    a missing value or a text cell (a label such as ``healthy``) is NaN."""
     out = np.full(len(cells), np.nan)
     for i, c in enumerate(cells):
-        with contextlib.suppress(ValueError):  # a text cell is no number: NaN
-            out[i] = float(c)
+        with contextlib.suppress(ValueError):
+            v = cell_value(c)
+            out[i] = np.nan if v is None else v
     return out
 
 
