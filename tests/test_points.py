@@ -85,6 +85,31 @@ def test_errors_name_the_file_the_column_and_the_row(tmp_path):
     spec = PointSpec({"dp_bar": "ps9", "flow_lpm": "fs1"}, {"pump_speed_rpm": 1.0}, source="rig.yaml")
     with pytest.raises(PointsError, match=r"no column 'ps9' \(columns.dp_bar in rig.yaml\); the file has ps1, fs1"):
         read_points(p, spec, ROLES)
+    # a column the command line gave is the command line's, not the file's it was merged into
+    cli = PointSpec({"dp_bar": "ps8"}, {}, (), "the command line")
+    merged = spec.merged(cli)
+    with pytest.raises(PointsError, match=r"no column 'ps8' \(columns.dp_bar in the command line\)"):
+        read_points(p, merged, ROLES)
+    with pytest.raises(PointsError, match=r"no column 'lot' \(where in the command line\)"):
+        read_points(
+            p,
+            PointSpec({"dp_bar": "ps1", "flow_lpm": "fs1"}, {"pump_speed_rpm": 1.0}, source="rig.yaml").merged(
+                PointSpec({}, {}, (Condition.parse("lot=3"),), "the command line")
+            ),
+            ROLES,
+        )
+    with pytest.raises(PointsError, match=r"no column 'fs9' \(columns.flow_lpm in rig.yaml\)"):
+        read_points(
+            p,
+            PointSpec({"dp_bar": "ps1", "flow_lpm": "fs9"}, {"pump_speed_rpm": 1.0}, source="rig.yaml").merged(
+                PointSpec(source="the command line")
+            ),
+            ROLES,
+        )
+    with pytest.raises(PointsError, match=r"no column 'PS1' \(columns.dp_bar in rig.yaml\) \(did you mean 'ps1'\?"):
+        read_points(
+            p, PointSpec({"dp_bar": "PS1", "flow_lpm": "fs1"}, {"pump_speed_rpm": 1.0}, source="rig.yaml"), ROLES
+        )
     with pytest.raises(PointsError, match="no column or constant for pump_speed_rpm") as exc:
         read_points(p, PointSpec({"dp_bar": "ps1", "flow_lpm": "fs1"}), ROLES)
     assert exc.value.problem == "spec"

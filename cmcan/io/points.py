@@ -93,13 +93,26 @@ class PointSpec:
     constants: Mapping[str, float] = field(default_factory=dict)
     where: tuple[Condition, ...] = ()
     source: str = "<points spec>"
+    # where a role's column or constant, or a where-condition's column, was given when not in ``source``
+    origin: Mapping[str, str] = field(default_factory=dict)
+
+    def source_of(self, key: str) -> str:
+        """Who gave the role (or the where-condition's column) ``key``: a file, or the command line."""
+        return self.origin.get(key, self.source)
 
     def merged(self, other: PointSpec) -> PointSpec:
         """This spec with ``other``'s entries added (and taking precedence), e.g. command-line options."""
         cols = {k: v for k, v in self.columns.items() if k not in other.constants}
         consts = {k: v for k, v in self.constants.items() if k not in other.columns}
+        origin = {k: self.source_of(k) for k in (*cols, *consts, *(c.column for c in self.where))}
+        origin.update({k: other.source_of(k) for k in (*other.columns, *other.constants)})
+        origin.update({c.column: other.source_of(c.column) for c in other.where})
         return PointSpec(
-            {**cols, **other.columns}, {**consts, **other.constants}, (*self.where, *other.where), self.source
+            {**cols, **other.columns},
+            {**consts, **other.constants},
+            (*self.where, *other.where),
+            self.source,
+            {k: v for k, v in origin.items() if v != self.source},
         )
 
     @classmethod
@@ -186,9 +199,13 @@ def read_points(
         wanted = {spec.columns[r] for r in roles if r in spec.columns} | {c.column for c in spec.where}
         missing = sorted(c for c in wanted if c not in names)
         if missing:
-            fields = [f"columns.{r}" for r in roles if spec.columns.get(r) == missing[0]] or ["where"]
+            given = [r for r in roles if spec.columns.get(r) == missing[0]]
+            what, by = (f"columns.{given[0]}", given[0]) if given else ("where", missing[0])
+            alike = [n for n in names if n.strip().lower() == missing[0].strip().lower()]
+            hint = f" (did you mean {alike[0]!r}? names are case-sensitive)" if alike else ""
             raise PointsError(
-                f"{p}: no column {missing[0]!r} ({fields[0]} in {spec.source}); the file has {', '.join(names)}",
+                f"{p}: no column {missing[0]!r} ({what} in {spec.source_of(by)}){hint}; "
+                f"the file has {', '.join(names)}",
                 "data",
             )
         index = {c: column_index(p, names, c) for c in sorted(wanted)}
