@@ -234,3 +234,17 @@ def test_a_time_that_does_not_increase_is_named_by_its_line_after_left_out_rows(
     rows[5][0] = rows[4][0]  # line 6 repeats line 5's time
     with pytest.raises(DataError, match=r"b.csv: time_s must increase from row to row \(line 6 does not\)"):
         series_from_csv(write(tmp_path / "b.csv", rows), "flow_lpm", {"pump_speed_rpm": 1450.0, "pump_disp_cc": 4.6})
+
+
+def test_a_blank_line_does_not_shift_the_line_named(tmp_path):
+    """numpy's fast read skips blank lines: a file with one is numbered by its lines all the same."""
+    from cmcan.model.features import DataError, series_from_csv
+
+    rows = small()
+    rows[5][0] = rows[4][0]  # the 5th data row repeats the 4th's time: line 7 once a blank line is in
+    text = ",".join(rows[0]) + "\n\n" + "\n".join(",".join(r) for r in rows[1:]) + "\n"
+    (tmp_path / "b.csv").write_text(text)
+    with pytest.raises(DataError, match=r"b.csv: time_s must increase from row to row \(line 7 does not\)"):
+        series_from_csv(tmp_path / "b.csv", "flow_lpm", {"pump_speed_rpm": 1450.0, "pump_disp_cc": 4.6})
+    plain = read_run_csv(write(tmp_path / "p.csv", small()), REQUIRED)
+    assert list(plain.lines) == [2, 3, 4, 5, 6]

@@ -154,3 +154,12 @@ def test_a_second_daemon_on_the_same_state_directory_exits_75_naming_the_lock(tm
     again = DaemonProc(tmp_path, cfg, "again")
     again.signal(signal.SIGTERM)
     assert again.wait() == 0, again.stderr()
+
+
+def test_a_level_changes_run_time_is_checked_and_may_be_absent():
+    entry = {"t_s": 10.0, "from": "ok", "to": "low", "reason": "ratio_low", "ratio_filt_pct": 97.0}
+    base = Totals().to_dict()
+    assert Totals.from_dict({**base, "history": [entry]}).history == [entry]  # a state of an older version
+    assert Totals.from_dict({**base, "history": [{**entry, "t_run_s": 12.0}]}).history[0]["t_run_s"] == 12.0
+    with pytest.raises(StateError, match=r"history\[0\].t_run_s': expected a finite time"):
+        Totals.from_dict({**base, "history": [{**entry, "t_run_s": "garbage"}]})

@@ -9,7 +9,7 @@ import contextlib
 import io
 import logging
 import warnings
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -50,7 +50,7 @@ class RunColumns(dict[str, NDArray[np.float64]]):
     out because a column cmcan reads had no value there; ``lines`` the line of each row kept."""
 
     skipped_lines: tuple[int, ...] = ()
-    lines: tuple[int, ...] = ()
+    lines: Sequence[int] = ()
 
 
 def read_run_csv(path: str | Path, required: Iterable[str] = ()) -> RunColumns:
@@ -71,11 +71,20 @@ def read_run_csv(path: str | Path, required: Iterable[str] = ()) -> RunColumns:
             column_index(p, names, k)
         single = {k: i for i, k in enumerate(names) if k and names.count(k) == 1}
         data = _numeric_fast(p, sep, len(names))
-        if data is not None:
-            return RunColumns({k: data[:, i] for k, i in single.items()})
+        if data is not None and len(data) == _data_lines(p):  # no blank line skipped: lines 2, 3, ...
+            out = RunColumns({k: data[:, i] for k, i in single.items()})
+            out.lines = range(2, len(data) + 2)
+            return out
         return _read_slow(read_csv_table(p), single, required)
     except CsvError as exc:
         raise RunCsvError(str(exc), exc.kind) from None
+
+
+def _data_lines(p: Path) -> int:
+    """The lines after the header, blank ones included (numpy skips those: the slow path then numbers
+    the rows by their lines)."""
+    text = p.read_bytes()
+    return text.count(b"\n") + (0 if text.endswith(b"\n") or not text else 1) - 1
 
 
 def _numeric_fast(p: Path, sep: str, width: int) -> NDArray[np.float64] | None:

@@ -124,11 +124,14 @@ def _finite_list(v: Any, name: str) -> list[float]:
 
 
 def _transition(h: Any, name: str) -> dict[str, Any]:
-    """One warning-level change as the core records it (t_s, from, to, reason, ratio_filt_pct)."""
+    """One warning-level change as the core records it (t_s, from, to, reason, ratio_filt_pct, and
+    t_run_s since this version)."""
     if not isinstance(h, dict):
         raise StateError(f"field {name!r}: expected a level change, got {h!r:.60}")
     if not _is_number(h.get("t_s")):
         raise StateError(f"field '{name}.t_s': expected a finite time, got {h.get('t_s')!r:.40}")
+    if "t_run_s" in h and not _is_number(h["t_run_s"]):  # absent in states of older versions
+        raise StateError(f"field '{name}.t_run_s': expected a finite time, got {h['t_run_s']!r:.40}")
     for key in ("from", "to"):
         if h.get(key) not in LEVELS:
             raise StateError(f"field '{name}.{key}': expected one of {', '.join(LEVELS)}, got {h.get(key)!r:.40}")
