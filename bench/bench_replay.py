@@ -6,7 +6,11 @@ timeline (``--out``) and the emitted frames (``--emit``) written:
 - baseline: a plain python-can ``LogReader`` loop with cantools ``decode_message`` on every frame;
 - the streaming engine (``cmcan replay --engine streaming``): frame by frame, as the daemon;
 - the columnar engine (``cmcan replay``, the default): the log in chunks of arrays;
-- the limit: reading and parsing the log into arrays alone, and the columnar engine's share of it.
+- the limit: reading and parsing the log into arrays alone, and the columnar engine's share of it;
+- where the columnar time goes: the engine alone on the log's chunks already in memory (its output
+  columns made, nothing written: the ceiling if reading and writing cost nothing), and the CPU of
+  each stage run on its own (reading + parsing, the engine, formatting and writing the two files),
+  against the replay's wall time on two threads besides the engine's.
 Both engines' outputs are compared byte for byte. Then the peak RSS of ``cmcan replay`` with
 ``--out`` and ``--emit`` on a 4-million-frame log, per engine (a process each).
 
@@ -35,6 +39,7 @@ from __future__ import annotations
 import argparse
 import filecmp
 import importlib.util
+import math
 import os
 import statistics
 import subprocess
@@ -49,10 +54,12 @@ import can
 
 from cmcan import config as cfgmod
 from cmcan.assemble import assemble, bus_plan, dbc_for
+from cmcan.columnar import replay_columns
 from cmcan.daemon import Daemon, DaemonOptions
+from cmcan.frame import FrameColumns
 from cmcan.io.candump import write_candump
 from cmcan.io.columns import column_chunks
-from cmcan.replay import EmitWriter, ReplaySummary, TimelineWriter, replay_file
+from cmcan.replay import EmitWriter, ReplaySummary, TickColumns, TimelineWriter, replay_file
 from cmcan.sim import scenario as scn
 from cmcan.sim.frames import frames_from_run
 from cmcan.sim.run import simulate
@@ -128,6 +135,75 @@ def engine_run(cfg: cfgmod.Config, log: Path, out: Path, engine: str) -> ReplayS
     mon = assemble(cfg).monitor
     sinks = [TimelineWriter(out.with_suffix(".csv"), cfg.quantity), EmitWriter(out.with_suffix(".emit.log"))]
     return replay_file(log, mon, sinks, engine=engine)
+
+
+class Keep:
+    """A sink that keeps what the engine gives it (the engine's output made, nothing written)."""
+
+    wants_ticks = wants_frames = True
+
+    def __init__(self) -> None:
+        self.t0 = 0.0
+        self.tick_chunks: list[TickColumns] = []
+        self.frame_chunks: list[FrameColumns] = []
+
+    def start(self, t0: float) -> None:
+        self.t0 = t0
+
+    def ticks(self, chunk: TickColumns) -> None:
+        self.tick_chunks.append(chunk)
+
+    def frames(self, frames: FrameColumns) -> None:
+        self.frame_chunks.append(frames)
+
+    def close(self) -> None:
+        pass
+
+    def abort(self) -> None:
+        pass
+
+
+def stages(cfg: cfgmod.Config, log: Path, out: Path, t_naive: float, t_col: float, n_frames: int) -> None:
+    """The columnar replay's stages one at a time on this thread (CPU seconds, best of 3): reading and
+    parsing, the engine on chunks in memory, the two writers on the engine's output; and the engine's
+    wall time alone, the ceiling of anything done to reading and writing."""
+    cpu = time.process_time
+    chunks: list[FrameColumns] = []
+    best = {"parse": math.inf, "engine": math.inf, "engine_wall": math.inf, "write": math.inf}
+    for _ in range(3):
+        c0 = cpu()
+        chunks = list(column_chunks(log))
+        best["parse"] = min(best["parse"], cpu() - c0)
+    keep = Keep()
+    for _ in range(3):
+        keep = Keep()
+        mon = assemble(cfg).monitor
+        c0, w0 = cpu(), time.perf_counter()
+        replay_columns(mon, chunks, [keep])
+        best["engine"] = min(best["engine"], cpu() - c0)
+        best["engine_wall"] = min(best["engine_wall"], time.perf_counter() - w0)
+    for _ in range(3):
+        sinks = [TimelineWriter(out.with_suffix(".csv"), cfg.quantity), EmitWriter(out.with_suffix(".emit.log"))]
+        c0 = cpu()
+        for s in sinks:
+            s.start(keep.t0)
+        for tc in keep.tick_chunks:
+            sinks[0].ticks(tc)
+        for fc in keep.frame_chunks:
+            sinks[1].frames(fc)
+        for s in sinks:
+            s.close()
+        best["write"] = min(best["write"], cpu() - c0)
+    total = best["parse"] + best["engine"] + best["write"]
+    wall = best["engine_wall"]
+    print(
+        f"columnar engine alone (in memory) {wall:7.2f} s {n_frames / wall:11.0f} frames/s  {t_naive / wall:6.1f} x "
+        f"baseline  (its output made, nothing read or written: the ceiling of reading and writing)"
+    )
+    print(
+        f"CPU per stage on its own          parse {best['parse']:.3f} s + engine {best['engine']:.3f} s + "
+        f"write {best['write']:.3f} s = {total:.3f} s; the replay took {t_col:.3f} s wall on 2 cores"
+    )
 
 
 def same_output(a: Path, b: Path, sa: ReplaySummary, sb: ReplaySummary) -> bool:
@@ -311,6 +387,7 @@ def main() -> None:
             f"= {100 * t_parse / t_col:4.0f} % of the columnar engine's time"
         )
         print(f"engines' outputs byte for byte    {'identical' if same else 'DIFFERENT'}")
+        stages(cfg, log, tmp / "stages", t_naive, t_col, n)
 
         rss_ok = True
         if args.big_frames:
