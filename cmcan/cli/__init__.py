@@ -11,6 +11,7 @@ from typing import NoReturn
 
 from cmcan import __version__
 from cmcan.cli.errors import EX_SOFTWARE, EX_USAGE, exit_code
+from cmcan.cli.journal import error_line, setup_logging
 from cmcan.errors import CmcanError
 
 SUBCOMMANDS = ("simulate", "train", "evaluate", "score", "replay", "run", "check", "demo", "gap", "uplink", "fleet")
@@ -47,14 +48,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     level = logging.WARNING - 10 * min(args.verbose, 2)
-    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    setup_logging(level, "%(levelname)s %(name)s: %(message)s")
     sys.unraisablehook = _unraisable
     # asammdf logs a traceback for each .mf4 it cannot read; the reader's error says it in one line.
     logging.getLogger("asammdf").setLevel(logging.DEBUG if args.verbose >= 2 else logging.CRITICAL)
     try:
         return int(args.func(args) or 0)
     except CmcanError as exc:
-        print(f"cmcan {args.command}: {exc}", file=sys.stderr)
+        print(error_line(f"cmcan {args.command}: {exc}"), file=sys.stderr)
         return exit_code(exc)
     except KeyboardInterrupt:
         return 130
@@ -62,5 +63,5 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     except Exception as exc:  # the last line of defence: say what broke, never a bare traceback
         logging.getLogger("cmcan").debug("unexpected error", exc_info=True)
-        print(f"cmcan {args.command}: internal error: {type(exc).__name__}: {exc}", file=sys.stderr)
+        print(error_line(f"cmcan {args.command}: internal error: {type(exc).__name__}: {exc}"), file=sys.stderr)
         return EX_SOFTWARE

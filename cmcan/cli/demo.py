@@ -29,8 +29,14 @@ def add_subparser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from cmcan.cli.errors import require_extra
     from cmcan.demo import run_demo
 
+    if not args.no_plot:  # before the minute-long run, not after it
+        try:
+            require_extra("plot", "matplotlib")
+        except CmcanError as exc:
+            raise CmcanError(f"{exc}; or run it without the plot: cmcan demo --no-plot", exc.kind) from None
     out = Path(args.out_dir)
     try:
         out.mkdir(parents=True, exist_ok=True)

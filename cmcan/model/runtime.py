@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +13,12 @@ from cmcan.model import digest
 from cmcan.model.metadata import INPUT_NAME, OUTPUT_PHYSICS, OUTPUT_PRED, OUTPUT_WHITEBOX, ModelError, ModelMeta
 from cmcan.oil import Oil
 from cmcan.roles import MODEL_INPUTS, MODEL_UNITS
+
+# onnxruntime (1.2x and later) records usage events in ~/.cache/Microsoft/DeveloperTools unless told
+# not to, and warns on every start where the home is not writable (a service user's): a gateway
+# sends nothing anywhere it was not configured to. Read when onnxruntime sets up, so set before any
+# model loads; a value the user set stays.
+os.environ.setdefault("ORT_DISABLE_TELEMETRY", "1")
 
 
 class GrayBoxModel:
