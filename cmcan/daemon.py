@@ -7,14 +7,18 @@ with the channel it came from, and sends what the core returns on the channel ea
 the frame's time (a J1939 transport session's packets are spaced in frame time; the daemon sends each
 when the bus's time reaches it). Bus errors (network down, a full transmit queue, bus-off) are logged
 with rate limits and recovered from by reopening that bus with a growing back-off while the others go
-on; no frame and no bus error stops it. Under systemd it reports READY, WATCHDOG and STATUS; SIGTERM
-and SIGINT stop it cleanly. A reload (SIGHUP, :meth:`Daemon.request_reload`) swaps in a new
-configuration and model validated by the caller, between two frames, with the monitor's state carried
-over.
+on; no frame and no bus error stops it, and a channel that cannot be opened (not there yet, unplugged)
+is such a link down. Under systemd it reports READY, WATCHDOG and STATUS; the watchdog is pinged at
+its interval whatever the links do (every wait of the loop ends by the next ping: a daemon retrying its
+links is working, a hung loop is what the watchdog is for). SIGTERM and SIGINT stop it cleanly. A
+reload (SIGHUP, :meth:`Daemon.request_reload`) swaps in a new configuration and model validated by the
+caller, between two frames, with the monitor's state carried over. A stop or reload request wakes the
+loop from any wait (through a socket pair a signal handler can write to: no lock taken there).
 """
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import logging
 import math
@@ -167,6 +171,7 @@ class Link:
         self.bus: can.BusABC | None = None
         self.retry_at = -math.inf
         self.backoff_s = 0.0
+        self.down_reason = ""  # why the bus is closed, for the status ("" before the first try)
 
 
 class Daemon:
@@ -184,7 +189,11 @@ class Daemon:
         clock: Callable[[], float] = time.monotonic,
         uplink: UplinkFeed | None = None,
         boot_clock: Callable[[], float] | None = None,
+        sleep: Callable[[float], object] | None = None,
     ) -> None:
+        """``sleep(seconds)`` is how the loop waits when it has nothing to read (every link down): at
+        most that long, less when :meth:`stop` or :meth:`request_reload` wake it (the default); tests
+        pass one that moves their ``clock`` on."""
         self.cfg = cfg
         self.monitor = monitor
         self.store = store
@@ -209,6 +218,11 @@ class Daemon:
         self.reloader: Callable[[], Reloaded] | None = None  # builds a validated configuration (SIGHUP)
         self._reload_requested = threading.Event()
         self.stop_signal: int | None = None  # the signal that stopped the daemon, if one did
+        # While run() runs, stop() and request_reload() write a byte here to end a wait: safe from a
+        # signal handler, where setting a threading.Event could deadlock on the lock the wait holds.
+        self._wake_r: socket.socket | None = None
+        self._wake_w: socket.socket | None = None
+        self._sleep = sleep or self._wait
 
     def _set_links(self, open_bus: Callable[[], can.BusABC] | Mapping[str, Callable[[], can.BusABC]]) -> None:
         opens = dict(open_bus) if isinstance(open_bus, Mapping) else {self.cfg.bus.channel: open_bus}
@@ -234,16 +248,24 @@ class Daemon:
         next_wd = next_status = self.clock()
         last_save = self.clock()
         saved_ticks = -1
+        wd_every = self.notifier.watchdog_interval_s
+        self._wake_r, self._wake_w = socket.socketpair()
+        self._wake_w.setblocking(False)
         self.notifier.ready(self._status_text())
         log.info("cmcan running on %s %s", self.cfg.bus.interface, ", ".join(x.name for x in self.links))
         while not self.stop_event.is_set():
             if self._reload_requested.is_set():
                 self._reload_requested.clear()
                 self._reload()
+                for x in self.links:  # a reload is also "try again now" (the adapter was just plugged in)
+                    if x.bus is None:
+                        x.retry_at = -math.inf
             now = self.clock()
-            if self.notifier.watchdog_interval_s is not None and now >= next_wd:
+            if wd_every is not None and now >= next_wd:
                 self.notifier.watchdog()
-                next_wd = now + self.notifier.watchdog_interval_s
+                next_wd = now + wd_every
+            # No wait below lasts past the next watchdog ping, whatever the links do.
+            until_wd = next_wd - now if wd_every is not None else math.inf
             if now >= next_status:
                 self.notifier.status(self._status_text())
                 next_status = now + opt.status_every_s
@@ -259,11 +281,13 @@ class Daemon:
             live = self._live
             if len(live) < len(self.links):
                 live = self._open_due(now)
-                if not live:
-                    waits = [x.retry_at - now for x in self.links]
-                    self.stop_event.wait(max(0.0, min(min(waits), opt.backoff_max_s)))
+                if not live:  # every link down: wait for the first retry, the next ping or status, a request
+                    now = self.clock()  # an open that fails may take its time (a USB adapter's driver)
+                    until_wd = next_wd - now if wd_every is not None else math.inf
+                    retry = min(x.retry_at for x in self.links) - now
+                    self._sleep(max(0.0, min(retry, opt.backoff_max_s, until_wd, next_status - now)))
                     continue
-            timeout = opt.recv_timeout_s
+            timeout = min(opt.recv_timeout_s, until_wd)
             if self._tp_waiting:
                 timeout = max(0.0, min(timeout, self._tp_last_sent + self._tp_gap_s - now))
             if len(live) == 1:  # one bus: as it comes
@@ -356,6 +380,24 @@ class Daemon:
         if signum is not None and self.stop_signal is None:
             self.stop_signal = signum
         self.stop_event.set()
+        self._wake()
+
+    def _wake(self) -> None:
+        """End the loop's current wait (from any thread or a signal handler)."""
+        w = self._wake_w
+        if w is not None:  # before run(), the flags alone do: the loop looks at them first
+            with contextlib.suppress(OSError):  # bytes already waiting (buffer full), or the loop has ended
+                w.send(b"!")
+
+    def _wait(self, seconds: float) -> None:
+        """Sleep up to ``seconds``, less if woken; the wake-ups that came meanwhile are used up."""
+        r = self._wake_r
+        if r is None:  # not running
+            self.stop_event.wait(seconds)
+            return
+        with contextlib.suppress(OSError):  # TimeoutError: nobody woke it
+            r.settimeout(max(0.0, seconds))
+            r.recv(4096)
 
     def _internal_error(self) -> None:
         self.stats["internal_errors"] += 1
@@ -364,8 +406,10 @@ class Daemon:
     # -- reload ----------------------------------------------------------------------------------------
 
     def request_reload(self) -> None:
-        """Reload between two frames (safe from a signal handler: it only sets a flag)."""
+        """Reload between two frames, at once if the loop is waiting (safe from a signal handler: it
+        sets a flag and writes a byte)."""
         self._reload_requested.set()
+        self._wake()
 
     def _reload(self) -> None:
         """Swap in the configuration and model the reloader builds and checks; if it cannot (a bad
@@ -457,7 +501,7 @@ class Daemon:
                 break
         if not held:
             if not self._selectable:
-                self.stop_event.wait(min(timeout, 0.002))  # buses without a file descriptor: poll
+                self._sleep(min(timeout, 0.002))  # buses without a file descriptor: poll
             return []
         held.sort(key=lambda p: p[1].timestamp)
         if not capped:
@@ -474,12 +518,21 @@ class Daemon:
             x.bus = x.open_bus()
         except (can.CanError, OSError, ValueError) as exc:
             self.stats["bus_errors"] += 1
-            self.ratelog(logging.WARNING, f"open-{x.name}", "cannot open the bus %s (%s); retrying", x.name, exc)
-            self.notifier.status(f"bus {x.name} unavailable: {exc}")
+            x.down_reason = f"cannot open: {_short(exc)}"
+            self.ratelog(
+                logging.WARNING,
+                f"open-{x.name}",
+                "cannot open the bus %s (%s); retrying with a back-off of up to %g s",
+                x.name,
+                exc,
+                self.opt.backoff_max_s,
+            )
+            self.notifier.status(self._status_text())
             return False
         self.stats["bus_opens"] += 1
         self._selectable = None
         x.backoff_s = 0.0
+        x.down_reason = ""
         if self.stats["bus_opens"] > len(self.links):
             log.info("bus %s reopened", x.name)
         self.notifier.status(self._status_text())
@@ -502,8 +555,9 @@ class Daemon:
         self.ratelog(
             logging.WARNING, f"fail-{what}-{x.name}", "bus %s %s failed%s: %s; reopening", x.name, what, hint, exc
         )
-        self.notifier.status(f"bus {x.name} {what} failed: {exc}")
         self._close(x)
+        x.down_reason = f"{what} failed: {_short(exc)}"
+        self.notifier.status(self._status_text())
         x.backoff_s = min(max(x.backoff_s * 2, self.opt.backoff_min_s), self.opt.backoff_max_s)
         x.retry_at = self.clock() + x.backoff_s
 
@@ -552,9 +606,9 @@ class Daemon:
         c = s["counters"]
         ratio = f"{s['ratio_filt_pct']:.2f} %" if s["ratio_filt_pct"] is not None else "n/a"
         if len(self.links) == 1:
-            bus = "bus up" if self.bus is not None else "bus down"
+            bus = f"bus {_updown(self.links[0])}"
         else:
-            bus = ", ".join(f"{x.name} {'up' if x.bus is not None else 'down'}" for x in self.links)
+            bus = ", ".join(f"{x.name} {_updown(x)}" for x in self.links)
         health = "".join(
             f", {k.replace('_', ' ')} {c[k]}"
             for k in ("checksum", "counter_frozen", "counter_jump", "timeout", "bad_fd", "unknown_channel")
@@ -567,6 +621,11 @@ class Daemon:
             f"sent {self.stats['tx_frames']}, dropped {self.stats['tx_dropped']}"
         )
 
+    @property
+    def links_down(self) -> list[str]:
+        """The channels whose bus is not open (not there yet, lost, waiting for their retry)."""
+        return [x.name for x in self.links if x.bus is None]
+
     def _shutdown(self) -> None:
         if self.stop_signal is not None:
             log.info("stopping on %s: saving state", _signal_name(self.stop_signal))
@@ -577,6 +636,9 @@ class Daemon:
             self.uplink.close(self.monitor, self.stats)
         for x in self.links:
             self._close(x)
+        for sock in (self._wake_r, self._wake_w):
+            if sock is not None:
+                sock.close()
         c = self.monitor.counters
         log.info(
             "stopped: %d frames (%d inputs, %d unknown id, %d bad length, %d out of range, %d checksum, "
@@ -604,6 +666,18 @@ def _fileno(bus: Any) -> int | None:
     except (NotImplementedError, AttributeError, OSError, ValueError):
         return None
     return fd if isinstance(fd, int) and fd >= 0 else None
+
+
+def _updown(x: Link) -> str:
+    if x.bus is not None:
+        return "up"
+    return f"down ({x.down_reason})" if x.down_reason else "down"
+
+
+def _short(exc: BaseException) -> str:
+    """An exception on one line for the status (systemctl status shows one line)."""
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if len(text) <= 80 else text[:77] + "..."
 
 
 def _named(exc: BaseException) -> bool:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import re
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -10,6 +11,8 @@ from cmcan import config as cfgmod
 from cmcan.assemble import Assembled, assemble, build_monitor
 from cmcan.errors import CmcanError, Kind
 from cmcan.statefile import StateLock, StateStore
+
+log = logging.getLogger("cmcan.preflight")
 
 _IFNAME = re.compile(r"^[A-Za-z0-9_.:-]{1,15}$")
 ARPHRD_CAN = "280"
@@ -35,9 +38,18 @@ def load_config(
     return cfgmod.with_overrides(cfgmod.load(path), interface, channel, state_dir)
 
 
-def check_channel(cfg: cfgmod.Config, sys_class_net: Path = Path("/sys/class/net")) -> None:
+def check_channel(
+    cfg: cfgmod.Config, sys_class_net: Path = Path("/sys/class/net"), *, extras_may_be_absent: bool = False
+) -> list[str]:
     """The interface is one python-can knows, and for SocketCAN every configured channel is an
-    existing CAN link (a CAN FD bus with the FD MTU)."""
+    existing CAN link (a CAN FD bus with the FD MTU).
+
+    With ``extras_may_be_absent`` (the daemon, at a start and a reload) an extra channel that does not
+    exist yet is not an error but a link that is down: a USB CAN adapter may enumerate after the
+    service started. It is logged as a warning and returned; the daemon opens it when it appears, with
+    the back-off of a lost link. The first channel (bus.channel) must exist (the unit waits for its
+    device), and every name must be a valid interface name. ``cmcan check`` leaves the flag off: an
+    absent channel is reported to the operator, exit 69."""
     import can
 
     iface = cfg.bus.interface
@@ -48,10 +60,31 @@ def check_channel(cfg: cfgmod.Config, sys_class_net: Path = Path("/sys/class/net
             Kind.CONFIG,
         )
     if iface != "socketcan":
-        return
+        return []
+    absent: list[str] = []
     for i, ch in enumerate(cfg.channel_list):
         field = "bus.channel" if i == 0 else f"channels.extra[{i - 1}].channel"
-        _check_link(cfg, field, ch.name, ch.fd, ch.bitrate or cfg.bus.bitrate, sys_class_net)
+        bitrate = ch.bitrate or cfg.bus.bitrate
+        try:
+            _check_link(cfg, field, ch.name, ch.fd, bitrate, sys_class_net)
+        except _Absent as exc:
+            if i == 0 or not extras_may_be_absent:
+                raise CmcanError(str(exc), Kind.UNAVAILABLE) from None
+            log.warning(
+                "%s: %s: no network interface %r yet; running without it and opening it when it appears "
+                "(expected: a CAN link, e.g. ip link set %s up type can bitrate %d)",
+                cfg.source,
+                field,
+                ch.name,
+                ch.name,
+                bitrate,
+            )
+            absent.append(ch.name)
+    return absent
+
+
+class _Absent(Exception):
+    """A well-named channel with no interface on this machine (yet)."""
 
 
 CANFD_MTU = 72
@@ -66,10 +99,9 @@ def _check_link(cfg: cfgmod.Config, field: str, chan: str, fd: bool, bitrate: in
         )
     dev = sys_class_net / chan
     if not dev.exists():
-        raise CmcanError(
+        raise _Absent(
             f"{cfg.source}: {field}: no network interface {chan!r} on this machine "
-            f"(bring it up first, e.g. ip link set {chan} up type can bitrate {bitrate})",
-            Kind.UNAVAILABLE,
+            f"(bring it up first, e.g. ip link set {chan} up type can bitrate {bitrate})"
         )
     kind = (dev / "type").read_text().strip() if (dev / "type").exists() else ARPHRD_CAN
     if kind != ARPHRD_CAN:

@@ -177,3 +177,62 @@ def test_the_daemon_runs_with_memory_deny_write_execute(tmp_path):
     d = DaemonProc(tmp_path, virtual_config(tmp_path), launcher=[sys.executable, str(launcher)])
     d.signal(signal.SIGTERM)
     assert d.wait() == 0, d.stderr()
+
+
+def fake_sys_class_net(root: Path, *present: str) -> Path:
+    """A /sys/class/net with the given CAN links (type 280, classic MTU)."""
+    for name in present:
+        (root / name).mkdir(parents=True)
+        (root / name / "type").write_text("280\n")
+        (root / name / "mtu").write_text("16\n")
+    root.mkdir(exist_ok=True)
+    return root
+
+
+def test_an_extra_channel_absent_at_the_start_is_a_warning_for_run_and_an_error_for_check(tmp_path, caplog):
+    """A second USB CAN adapter that enumerates after the service started: `cmcan run` (the flag)
+    warns, naming the channel, its field and the link it expects, and starts; `cmcan check` (no flag)
+    still reports it, exit 69. The first channel and a name that can never exist stay errors."""
+    import logging
+    from dataclasses import replace
+
+    from cmcan import config as cfgmod
+    from cmcan.cli.errors import exit_code
+    from cmcan.errors import CmcanError
+    from cmcan.preflight import check_channel
+
+    base = cfgmod.load(str(config_copy(tmp_path)))
+    cfg = replace(
+        base,
+        bus=replace(base.bus, interface="socketcan", channel="can0"),
+        channels=replace(base.channels, extra=(cfgmod.ChannelConfig("can1", bitrate=500000),)),
+    )
+    net = fake_sys_class_net(tmp_path / "net", "can0")
+    with pytest.raises(CmcanError) as err:
+        check_channel(cfg, net)
+    assert exit_code(err.value) == EX_UNAVAILABLE and "channels.extra[0].channel: no network interface 'can1'" in str(
+        err.value
+    )
+    caplog.set_level(logging.WARNING, logger="cmcan.preflight")
+    assert check_channel(cfg, net, extras_may_be_absent=True) == ["can1"]
+    (warning,) = [r for r in caplog.records if r.name == "cmcan.preflight"]
+    assert warning.levelno == logging.WARNING
+    msg = warning.getMessage()
+    assert str(cfg.source) in msg and "channels.extra[0].channel: no network interface 'can1' yet" in msg
+    assert "opening it when it appears" in msg and "ip link set can1 up type can bitrate 500000" in msg
+
+    caplog.clear()
+    fake_sys_class_net(net, "can1")  # it appeared
+    assert check_channel(cfg, net, extras_may_be_absent=True) == [] and not caplog.records
+    assert check_channel(cfg, net) == []
+
+    only_extra = fake_sys_class_net(tmp_path / "net2", "can1")  # the first channel absent: refused either way
+    for flag in (False, True):
+        with pytest.raises(CmcanError) as err:
+            check_channel(cfg, only_extra, extras_may_be_absent=flag)
+        assert exit_code(err.value) == EX_UNAVAILABLE and "bus.channel: no network interface 'can0'" in str(err.value)
+
+    bad = replace(cfg, channels=replace(cfg.channels, extra=(cfgmod.ChannelConfig("can1; rm"),)))
+    with pytest.raises(CmcanError) as err:
+        check_channel(bad, net, extras_may_be_absent=True)
+    assert exit_code(err.value) == EX_CONFIG and "is not a network interface name" in str(err.value)

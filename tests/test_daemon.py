@@ -3,6 +3,7 @@
 import contextlib
 import errno
 import json
+import logging
 import os
 import signal
 import socket
@@ -20,6 +21,7 @@ from cmcan.daemon import Daemon, DaemonOptions
 from cmcan.demo import stream
 from cmcan.monitor.totals import Totals
 from cmcan.replay import FrameCollector, replay
+from cmcan.sdnotify import Notifier
 from cmcan.statefile import StateStore
 from tests.helpers import as_frames, feed_all, messages, monitor, sim_frames
 
@@ -345,3 +347,147 @@ def test_can_fd_frames_count_the_same_in_the_daemon_and_the_replay():
         for key in ("accepted", "bad_fd"):
             assert mon.counters[key] == offline.counters[key]
         assert mon.counters["accepted" if fd else "bad_fd"] == len(fd_msgs)
+
+
+# -- links that are down: the watchdog keeps its interval, a channel that comes late ---------------------
+
+
+class FakeTime:
+    """The loop's clock and sleep: a sleep moves the clock on by what the loop asked for."""
+
+    def __init__(self) -> None:
+        self.t = 1000.0
+        self.sleeps: list[float] = []
+
+    def clock(self) -> float:
+        return self.t
+
+    def sleep(self, seconds: float) -> None:
+        self.sleeps.append(seconds)
+        self.t += seconds
+
+
+class RecordingNotifier(Notifier):
+    """What the daemon tells systemd, with the time of its clock."""
+
+    def __init__(self, clock, watchdog_interval_s: float | None = None) -> None:
+        super().__init__(env={})
+        self.watchdog_interval_s = watchdog_interval_s
+        self.clock = clock
+        self.sent: list[tuple[float, tuple[str, ...]]] = []
+
+    def send(self, *fields: str) -> bool:
+        self.sent.append((self.clock(), fields))
+        return True
+
+    def times(self, field: str) -> list[float]:
+        return [t for t, fields in self.sent if field in fields]
+
+    def statuses(self) -> list[str]:
+        return [f[len("STATUS=") :] for _, fields in self.sent for f in fields if f.startswith("STATUS=")]
+
+
+def test_the_watchdog_keeps_its_interval_while_every_link_is_down():
+    """The unit's WatchdogSec=10s (a ping every 5 s) and the default back-off growing to 10 s: with the
+    adapter gone for a minute the pings keep their interval, and the bus is retried on its back-off,
+    not at every ping."""
+    ft = FakeTime()
+    tries: list[float] = []
+
+    def open_bus():
+        tries.append(ft.t)
+        raise can.CanOperationError("Failed to open: No such device", errno.ENODEV)
+
+    notifier = RecordingNotifier(ft.clock, watchdog_interval_s=5.0)
+    holder: list[Daemon] = []
+
+    def sleep(seconds):
+        ft.sleep(seconds)
+        if ft.t - 1000.0 >= 60.0:
+            holder[0].stop()
+
+    opt = DaemonOptions(status_every_s=3600.0)  # the watchdog alone bounds the waits here
+    d = Daemon(cfgmod.load(), monitor(), None, open_bus, notifier, opt, clock=ft.clock, sleep=sleep)
+    holder.append(d)
+    d.run()
+    pings = notifier.times("WATCHDOG=1")
+    assert len(pings) >= 12 and pings[0] == 1000.0
+    assert max(np.diff([*pings, ft.t])) <= 5.0 + 1e-6, np.diff(pings)
+    assert max(ft.sleeps) <= 5.0 + 1e-6
+    gaps = np.diff(tries)
+    want = [0.5, 1.0, 2.0, 4.0, 8.0] + [10.0] * (len(gaps) - 5)
+    assert np.allclose(gaps, want), gaps
+    assert "bus down (cannot open: " in notifier.statuses()[-1]
+    assert d.links_down == ["can0"] and d.stats["bus_errors"] == len(tries) and d.stats["bus_opens"] == 0
+
+
+def test_the_sleep_is_injectable_and_ends_by_the_next_ping_with_a_fast_watchdog():
+    """A watchdog faster than the first back-off step (WatchdogSec=0.4s): no wait of the loop outlasts
+    its interval, whatever the back-off says."""
+    ft = FakeTime()
+
+    def open_bus():
+        raise OSError(errno.ENETDOWN, "Network is down")
+
+    notifier = RecordingNotifier(ft.clock, watchdog_interval_s=0.2)
+    holder: list[Daemon] = []
+
+    def sleep(seconds):
+        ft.sleep(seconds)
+        if ft.t - 1000.0 >= 30.0:
+            holder[0].stop()
+
+    opt = DaemonOptions(backoff_min_s=5.0, backoff_max_s=20.0)
+    d = Daemon(cfgmod.load(), monitor(), None, open_bus, notifier, opt, clock=ft.clock, sleep=sleep)
+    holder.append(d)
+    d.run()
+    pings = notifier.times("WATCHDOG=1")
+    assert max(np.diff(pings)) <= 0.2 + 1e-6 and len(pings) >= 140
+    assert max(ft.sleeps) <= 0.2 + 1e-6
+    assert d.stats["bus_errors"] <= 4  # 0, 5, 15, 35: retried on its back-off only
+
+
+def test_an_extra_channel_absent_at_the_start_is_a_link_down_until_it_appears(frames, caplog):
+    """can1 (a second USB adapter) does not exist when the daemon starts: a warning naming it, can0
+    monitored meanwhile, the status says can1 is down and why, and can1 is opened once it appears."""
+    from dataclasses import replace
+
+    base = cfgmod.load()
+    cfg = replace(base, channels=replace(base.channels, extra=(cfgmod.ChannelConfig("can1"),)))
+    source = messages(frames)[:6000]  # served (and used up) by can0's bus
+    n_frames = len(source)
+    present = threading.Event()
+    can1_buses: list[ScriptedBus] = []
+
+    def open_can1():
+        if not present.is_set():
+            raise OSError(errno.ENODEV, "No such device")
+        can1_buses.append(ScriptedBus([]))
+        return can1_buses[-1]
+
+    mon = monitor(cfg=cfg)
+    notifier = RecordingNotifier(time.monotonic)
+    opens = {"can0": lambda: ScriptedBus(source), "can1": open_can1}
+    d = Daemon(cfg, mon, None, opens, notifier, DaemonOptions(backoff_min_s=0.01, backoff_max_s=0.05))
+    caplog.set_level(logging.INFO, logger="cmcan.daemon")
+    seen_down: list[list[str]] = []
+
+    def progress():
+        n = mon.counters["frames_total"]
+        if n >= n_frames // 2 and not present.is_set():
+            seen_down.append(d.links_down)
+            present.set()  # the adapter enumerates
+        done = n == n_frames and not d.links_down
+        finished.append(done)
+        return done
+
+    finished: list[bool] = []
+    run_daemon_until(d, progress, timeout=30)
+    assert seen_down == [["can1"]] and finished[-1]  # both up, before the stop closed them
+    assert mon.counters["frames_total"] == n_frames and len(can1_buses) == 1
+    warned = [r for r in caplog.records if r.levelno == logging.WARNING and "cannot open the bus can1" in r.message]
+    assert warned and "No such device" in warned[0].message and "retrying" in warned[0].message
+    statuses = notifier.statuses()
+    down = [s for s in statuses if "can0 up, can1 down (cannot open: [Errno 19] No such device)" in s]
+    assert down and any("can0 up, can1 up" in s for s in statuses[statuses.index(down[-1]) :])
+    assert d.stats["bus_opens"] == 2 and d.stats["bus_errors"] >= 1

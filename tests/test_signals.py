@@ -238,3 +238,117 @@ def test_a_reload_that_moves_an_input_to_another_channel_reopens_every_bus(leak)
     run_daemon_until(d, progress)
     assert opened == ["can0", "can0", "can1"]
     assert [x.name for x in d.links] == ["can0", "can1"] and d.monitor.channels.names == ("can0", "can1")
+
+
+# -- requests while every link is down ------------------------------------------------------------------
+
+
+def test_a_reload_during_the_back_off_is_applied_at_once_and_retries_the_bus():
+    """Every link down and 30 s to the next retry: a reload request wakes the wait, the new
+    configuration takes over and the bus is retried there and then (the operator has just plugged the
+    adapter in), long before the back-off would have."""
+    import errno
+    import threading
+
+    import can
+
+    cfg = cfgmod.load()
+    plugged = threading.Event()
+    events: list[str] = []
+
+    def open_bus():
+        if not plugged.is_set():
+            events.append("open failed")
+            raise can.CanOperationError("Failed to open: No such device", errno.ENODEV)
+        events.append("open")
+        return ScriptedBus([])
+
+    opt = DaemonOptions(backoff_min_s=30.0, backoff_max_s=30.0, status_every_s=3600.0)
+    d = Daemon(cfg, monitor(keep_timeline=False), None, open_bus, options=opt)
+
+    def reloader():
+        events.append("reload")
+        new_cfg = dataclasses.replace(cfg, thresholds=dataclasses.replace(cfg.thresholds, low_pct=97.5))
+        return Reloaded(new_cfg, assemble(new_cfg).monitor, open_bus)
+
+    d.reloader = reloader
+    th = threading.Thread(target=d.run, daemon=True)
+    th.start()
+    try:
+        assert _wait_until(lambda: events == ["open failed"], 10)  # in its 30 s back-off now
+        plugged.set()
+        d.request_reload()
+        assert _wait_until(lambda: "open" in events, 10), events
+        assert events == ["open failed", "reload", "open"]
+        assert d.monitor.params.thresholds.low_pct == 97.5 and d.links_down == []
+    finally:
+        d.stop()
+        th.join(10)
+    assert not th.is_alive()
+
+
+def test_a_stop_during_the_back_off_ends_the_wait():
+    import threading
+
+    def open_bus():
+        raise OSError(19, "No such device")
+
+    opt = DaemonOptions(backoff_min_s=30.0, backoff_max_s=30.0, status_every_s=3600.0)
+    d = Daemon(cfgmod.load(), monitor(keep_timeline=False), None, open_bus, options=opt)
+    th = threading.Thread(target=d.run, daemon=True)
+    th.start()
+    assert _wait_until(lambda: d.stats["bus_errors"] == 1, 10)
+    d.stop(signal.SIGTERM)
+    th.join(10)  # the back-off had 30 s to go
+    assert not th.is_alive() and d.stats["bus_errors"] == 1
+
+
+def _wait_until(pred, timeout_s: float) -> bool:
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if pred():
+            return True
+        time.sleep(0.01)
+    return bool(pred())
+
+
+def test_a_process_whose_bus_cannot_open_keeps_its_watchdog_and_reloads_on_sighup(tmp_path, monkeypatch):
+    """The review's reproducer: an interface that cannot be opened on this machine (python-can's
+    vector, Windows only), a watchdog of 0.4 s (a ping every 0.2 s). The pings go on at their interval
+    through the back-off, SIGHUP reloads in the middle of it, SIGTERM stops it."""
+    monkeypatch.setenv("WATCHDOG_USEC", "400000")
+    monkeypatch.delenv("WATCHDOG_PID", raising=False)
+    cfg = virtual_config(tmp_path, bus={"interface": "vector", "channel": "0"})
+    d = DaemonProc(tmp_path, cfg)
+    try:
+        assert d.wait_for(lambda: "cannot open the bus 0" in d.stderr(), 30), d.stderr()
+        start = d.count("WATCHDOG=1")
+        # 10 more pings take 2 s; with a back-off of 0.5, 1, 2, 4 s between pings it took over 7 s
+        assert d.wait_for(lambda: d.count("WATCHDOG=1") >= start + 10, 6.0), d.notes
+        assert d.count("WATCHDOG=1") >= start + 10
+        d.signal(signal.SIGHUP)
+        assert d.wait_for(lambda: "reloaded" in d.stderr(), 6.0), d.stderr()
+        assert d.proc.poll() is None
+    finally:
+        d.signal(signal.SIGTERM)
+        code = d.wait()
+    assert code == 0, d.stderr()
+    assert "Traceback" not in d.stderr() and "bus down (cannot open: " in "\n".join(d.notes)
+
+
+def test_the_unit_comes_back_with_its_can_device():
+    """BindsTo= stops the service when can0 goes away; WantedBy= on the same device starts it again
+    when the device comes back (Restart= does not restart a stop by a dependency)."""
+    from tests.conftest import ROOT
+
+    keys: dict[str, list[str]] = {}
+    for line in (ROOT / "systemd" / "cmcan.service").read_text().splitlines():
+        if "=" in line and not line.startswith("#"):
+            k, v = line.split("=", 1)
+            keys.setdefault(k, []).extend(v.split())
+    bound = keys["BindsTo"]
+    assert bound == ["sys-subsystem-net-devices-can0.device"]
+    assert set(bound) <= set(keys["After"])
+    assert set(keys["WantedBy"]) == {"multi-user.target", *bound}

@@ -42,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
         logging.getLogger().setLevel(logging.INFO)
     cfg = load_config(args.config, args.interface, args.channel, args.state_dir)
     prep = prepare(cfg, need_state=False)  # files first (config, DBC, model), then the machine's channel,
-    check_channel(cfg)
+    check_channel(cfg, extras_may_be_absent=True)
     prep = with_state(prep, lock=True)  # then the state: a second daemon on this directory stops here (75)
     uplink = UplinkFeed.open(cfg.uplink, prep.parts.monitor) if cfg.uplink.enabled else None
     opens = bus_openers(cfg, prep.parts.monitor.inputs)
@@ -80,7 +80,7 @@ def reloader(args: argparse.Namespace) -> Callable[[], Reloaded]:
     def reload() -> Reloaded:
         cfg = load_config(args.config, args.interface, args.channel, args.state_dir)
         parts = assemble(cfg)
-        check_channel(cfg)
+        check_channel(cfg, extras_may_be_absent=True)
         return Reloaded(cfg, parts.monitor, bus_openers(cfg, parts.monitor.inputs))
 
     return reload
