@@ -15,9 +15,9 @@ from pathlib import Path
 import numpy as np
 from cantools.database.can import Database, Message
 
-from cmcan import checksums, codec
+from cmcan import checksums, codec, units
 from cmcan.config import Config
-from cmcan.dbc import DbcError, load_dbc
+from cmcan.dbc import DbcError, covers, describe_signal, load_dbc, physical_range
 from cmcan.errors import Kind
 from cmcan.frame import Frame
 from cmcan.j1939 import dm1 as j1939_dm1
@@ -28,7 +28,7 @@ from cmcan.monitor.diagnostics import Dm1Params
 from cmcan.monitor.gating import GateLimits, prediction_ok
 from cmcan.monitor.health import HealthSpec
 from cmcan.monitor.inputs import MEMO_MAX, Channels, Matcher, overlap
-from cmcan.monitor.payloads import OutputMessage, Outputs
+from cmcan.monitor.payloads import OutputMessage, Outputs, output_spans
 from cmcan.monitor.totals import Totals
 from cmcan.monitor.windows import Affine, dp_affine, role_affine
 from cmcan.roles import (
@@ -116,8 +116,9 @@ def _message(cfg: Config, db: Database, name: str, field: str) -> Message:
 
 
 def check_against_dbc(cfg: Config, db: Database) -> None:
-    """Every mapped message and signal exists and can be decoded; outputs exist, carry what cmcan
-    sends and are not inputs; high and low pressure can be subtracted exactly."""
+    """Every mapped message and signal exists, can be decoded and is in a unit its scale turns into
+    the role's (:mod:`cmcan.units`); outputs exist, have the signals cmcan sends and are not inputs;
+    high and low pressure can be subtracted exactly."""
     for role, ref in cfg.signals.items():
         msg = _message(cfg, db, ref.message, f"signals.{role}.message")
         if ref.signal not in {s.name for s in msg.signals}:
@@ -132,6 +133,11 @@ def check_against_dbc(cfg: Config, db: Database) -> None:
             raise SchemaError(
                 cfg.source, f"signals.{role}", f"{problem} in {cfg.dbc_path}: cmcan reads integer signals"
             )
+        sig = msg.get_signal_by_name(ref.signal)
+        wrong = units.check_mapping(role, UNITS[role], ref.message, ref.signal, sig.unit, ref.scale, ref.offset)
+        if wrong is not None:
+            key = f"signals.{role}.{wrong.key}" if wrong.key else f"signals.{role}"
+            raise SchemaError(cfg.source, key, f"{wrong.text} (units in {cfg.dbc_path})")
     inputs = {ref.message for ref in cfg.signals.values()}
     for key, out in cfg.outputs.items(cfg.quantity):
         msg = _message(cfg, db, out.message, f"outputs.{key}.message")
@@ -157,6 +163,28 @@ def check_against_dbc(cfg: Config, db: Database) -> None:
                 "integer ratio, so dp cannot be formed exactly; map dp_bar or use the same resolution",
             )
     check_bus(cfg, db)
+
+
+def check_output_ranges(cfg: Config, db: Database) -> None:
+    """Each output signal cmcan fills in can carry what it sends in normal operation
+    (:func:`cmcan.monitor.payloads.output_spans`): a signal too narrow would saturate (or wrap) and
+    show, say, a CM ratio of 2.55 % as valid. Resolution is not judged, only the range."""
+    lo_out, hi_out = cfg.gate_limits.plausible[cfg.quantity]
+    spans = output_spans(QUANTITY_SIGNALS[cfg.quantity], (lo_out, hi_out), cfg.drive.nominal_flow_lpm)
+    for key, out in cfg.outputs.items(cfg.quantity):
+        msg = _message(cfg, db, out.message, f"outputs.{key}.message")
+        for name in OUTPUT_SIGNALS[key]:
+            sig, span = msg.get_signal_by_name(name), spans[name]
+            carried = physical_range(sig)
+            if not covers(carried, (span.lo, span.hi), float(sig.scale)):
+                unit = f" {sig.unit}" if sig.unit else ""
+                raise SchemaError(
+                    cfg.source,
+                    f"outputs.{key}.message",
+                    f"{out.message}.{name} in {cfg.dbc_path} carries {carried[0]:g}..{carried[1]:g}{unit} "
+                    f"({describe_signal(sig)}); cmcan sends {span.lo:g}..{span.hi:g}{unit} ({span.why}): "
+                    "widen the signal (more bits, a coarser scale or a wider range)",
+                )
 
 
 # -- the machine's buses: channels, identifier formats, J1939, input health (issue 11) --------------------
@@ -556,6 +584,7 @@ def build_monitor(
     """A monitor for the configuration, its DBC and a loaded model (its envelope gates the points);
     ``log_aliases`` map a log's channel names to configured channels (replay's --channel-map)."""
     check_against_dbc(cfg, db)
+    check_output_ranges(cfg, db)
     return Monitor(
         monitor_params(cfg, db, model.envelope),
         input_messages(cfg, db),

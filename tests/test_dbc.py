@@ -264,3 +264,42 @@ def test_checked_decoder_on_the_j1939_example_equals_cantools(name, payload):
     got = codec.compile_checked_decoder(m, names)(payload)
     in_range = all(s.minimum <= ref[s.name] <= s.maximum for s in m.signals)
     assert got == (tuple(raw[n] for n in names) if in_range else None)
+
+
+@settings(max_examples=400, deadline=None)
+@given(
+    st.integers(1, 32),
+    st.booleans(),
+    st.sampled_from([1, 0.1, 0.25, 0.05, 0.01, 0.125, -0.5, 2.0, 0.001, 5]),
+    st.sampled_from([0, -40, -320, 100.5, -50]),
+    st.none() | st.floats(-1e6, 1e6),
+    st.none() | st.floats(-1e6, 1e6),
+    st.data(),
+)
+def test_physical_range_is_what_the_encoder_sends_back(n, signed, scale, offset, a, b, data):
+    """Every value of :func:`cmcan.dbc.physical_range` survives cmcan's encoder and decoder within half
+    a step; three steps beyond it, a value comes back saturated or wrapped."""
+    from cantools.database.can import Signal
+    from cantools.database.conversion import BaseConversion
+
+    from cmcan.dbc import physical_range
+
+    if a is not None and b is not None:
+        a, b = min(a, b), max(a, b)
+    sig = Signal("x", 0, n, is_signed=signed and n > 1, conversion=BaseConversion.factory(scale=scale, offset=offset))
+    sig.minimum, sig.maximum = a, b
+    lay = codec.Layout(
+        "x", 0, n, bool(sig.is_signed), False, scale, offset, -np.inf if a is None else a, np.inf if b is None else b
+    )
+    lo, hi = physical_range(sig)
+    if lo > hi:  # the DBC's range lies outside what the bits hold: nothing to carry
+        return
+
+    def sent(v: float) -> float:
+        return codec.extract(codec.insert(0, codec.to_raw(lay, v), lay), lay) * scale + offset
+
+    step = abs(scale)
+    for v in (lo, hi, data.draw(st.floats(lo, hi))):
+        assert abs(sent(v) - v) <= step / 2 + 1e-9 * max(1.0, abs(v)), v
+    for v in (lo - 3 * step, hi + 3 * step):
+        assert abs(sent(v) - v) > step, v

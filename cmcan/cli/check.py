@@ -5,11 +5,14 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from cmcan import units
 from cmcan.cli.errors import exit_code
 from cmcan.cli.jsonout import print_json
+from cmcan.config import Config
 from cmcan.errors import CmcanError
 from cmcan.monitor.totals import StateError
 from cmcan.preflight import check_channel, load_config, prepare
+from cmcan.roles import UNITS
 from cmcan.statefile import StateLock
 
 
@@ -41,6 +44,7 @@ def run(args: argparse.Namespace) -> int:
             raise StateError(f"{exc} (cmcan run would keep it aside and start with fresh totals)") from None
         if args.channel_check:
             check_channel(cfg)
+        check_uplink(cfg)
     except CmcanError as exc:
         if args.json:
             print_json({"ok": False, "error": str(exc), "exit_code": exit_code(exc)})
@@ -54,6 +58,7 @@ def run(args: argparse.Namespace) -> int:
         "model": str(prep.parts.model.path),
         "model_version": m.model_version,
         "inputs": {r: f"{s.message}.{s.signal}" for r, s in cfg.signals.items()},
+        "units_not_checked": unchecked_units(cfg, prep.parts.db),
         "envelope": m.envelope,
         "quantity": m.quantity_role,
         "motor_disp_cc": m.motor_disp_cc,
@@ -101,7 +106,15 @@ def run(args: argparse.Namespace) -> int:
         for r, s in result["inputs"].items():
             lo, hi = m.envelope.get(r, (None, None))
             env = f"  envelope {lo:.1f}..{hi:.1f}" if lo is not None else ""
-            print(f"  {r:<18} <- {s}{env}")
+            unit = result["units_not_checked"].get(r)
+            note = (
+                ""
+                if unit is None
+                else f"  (DBC unit {unit!r} not recognized: scale not checked)"
+                if unit
+                else "  (no DBC unit: scale not checked)"
+            )
+            print(f"  {r:<18} <- {s}{env}{note}")
         for r, v in cfg.drive.fixed.items():
             print(f"  {r:<18} =  {v:g} (drive.fixed)")
         chans = ", ".join(
@@ -125,6 +138,31 @@ def run(args: argparse.Namespace) -> int:
             held = f"; in use by the daemon (pid {st['locked_by_pid']})" if st["locked_by_pid"] else ""
             print(f"  state  {st['file']} ({saved}{held})")
     return 0
+
+
+def check_uplink(cfg: Config) -> None:
+    """With the uplink enabled, what ``cmcan uplink`` checks before it connects: its TLS files and
+    password file, by the uplink's own functions (a missing file: 66, naming it). The outbox and the
+    broker are ``cmcan uplink --check``'s: checking them here would create the one or need the other."""
+    if not cfg.uplink.enabled:
+        return
+    from cmcan.uplink.setup import read_password, tls_context
+
+    tls_context(cfg.uplink.mqtt.tls, cfg.source)
+    read_password(cfg.uplink.mqtt, cfg.source)
+
+
+def unchecked_units(cfg: Config, db: Any) -> dict[str, str]:
+    """Mapped roles whose DBC unit :mod:`cmcan.units` does not recognize (so their scale is taken as
+    given), with that unit; roles without a unit (motor direction) are left out."""
+    out = {}
+    for role, ref in cfg.signals.items():
+        if not UNITS.get(role):
+            continue
+        unit = db.get_message_by_name(ref.message).get_signal_by_name(ref.signal).unit or ""
+        if not units.judged(UNITS[role], unit):
+            out[role] = unit
+    return out
 
 
 def _describe(m: Any) -> dict[str, Any]:

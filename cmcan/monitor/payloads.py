@@ -12,11 +12,61 @@ from dataclasses import dataclass, field
 
 from cmcan.codec import Layout, frame_encoder
 from cmcan.frame import Frame
-from cmcan.monitor.gating import EVALUATED
+from cmcan.monitor.gating import EVALUATED, Gate
 from cmcan.monitor.tick import Tick
+from cmcan.monitor.warnings import Level, Reason
 from cmcan.roles import MOTOR_SPEED, QUANTITY_SIGNALS
 
 ALIVE_MODULO = 16
+WARNING_COUNT_MODULO = 65536  # warning_count is sent modulo this (a 16-bit counter wraps)
+# The CM ratios an output must carry: a drive that delivers nothing to twice its prediction. Beyond
+# that the ratio says "broken" either way; a signal that saturates there loses nothing a reader uses.
+RATIO_SPAN_PCT = (0.0, 200.0)
+# time_below_threshold_s in whole seconds: at least 18 h of a low episode (16 bits of seconds);
+# longer episodes may saturate at the signal's maximum.
+TIME_BELOW_SPAN_S = (0.0, 65535.0)
+
+
+@dataclass(frozen=True)
+class Span:
+    """The values cmcan sends in a signal in normal operation, and why (for messages)."""
+
+    lo: float
+    hi: float
+    why: str
+
+
+def output_spans(
+    quantity_signals: tuple[str, str, str, str], output_range: tuple[float, float], leak_max_lpm: float
+) -> dict[str, Span]:
+    """Per output signal :meth:`Payloads.frames` fills in, the span it sends in normal operation:
+    ratios over :data:`RATIO_SPAN_PCT`; the measured, predicted and white-box quantity over
+    ``output_range`` (the output's plausible range: what the gate evaluates and a prediction may
+    be); the extra leakage either way up to ``leak_max_lpm`` (the drive's nominal flow: a ratio of
+    0 or 200 % at nominal flow); flags, enumerations and counters over all their values."""
+    lo_pct, hi_pct = RATIO_SPAN_PCT
+    ratio = Span(lo_pct, hi_pct, f"CM ratios of {lo_pct:g} to {hi_pct:g} %")
+    flag = Span(0.0, 1.0, "a flag")
+    alive = Span(0.0, ALIVE_MODULO - 1.0, f"an alive counter modulo {ALIVE_MODULO}")
+    meas, pred, wb, valid = quantity_signals
+    quantity = Span(*output_range, "the output's plausible range")
+    return {
+        "cm_ratio_raw_pct": ratio,
+        "cm_ratio_filt_pct": ratio,
+        "extra_leakage_lpm": Span(-leak_max_lpm, leak_max_lpm, "up to the drive's nominal flow either way"),
+        "cm_raw_valid": flag,
+        "cm_filt_valid": flag,
+        "cm_gate": Span(0.0, float(max(Gate)), "every gate verdict"),
+        "cm_alive_counter": alive,
+        meas: quantity,
+        pred: quantity,
+        wb: quantity,
+        valid: flag,
+        "warning_level": Span(0.0, float(max(Level)), "every warning level"),
+        "warning_reason": Span(0.0, float(max(Reason)), "every warning reason"),
+        "time_below_threshold_s": Span(*TIME_BELOW_SPAN_S, "18 h of a low episode"),
+        "warning_count": Span(0.0, WARNING_COUNT_MODULO - 1.0, f"a count modulo {WARNING_COUNT_MODULO}"),
+    }
 
 
 @dataclass(frozen=True)
@@ -113,7 +163,7 @@ class Payloads:
                         "warning_level": float(int(tick.level)),
                         "warning_reason": float(int(tick.reason)),
                         "time_below_threshold_s": float(int(tick.time_below_s)),
-                        "warning_count": float(warning_count % 65536),
+                        "warning_count": float(warning_count % WARNING_COUNT_MODULO),
                     },
                 )
             )
