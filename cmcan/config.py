@@ -576,6 +576,9 @@ def from_dict(data: Any, source: str, base_dir: Path) -> Config:
     ages = raw["max_signal_age_s"]
     th = raw["thresholds"]
     out = raw["outputs"]
+    # relative to the configuration file like every path in it (not to the working directory, which is
+    # / under systemd); the uplink's outbox is relative to this directory
+    state_dir = _path(base_dir, raw["state"]["directory"])
     cfg = Config(
         source=source,
         bus=BusConfig(**raw["bus"]),
@@ -592,8 +595,8 @@ def from_dict(data: Any, source: str, base_dir: Path) -> Config:
             th["low_pct"], th["high_pct"], th["hysteresis_pct"], th["debounce_s"], th["fault_after_s"]
         ),
         outputs=OutputsConfig(**{k: OutputMessageConfig(**v) for k, v in out.items()}),
-        state=StateConfig(Path(raw["state"]["directory"]), float(raw["state"]["save_every_s"])),
-        uplink=UplinkSettings.from_raw(raw["uplink"], raw["state"]["directory"], base_dir, source),
+        state=StateConfig(state_dir, float(raw["state"]["save_every_s"])),
+        uplink=UplinkSettings.from_raw(raw["uplink"], state_dir, base_dir, source),
         points=_points(raw, drive, source),
     )
     return _with_bus_sections(cfg, raw, source)
@@ -706,7 +709,8 @@ def with_overrides(
 ) -> Config:
     """The command line's overrides of bus and state directory. A new bus.channel takes the old one's
     place wherever the configuration names it (messages, outputs, log channel names); the uplink's
-    outbox moves with the state directory when it lives there."""
+    outbox moves with the state directory when it lives there. A relative ``state_dir`` is relative
+    to the working directory, as a command line's paths are (the file's are relative to the file)."""
     if channel and channel != cfg.bus.channel:
         cfg = rename_channels(cfg, {cfg.bus.channel: channel})
     bus = replace(cfg.bus, **({"interface": interface} if interface else {}))
@@ -714,8 +718,8 @@ def with_overrides(
         return replace(cfg, bus=bus)
     state = replace(cfg.state, directory=Path(state_dir))
     uplink = cfg.uplink
-    if uplink.outbox.path.parent == cfg.state.directory:  # the outbox lives in the state directory
-        outbox = replace(uplink.outbox, path=Path(state_dir) / uplink.outbox.path.name)
+    if uplink.outbox.path.is_relative_to(cfg.state.directory):  # the outbox lives in the state directory
+        outbox = replace(uplink.outbox, path=Path(state_dir) / uplink.outbox.path.relative_to(cfg.state.directory))
         uplink = replace(uplink, outbox=outbox)
     return replace(cfg, bus=bus, state=state, uplink=uplink)
 

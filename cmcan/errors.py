@@ -12,6 +12,8 @@ class Kind(Enum):
     NO_INPUT = "no input"  # an input file does not exist or cannot be read
     UNAVAILABLE = "unavailable"  # a service, device or optional package is missing
     CANT_CREATE = "cannot create"  # an output cannot be written
+    IO_ERROR = "input/output error"  # a file exists but reading or writing it failed (EIO and the like)
+    NO_PERMISSION = "permission denied"  # a file exists but this user may not read or write it
     TEMPFAIL = "temporary failure"  # try again later (e.g. another instance holds a lock)
     CONFIG = "configuration"  # the configuration (or what it names: DBC, model) is wrong
     SOFTWARE = "internal"  # a bug

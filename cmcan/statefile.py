@@ -9,6 +9,7 @@ import fcntl
 import json
 import logging
 import os
+import stat
 from pathlib import Path
 
 from cmcan.errors import CmcanError, Kind
@@ -35,21 +36,32 @@ class StateStore:
         return None
 
     def read(self) -> Totals:
-        """The saved totals (fresh ones when there is no file), changing nothing: ``StateError``
-        (a data error) names the file and the field when it cannot be used."""
-        if not self.path.exists():
-            return Totals()
+        """The saved totals (fresh ones when there is no file), changing nothing. A file whose content
+        cannot be used (not a regular file, not UTF-8, not JSON, NaN or Infinity, a field out of range)
+        raises ``StateError`` (a data error) naming the file and the field; a file that is there but
+        cannot be read (permissions, an I/O error) raises ``StateAccessError``: that is no corruption,
+        and what the file holds may be perfectly good."""
         try:
-            doc = json.loads(self.path.read_bytes().decode("utf-8"), parse_constant=_no_constant)
+            raw = _read_regular(self.path)
+        except FileNotFoundError:
+            return Totals()
+        except OSError as exc:
+            raise StateAccessError(self.path, exc) from None
+        if raw is None:
+            raise StateError(f"{self.path}: not a regular file, expected a state file")
+        try:
+            doc = json.loads(raw.decode("utf-8"), parse_constant=_no_constant)
             return Totals.from_dict(doc)
         except StateError as exc:
             raise StateError(f"{self.path}: {exc}") from None
-        except (OSError, ValueError) as exc:  # unreadable, not UTF-8, not JSON, NaN or Infinity
+        except ValueError as exc:  # not UTF-8, not JSON, NaN or Infinity
             raise StateError(f"{self.path}: not a readable state file: {exc}") from None
 
     def load(self) -> Totals:
         """The saved totals for the daemon; a missing file is a fresh start, a corrupt one is kept
-        aside (``state.json.corrupt-N``), not lost, and the daemon starts with fresh totals."""
+        aside (``state.json.corrupt-N``), not lost, and the daemon starts with fresh totals. A file
+        that cannot be read (``StateAccessError``) stops the start: starting afresh would throw the
+        machine's history away at the next save, and a restart or a fixed permission brings it back."""
         try:
             return self.read()
         except StateError as exc:
@@ -81,6 +93,38 @@ class StateStore:
             os.fsync(dfd)
         finally:
             os.close(dfd)
+
+
+class StateAccessError(CmcanError):
+    """The state file is there but the operating system refused to read it: no permission
+    (EACCES, EPERM: e.g. a backup restored as root) or an I/O error (EIO and the like)."""
+
+    def __init__(self, path: Path, exc: OSError) -> None:
+        denied = exc.errno in (errno.EACCES, errno.EPERM)
+        name = errno.errorcode.get(exc.errno or 0, "")
+        why = f"{exc.strerror or exc} ({name})" if name else str(exc.strerror or exc)
+        hint = "; the daemon's user needs to read and write it" if denied else ""
+        super().__init__(
+            f"{path}: cannot read the state file: {why}{hint}; nothing was changed",
+            Kind.NO_PERMISSION if denied else Kind.IO_ERROR,
+        )
+        self.path = path
+        self.errno = exc.errno
+
+
+def _read_regular(path: Path) -> bytes | None:
+    """The bytes of the file at ``path``, or None when it is no regular file (a folder, a FIFO, a
+    device: nothing a state file can be). Non-blocking open: a FIFO must not hang the start."""
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            return None
+        chunks = []
+        while chunk := os.read(fd, 1 << 20):
+            chunks.append(chunk)
+        return b"".join(chunks)
+    finally:
+        os.close(fd)
 
 
 def _no_constant(name: str) -> float:

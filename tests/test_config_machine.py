@@ -131,3 +131,41 @@ def test_check_names_a_model_or_output_that_does_not_fit_the_machine(tmp_path, c
     r = run_cli("check", "--config", str(cfg), "--json")
     doc = json.loads(r.stdout)
     assert r.returncode == EX_CONFIG and needle in doc["error"], doc
+
+
+# -- relative paths: the file's relative to the file, the command line's to the working directory -----
+
+
+def _relative_state_config(tmp_path, **changes):
+    """A copy of the shipped configuration in ``tmp/x`` with ``state.directory: st`` (and ``tmp/x/st``
+    made); the working directory moved to an empty ``tmp/elsewhere`` by the caller."""
+    folder = tmp_path / "x"
+    (folder / "st").mkdir(parents=True)
+    doc = changed(raw(), **{"state.directory": "st", "dbc": str(ROOT / "dbc" / "cmcan.dbc"), **changes})
+    p = folder / "r.yaml"
+    p.write_text(yaml.safe_dump(doc))
+    (tmp_path / "elsewhere").mkdir()
+    return p
+
+
+def test_a_relative_state_directory_is_relative_to_the_configuration_file(tmp_path, monkeypatch):
+    """As dbc, model and the TLS files are: under systemd the working directory is /."""
+    p = _relative_state_config(tmp_path, **{"uplink.outbox.file": "ob/box.sqlite"})
+    monkeypatch.chdir(tmp_path / "elsewhere")
+    cfg = cfgmod.load(p)
+    assert cfg.state.directory == tmp_path / "x" / "st"
+    assert cfg.uplink.outbox.path == tmp_path / "x" / "st" / "ob" / "box.sqlite"  # relative to the state
+    # --state-dir is a command line's path: relative to the working directory; the outbox moves with it
+    over = cfgmod.with_overrides(cfg, state_dir="mine")
+    assert over.state.directory.resolve() == tmp_path / "elsewhere" / "mine"
+    assert over.uplink.outbox.path.resolve() == tmp_path / "elsewhere" / "mine" / "ob" / "box.sqlite"
+    away = cfgmod.load(_relative_state_config(tmp_path / "b", **{"uplink.outbox.file": "/var/spool/ob.sqlite"}))
+    assert cfgmod.with_overrides(away, state_dir="mine").uplink.outbox.path == away.uplink.outbox.path
+
+
+def test_check_state_finds_a_relative_state_directory_from_anywhere(tmp_path):
+    p = _relative_state_config(tmp_path)
+    for cwd in (tmp_path / "elsewhere", "/"):
+        r = run_cli("check", "--config", str(p), "--state", "--json", cwd=cwd)
+        assert r.returncode == 0, r.stdout + r.stderr
+        assert json.loads(r.stdout)["state"]["file"] == str(tmp_path / "x" / "st" / "state.json")

@@ -3,19 +3,25 @@
 
 from __future__ import annotations
 
+import errno
 import json
+import os
 import signal
+import subprocess
+import sys
 
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cmcan.cli.errors import EX_DATAERR, EX_TEMPFAIL
+from cmcan.cli.errors import EX_DATAERR, EX_IOERR, EX_TEMPFAIL
 from cmcan.errors import CmcanError, Kind
 from cmcan.monitor.totals import StateError, Totals
-from cmcan.statefile import LOCK_FILE, StateLock, StateStore
-from tests.conftest import run_cli
+from cmcan.statefile import LOCK_FILE, StateAccessError, StateLock, StateStore
+from tests.conftest import ROOT, run_cli
 from tests.daemon_proc import DaemonProc, virtual_config
+
+EX_NOPERM = 77  # sysexits(3)
 
 
 def good() -> dict:
@@ -122,6 +128,169 @@ def test_check_state_reports_a_good_file(tmp_path):
     st_ = json.loads(res.stdout)["state"]
     assert st_["warning_count"] == 2 and st_["condition"] == "low" and st_["locked_by_pid"] is None
     assert sorted(p.name for p in (tmp_path / "state").iterdir()) == ["state.json"]
+
+
+# -- a state file that is there but cannot be read: no corruption, the start stops -------------------
+
+# The operating system refusing the state file as a non-root user meets it (root reads any file whatever
+# its mode, and an EIO needs a failing disk): EACCES/EPERM where the kernel reports them, at the open;
+# EIO at the read; through os.open/os.read and open() alike. Only for that file; every other call goes
+# to the real functions.
+_REFUSING = """
+import builtins, errno, io, os, sys
+
+
+class _FailingFile(io.RawIOBase):
+    def __init__(self, code):
+        self.code = code
+
+    def readable(self):
+        return True
+
+    def readinto(self, b):
+        raise OSError(self.code, os.strerror(self.code))
+
+
+def fakes(target, name):
+    # replacements for os.open, os.read and open (builtins and io) that refuse target
+    target, code = os.path.realpath(target), getattr(errno, name)
+    real_open, real_read, real_io_open, fds = os.open, os.read, io.open, set()
+
+    def is_target(path):
+        return isinstance(path, (str, os.PathLike)) and os.path.realpath(path) == target
+
+    def refusing_open(path, flags, *args, **kwargs):
+        if is_target(path):
+            if code != errno.EIO:
+                raise PermissionError(code, os.strerror(code), os.fspath(path))
+            fd = real_open(path, flags, *args, **kwargs)
+            fds.add(fd)
+            return fd
+        return real_open(path, flags, *args, **kwargs)
+
+    def refusing_read(fd, n):
+        if fd in fds:
+            raise OSError(code, os.strerror(code))
+        return real_read(fd, n)
+
+    def refusing_io_open(file, mode="r", *args, **kwargs):
+        if is_target(file) and "r" in mode:
+            if code != errno.EIO:
+                raise PermissionError(code, os.strerror(code), os.fspath(file))
+            return io.BufferedReader(_FailingFile(code))
+        return real_io_open(file, mode, *args, **kwargs)
+
+    return {(os, "open"): refusing_open, (os, "read"): refusing_read, (io, "open"): refusing_io_open,
+            (builtins, "open"): refusing_io_open}
+
+
+if __name__ == "__main__":
+    for (module, attr), fake in fakes(sys.argv[1], sys.argv[2]).items():
+        setattr(module, attr, fake)
+    from cmcan.cli import main
+
+    sys.exit(main(sys.argv[3:]))
+"""
+_FAKES: dict = {}
+exec(_REFUSING, _FAKES)
+
+REFUSALS = [("EACCES", EX_NOPERM, Kind.NO_PERMISSION), ("EPERM", EX_NOPERM, Kind.NO_PERMISSION)]
+REFUSALS.append(("EIO", EX_IOERR, Kind.IO_ERROR))
+
+
+def run_refused(tmp_path, target, name: str, *args: str):
+    """The real command line in a subprocess whose os.open/os.read refuse ``target`` with ``name``."""
+    script = tmp_path / "refusing.py"
+    script.write_text(_REFUSING)
+    return subprocess.run(
+        [sys.executable, str(script), str(target), name, *args],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=60,  # it stops at once; a daemon that started anyway runs until this
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
+
+
+def listing(d) -> dict[str, bytes]:
+    """What the folder holds (the daemon's lock file aside: taking the lock is no change)."""
+    return {p.name: p.read_bytes() if p.is_file() else b"" for p in sorted(d.iterdir()) if p.name != LOCK_FILE}
+
+
+@pytest.mark.parametrize(("name", "code", "kind"), REFUSALS)
+def test_a_state_file_that_cannot_be_read_is_no_corruption_and_nothing_changes(tmp_path, monkeypatch, name, code, kind):
+    store = StateStore(tmp_path)
+    store.path.write_text(json.dumps(good()))
+    before = listing(tmp_path)
+    for (module, attr), fake in _FAKES["fakes"](store.path, name).items():
+        monkeypatch.setattr(module, attr, fake)
+    for how in (store.read, store.load):  # cmcan check and the daemon alike
+        with pytest.raises(StateAccessError) as exc:
+            how()
+        assert exc.value.kind is kind and not isinstance(exc.value, StateError)
+        assert str(store.path) in str(exc.value) and os.strerror(getattr(errno, name)) in str(exc.value)
+    monkeypatch.undo()
+    assert listing(tmp_path) == before  # not kept aside, not overwritten
+    assert store.load() == Totals.from_dict(good())  # readable again: the history is all there
+
+
+@pytest.mark.parametrize(("name", "code", "kind"), REFUSALS)
+def test_the_daemon_stops_on_a_state_file_it_cannot_read_with_a_sysexits_code(tmp_path, name, code, kind):
+    """The review's case (a backup restored as root the service user cannot read; a disk error): one
+    line naming the file and the OS error, 77 or 74, the file as it was, no ``state.json.corrupt-N``."""
+    cfg = virtual_config(tmp_path)
+    state = tmp_path / "state"
+    (state / "state.json").write_text(json.dumps(good()))
+    before = listing(state)
+    res = run_refused(tmp_path, state / "state.json", name, "run", "--config", str(cfg))
+    assert res.returncode == code, res.stderr
+    err = [line for line in res.stderr.splitlines() if "state.json" in line]
+    assert len(err) == 1 and os.strerror(getattr(errno, name)) in err[0], res.stderr
+    assert "Traceback" not in res.stderr and "kept as" not in res.stderr and "fresh totals" not in res.stderr
+    assert listing(state) == before and not list(state.glob("state.json.corrupt-*"))
+
+    check = run_refused(tmp_path, state / "state.json", name, "check", "--config", str(cfg), "--state", "--json")
+    doc = json.loads(check.stdout)
+    assert check.returncode == code and doc["exit_code"] == code, check.stderr
+    assert str(state / "state.json") in doc["error"] and "keep it aside" not in doc["error"]
+    assert listing(state) == before
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root reads a file whatever its mode")
+def test_a_state_file_without_read_permission_exits_77(tmp_path):
+    cfg = virtual_config(tmp_path)
+    path = tmp_path / "state" / "state.json"
+    path.write_text(json.dumps(good()))
+    path.chmod(0)
+    try:
+        res = run_cli("check", "--config", str(cfg), "--state")
+        assert res.returncode == EX_NOPERM and f"{path}: cannot read the state file" in res.stderr, res.stderr
+    finally:
+        path.chmod(0o640)
+    assert sorted(p.name for p in path.parent.iterdir()) == ["state.json"]
+
+
+@pytest.mark.parametrize(
+    "content", [b"\xff\xfe not utf-8", b"{ half a docu", b"[1, 2]", json.dumps({**good(), "fault_count": -3}).encode()]
+)
+def test_a_state_file_with_bad_content_is_still_kept_aside(tmp_path, content):
+    store = StateStore(tmp_path)
+    store.path.write_bytes(content)
+    with pytest.raises(StateError):
+        store.read()
+    assert store.load() == Totals()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["state.json.corrupt-1"]
+    assert (tmp_path / "state.json.corrupt-1").read_bytes() == content
+
+
+@pytest.mark.parametrize("make", [os.mkfifo, os.mkdir], ids=["fifo", "folder"])
+def test_a_state_path_that_is_no_regular_file_is_kept_aside_without_hanging(tmp_path, make):
+    store = StateStore(tmp_path)
+    make(store.path)
+    with pytest.raises(StateError, match=r"state\.json: not a regular file"):
+        store.read()
+    assert store.load() == Totals()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["state.json.corrupt-1"]
 
 
 # -- the lock ----------------------------------------------------------------------------------------

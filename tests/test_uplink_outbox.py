@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import json
+import os
 import sqlite3
+import stat
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -125,6 +127,44 @@ def test_foreign_database_and_newer_format_are_refused(tmp_path):
     with pytest.raises(OutboxError, match="format 99") as err:
         Outbox(newer)
     assert err.value.kind == "version"
+
+
+@pytest.fixture
+def umask_022():
+    """The usual umask of a shell or a non-systemd service manager (systemd's unit sets 0077)."""
+    old = os.umask(0o022)
+    try:
+        yield
+    finally:
+        os.umask(old)
+
+
+def modes(folder) -> dict[str, int]:
+    return {p.name: stat.S_IMODE(p.stat().st_mode) for p in sorted(folder.iterdir())}
+
+
+def test_the_outbox_and_its_sqlite_files_are_0640_like_the_state(tmp_path, umask_022):
+    """Not 0644 (SQLite's own default): the outbox holds what the state file holds."""
+    box = Outbox(tmp_path / "outbox.sqlite")
+    box.append([("summary", T0, T0, "{}")])
+    assert modes(tmp_path) == {"outbox.sqlite": 0o640, "outbox.sqlite-shm": 0o640, "outbox.sqlite-wal": 0o640}
+    box.close()
+    (tmp_path / "outbox.sqlite").write_bytes(b"this is not a database" * 100)
+    again = open_outbox(tmp_path / "outbox.sqlite", durable=True)  # the new one after a corrupt one too
+    again.append([("summary", T0, T0, "{}")])
+    assert {k: v for k, v in modes(tmp_path).items() if ".corrupt-" not in k} == {
+        "outbox.sqlite": 0o640,
+        "outbox.sqlite-shm": 0o640,
+        "outbox.sqlite-wal": 0o640,
+    }
+    again.close()
+
+
+def test_an_existing_outbox_keeps_its_mode(tmp_path, umask_022):
+    Outbox(tmp_path / "outbox.sqlite").close()
+    (tmp_path / "outbox.sqlite").chmod(0o600)
+    Outbox(tmp_path / "outbox.sqlite").close()
+    assert modes(tmp_path)["outbox.sqlite"] == 0o600
 
 
 # -- the writer --------------------------------------------------------------------------------------

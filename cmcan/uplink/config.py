@@ -146,16 +146,18 @@ class UplinkSettings:
         cls, raw: dict[str, Any] | None, state_dir: str | Path, base_dir: str | Path = ".", source: str = "config"
     ) -> UplinkSettings:
         """Settings from the ``uplink:`` section (validated here when not yet), paths resolved: the
-        outbox relative to the state directory, certificate and password files relative to ``base_dir``
-        (the configuration file's folder)."""
+        outbox relative to the state directory (itself resolved against ``base_dir`` here when it is
+        relative), certificate and password files relative to ``base_dir`` (the configuration file's
+        folder)."""
         u = UPLINK.check(raw if raw is not None else {}, source, "uplink")
         base = Path(base_dir)
 
-        def path(p: str | None) -> Path | None:
-            if p is None:
-                return None
+        def resolve(p: str | Path) -> Path:
             q = Path(p)
             return q if q.is_absolute() else (base / q).resolve()
+
+        def path(p: str | None) -> Path | None:
+            return None if p is None else resolve(p)
 
         m, t, o = u["mqtt"], u["mqtt"]["tls"], u["outbox"]
         machine = u["machine_id"] or "unnamed"
@@ -165,7 +167,7 @@ class UplinkSettings:
             machine_id=machine,
             summary_every_s=float(u["summary_every_s"]),
             outbox=OutboxSettings(
-                path=out if out.is_absolute() else Path(state_dir) / out,
+                path=out if out.is_absolute() else resolve(state_dir) / out,
                 max_bytes=int(o["max_mb"] * 1024 * 1024),
                 max_age_s=float(o["max_age_days"]) * 86400.0,
                 queue_size=int(o["queue_size"]),

@@ -32,6 +32,7 @@ PRUNE_TO = 0.9  # a full outbox is pruned to this share of its bound, so pruning
 # A gateway without a battery-backed clock may write entries before its clock is set (1970) and then
 # jump years ahead: such entries are not "old". The size bound still holds for them.
 PLAUSIBLE_WALL_S = 1_577_836_800.0  # 2020-01-01
+FILE_MODE = 0o640  # as the state file and its lock: the owner reads and writes, the group reads, others nothing
 
 _SCHEMA = f"""
 CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -107,6 +108,7 @@ class Outbox:
     def _open(self, check: bool) -> None:
         if not self.path.parent.is_dir():
             raise OutboxError(self.path, "io", f"folder {self.path.parent} does not exist")
+        _create(self.path)
         try:
             con = sqlite3.connect(self.path, timeout=self.busy_timeout_s, isolation_level=None)
         except sqlite3.Error as exc:
@@ -287,6 +289,19 @@ def _statements(script: str) -> list[str]:
     if buf.strip():
         out.append(buf.strip())
     return out
+
+
+def _create(path: Path) -> None:
+    """Create the outbox file 0640 (less under a stricter umask) like the state file, before SQLite
+    would create it 0644: SQLite gives its -wal, -shm and -journal files the database file's mode.
+    An empty file is an empty database to SQLite; an existing one is left as it is."""
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, FILE_MODE)
+    except FileExistsError:
+        return
+    except OSError as exc:
+        raise OutboxError(path, "io", f"cannot create the outbox: {exc.strerror}") from None
+    os.close(fd)
 
 
 def _inode(path: Path) -> int | None:
