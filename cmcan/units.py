@@ -14,11 +14,14 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-# A scale within this factor of the conversion's is the conversion with a calibration trim or a ratio
-# on top (a sensor behind a gear, a pulley); further off, the conversion was forgotten or is another
-# one (kPa read as bar is 100x, psi as bar 14.5x, rev/s as rpm 60x). Between units that need no
-# conversion (rpm and 1/min), any scale is the machine's: a ratio cannot be told from a mistake.
-MAX_TRIM = 2.0
+# A scale within this factor of the conversion's is the conversion with a calibration trim on top;
+# further off, the conversion was forgotten, doubled or is another one (kPa read as bar is 100x, a
+# resolution written twice 2x, psi as bar 14.5x, rev/s as rpm 60x). Between units that need no
+# conversion (rpm and 1/min), any scale is the machine's: a gear ratio cannot be told from a mistake.
+MAX_TRIM = 1.25
+# An offset within this share of the conversion's (at least 0.01 of the unit) is the conversion
+# rounded as people write it (degF: scale 0.5556, offset -17.78).
+OFFSET_RTOL = 0.01
 
 # Each dimension's unit spellings (as :func:`normalize` leaves them) -> (scale, offset) into the
 # dimension's base unit, which is the unit the roles use (cmcan.roles.UNITS): value_base = value *
@@ -162,7 +165,7 @@ def check_mapping(
         return Problem(
             "scale", f"{where} is in {source.text}, {role} in {target.text}: {needs}, got scale {_num(scale)}"
         )
-    if conv.offset != 0.0 and not math.isclose(offset, conv.offset, rel_tol=1e-6, abs_tol=1e-6):
+    if conv.offset != 0.0 and abs(offset - conv.offset) > OFFSET_RTOL * max(1.0, abs(conv.offset)):
         return Problem(
             "offset", f"{where} is in {source.text}, {role} in {target.text}: {needs}, got offset {_num(offset)}"
         )

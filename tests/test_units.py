@@ -107,7 +107,7 @@ def test_an_unknown_or_empty_unit_is_not_judged(unit):
 
 @given(
     st.sampled_from(sorted({u for d in units._DIMENSIONS.values() for u in d})),
-    st.floats(0.01, 200.0),
+    st.floats(0.01, 200.0) | st.floats(0.7, 1.4),
     st.booleans(),
 )
 def test_a_scale_is_the_conversion_give_or_take_a_trim(spelling, factor, flip):
@@ -124,9 +124,9 @@ def test_a_scale_is_the_conversion_give_or_take_a_trim(spelling, factor, flip):
     p = units.check_mapping("r", base.text, "M", "s", spelling, scale, conv.offset)
     identity = conv.scale == 1.0 and conv.offset == 0.0
     event(f"identity={identity}, within={1 / units.MAX_TRIM <= factor <= units.MAX_TRIM}")
-    if identity or 0.51 <= factor <= 1.99:
+    if identity or 1 / units.MAX_TRIM + 0.01 <= factor <= units.MAX_TRIM - 0.01:
         assert p is None
-    elif factor < 0.49 or factor > 2.01:
+    elif factor < 1 / units.MAX_TRIM - 0.01 or factor > units.MAX_TRIM + 0.01:
         assert p is not None and p.key == "scale" and "needs scale" in p.text
 
 
@@ -368,3 +368,15 @@ def test_check_accepts_usable_uplink_files(tmp_path):
     )
     r = run_cli("check", "--config", str(cfg))
     assert r.returncode == 0, r.stdout + r.stderr
+
+
+def test_a_doubled_scale_is_refused_and_a_rounded_conversion_passes():
+    # 10 kPa per bit written as scale 0.02 instead of 0.01: a factor of 2, the classic slip
+    for scale in (0.02, 0.005):
+        p = units.check_mapping("high_pressure_bar", "bar", "M", "p", "kPa", scale, 0.0)
+        assert p is not None and p.key == "scale", scale
+    # degF as people write the conversion: 0.5556 and -17.78
+    assert units.check_mapping("temp_c", "degC", "M", "t", "degF", 0.5556, -17.78) is None
+    assert units.check_mapping("temp_c", "degC", "M", "t", "K", 1.0, -273.0) is None
+    wrong = units.check_mapping("temp_c", "degC", "M", "t", "degF", 0.5556, 0.0)
+    assert wrong is not None and wrong.key == "offset"
