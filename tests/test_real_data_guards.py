@@ -110,3 +110,18 @@ def test_training_on_a_flow_in_other_units_warns_about_the_physics(tmp_path):
     warnings = strict_json(r.stdout)["warnings"]
     assert any(w.startswith("physics term ideal_flow") and "below its prior" in w for w in warnings), warnings
     assert "WARNING cmcan: " in r.stderr and "check the data's units" in r.stderr
+
+
+def test_training_on_data_with_worn_drives_warns_that_it_is_no_healthy_reference(tmp_path):
+    """The rig's cycles with every pump leakage level (two of them worn pumps): the model is written,
+    with a warning that its own ratio spread is not a healthy drive's; the healthy cycles alone give
+    none."""
+    out = tmp_path / "m.onnx"
+    args = ("train", str(DATA), "--points", "--config", str(CONFIG), "--where", "cooler_pct=100")
+    mixed = run_cli(*args, "--out", str(out), "--json")
+    assert mixed.returncode == 0, mixed.stderr
+    said = [w for w in strict_json(mixed.stdout)["warnings"] if "of a model fit to a healthy drive" in w]
+    assert len(said) == 1 and said[0].startswith("D_trn ratio p1..p99 ") and "--where" in said[0], said
+    healthy = run_cli(*args, "--where", "pump_leak=0", "--out", str(out), "--force", "--json")
+    assert healthy.returncode == 0, healthy.stderr
+    assert not [w for w in strict_json(healthy.stdout)["warnings"] if "healthy drive" in w]

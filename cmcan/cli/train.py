@@ -44,6 +44,7 @@ def run(args: argparse.Namespace) -> int:
     require_extra("train", "scipy")
     require_extra("train", "onnx")
     cfg = load_config(args.config)
+    from cmcan.model.evaluate import HEALTHY_RATIO_BAND_PCT
     from cmcan.model.features import gate_report
     from cmcan.model.physics import TERMS
     from cmcan.model.train import train_on_points
@@ -70,6 +71,17 @@ def run(args: argparse.Namespace) -> int:
     tmp = out.with_name(out.name + ".tmp")
     tmp.write_bytes(blob)
     tmp.replace(out)
+    warnings = list(model.doubts)
+    lo, hi = HEALTHY_RATIO_BAND_PCT
+    select = "--where" if args.points else "--t-start-h, --t-trn-h"
+    if stats["points"] and not (stats["ratio_p1_pct"] >= lo and stats["ratio_p99_pct"] <= hi):
+        # the model is written (the user may know better), but such data rarely make a healthy reference
+        warnings.append(
+            f"{stats['set']} ratio p1..p99 {stats['ratio_p1_pct']:.2f}..{stats['ratio_p99_pct']:.2f} % is outside "
+            f"the {lo:g}..{hi:g} % of a model fit to a healthy drive: the data may include a worn or changing "
+            f"drive, or another sender's frames; train on healthy data only ({select}) and check the model with "
+            "cmcan evaluate"
+        )
     summary = {
         "model": str(out),
         "quantity": cfg.quantity,
@@ -78,9 +90,9 @@ def run(args: argparse.Namespace) -> int:
         "envelope": model.envelope,
         "residual_stats": stats,
         "gates": report.to_dict(),
-        "warnings": list(model.doubts),
+        "warnings": warnings,
     }
-    for doubt in model.doubts:  # the model is written: a warning, not a refusal (the physics may be unusual)
+    for doubt in warnings:  # the model is written: a warning, not a refusal (the physics may be unusual)
         log.warning("%s: %s", args.data, doubt)
     if args.json:
         print_json(summary)
