@@ -29,6 +29,8 @@ from cmcan.j1939 import dm1 as j1939_dm1
 from cmcan.j1939 import ids as j1939_ids
 from cmcan.j1939.transport import BamReceiver
 from cmcan.monitor.payloads import Outputs
+from cmcan.monitor.tick import LEVEL_NAMES
+from cmcan.monitor.warnings import Reason
 from cmcan.preflight import prepare
 from cmcan.sim import scenario as scn
 from cmcan.sim.frames import Frames, frames_from_run
@@ -182,6 +184,15 @@ def dm1_messages(received: list[Frame], source: int) -> list[tuple[float, j1939_
     return out
 
 
+_REASONS = {r: r.name.lower() for r in Reason}
+
+
+def _name(names: dict[Any, str], value: float) -> str:
+    """A decoded enumeration value by cmcan's name for it (the number itself if it has none)."""
+    v = int(value)
+    return names.get(v, str(v))
+
+
 def analyse(
     received: list[Frame],
     db: Any,
@@ -201,8 +212,9 @@ def analyse(
     ratio_h, ratio_pct = [], []
     for m in sorted(received, key=lambda x: x.timestamp_s):
         if m.arbitration_id == warn_id:
-            d = warn_msg.decode(m.data)
-            level, reason = str(d["warning_level"]), str(d["warning_reason"])
+            # the numbers, named by cmcan's own vocabulary: a DBC need not carry value tables
+            d = warn_msg.decode(m.data, decode_choices=False)
+            level, reason = _name(LEVEL_NAMES, d["warning_level"]), _name(_REASONS, d["warning_reason"])
             if level != last_level:
                 transitions.append(
                     {
