@@ -24,6 +24,7 @@ import can
 from cmcan import config as cfgmod
 from cmcan.assemble import bus_plan, dbc_for
 from cmcan.daemon import Daemon, DaemonOptions, bus_kwargs
+from cmcan.errors import CmcanError, Kind
 from cmcan.frame import Frame, from_message, to_message_kwargs
 from cmcan.j1939 import dm1 as j1939_dm1
 from cmcan.j1939 import ids as j1939_ids
@@ -32,6 +33,7 @@ from cmcan.monitor.payloads import Outputs
 from cmcan.monitor.tick import LEVEL_NAMES
 from cmcan.monitor.warnings import Reason
 from cmcan.preflight import prepare
+from cmcan.roles import MOTOR_SPEED
 from cmcan.sim import scenario as scn
 from cmcan.sim.frames import Frames, frames_from_run
 from cmcan.sim.run import simulate
@@ -298,6 +300,20 @@ def run_demo(
     t0 = time.monotonic()
     s = demo_scenario(burst_s, every_min)
     cfg = scale_windows(cfgmod.load(config_path), burst_s, every_min)
+    if cfg.quantity != MOTOR_SPEED:
+        raise CmcanError(
+            f"{cfg.source}: drive.quantity is {cfg.quantity}: the demo simulates a closed-circuit drive, whose "
+            f"output is the motor speed ({MOTOR_SPEED})",
+            Kind.USAGE,
+        )
+    for diff in scn.drive_differences(s.params, cfg.motor_disp_cc, cfg.drive.pump_disp_max_cc, cfg.oil):
+        # the shipped scenario is the reference drive: another machine's model reads it as worn
+        log.warning(
+            "the demo simulates the reference drive, not the machine of %s: %s; its checks assume the "
+            "configured machine is the reference drive",
+            cfg.source,
+            diff,
+        )
     db = dbc_for(cfg)
     log.info("simulating %s (%g h, %g s bursts every %g min)", s.name, s.duration_h, burst_s, every_min)
     plan = bus_plan(cfg, db)

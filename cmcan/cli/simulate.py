@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import logging
 from pathlib import Path
 
 from cmcan.cli.errors import ensure_writable
@@ -11,10 +12,13 @@ from cmcan.dbc import load_dbc
 from cmcan.errors import CmcanError, Kind
 from cmcan.io.candump import write_candump
 from cmcan.io.runcsv import write_run_csv
+from cmcan.roles import MOTOR_SPEED
 from cmcan.schema import SchemaError
 from cmcan.sim import scenario as scn
 from cmcan.sim.frames import frames_from_run
 from cmcan.sim.run import simulate
+
+_log = logging.getLogger("cmcan.simulate")
 
 
 def add_subparser(sub: argparse._SubParsersAction) -> None:
@@ -91,8 +95,23 @@ def run(args: argparse.Namespace) -> int:
         from cmcan.preflight import load_config
 
         cfg = load_config(args.config)
+        if cfg.quantity != MOTOR_SPEED:
+            raise CmcanError(
+                f"{cfg.source}: drive.quantity is {cfg.quantity}: the simulator models a closed-circuit drive, "
+                f"whose output is the motor speed ({MOTOR_SPEED}); a flow machine's frames cannot be simulated",
+                Kind.USAGE,
+            )
         db = dbc_for(cfg)
         check_against_dbc(cfg, db)
+        for diff in scn.drive_differences(s.params, cfg.motor_disp_cc, cfg.drive.pump_disp_max_cc, cfg.oil):
+            # frames of another drive through this machine's DBC: its model reads them as worn or mispositioned
+            _log.warning(
+                "%s: the simulated drive is not the machine of %s: %s; give the scenario the machine's drive: "
+                "and fluid: sections (docs/simulator.md)",
+                path,
+                cfg.source,
+                diff,
+            )
         plan = bus_plan(cfg, db)
         channel = args.channel or cfg.bus.channel
     else:

@@ -443,3 +443,32 @@ def drive_from_dict(data: Any, source: str = "<drive>") -> DriveParams:
 
 def load_drive(path: str | Path) -> DriveParams:
     return drive_from_dict(load_yaml(path), source=str(path))
+
+
+def drive_differences(
+    p: DriveParams, motor_disp_cc: float | None, pump_disp_max_cc: float, oil: Oil, rtol: float = 1e-3
+) -> list[str]:
+    """What a scenario's simulated drive ``p`` has other than a machine's configuration (its V_M,
+    largest pump displacement and oil): frames written through that configuration would then be
+    another machine's, and its model would read them as worn or mispositioned. Empty when they agree."""
+    out = []
+
+    def differs(a: float, b: float) -> bool:
+        return not math.isclose(a, b, rel_tol=rtol)
+
+    if motor_disp_cc is not None and differs(p.motor_disp_cc, motor_disp_cc):
+        out.append(
+            f"motor displacement V_M {p.motor_disp_cc:g} cm3/rev (drive.motor_disp_max_cc x motor_disp_setting) "
+            f"against the configuration's drive.motor_disp_cc {motor_disp_cc:g}"
+        )
+    if differs(p.pump_disp_max_cc, pump_disp_max_cc):
+        out.append(
+            f"pump displacement {p.pump_disp_max_cc:g} cm3/rev (drive.pump_disp_max_cc) against the "
+            f"configuration's drive.pump_disp_max_cc {pump_disp_max_cc:g}"
+        )
+    if differs(p.oil.nu40_cst, oil.nu40_cst) or differs(p.oil.nu100_cst, oil.nu100_cst):
+        out.append(
+            f"oil of {p.oil.nu40_cst:g}/{p.oil.nu100_cst:g} cSt at 40/100 C (fluid) against the configuration's "
+            f"oil of {oil.nu40_cst:g}/{oil.nu100_cst:g} cSt"
+        )
+    return out
