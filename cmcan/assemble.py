@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -417,28 +417,46 @@ def input_messages(cfg: Config, db: Database) -> list[InputMessage]:
     return out
 
 
-def frame_matcher(
-    cfg: Config, db: Database, log_aliases: Mapping[str, str] | None = None
-) -> Callable[[Frame], str | None]:
+def frame_matcher(cfg: Config, db: Database, log_aliases: Mapping[str, str] | None = None) -> FrameMatcher:
     """Which mapped input message a frame of a log is, by the monitor's matching rules (channels, CAN
     FD, 11/29-bit identifiers, J1939 PGN and source addresses), for readers of whole logs (training,
     gap diagnosis). They decode every matched frame; the health checks are the monitor's alone."""
-    chans = channels(cfg, log_aliases)
-    matcher = Matcher(input_messages(cfg, db), chans)
-    memo: dict[tuple[str, int, bool, bool], str | None] = {}
+    return FrameMatcher(cfg, db, log_aliases)
 
-    def match(f: Frame) -> str | None:
+
+class FrameMatcher:
+    """:func:`frame_matcher`'s matcher; ``seen`` maps each channel name of the log read so far to the
+    configured channel it was read as (None: none), as ``Monitor.channels_seen`` does for a replay."""
+
+    def __init__(self, cfg: Config, db: Database, log_aliases: Mapping[str, str] | None = None) -> None:
+        self.chans = channels(cfg, log_aliases)
+        self.matcher = Matcher(input_messages(cfg, db), self.chans)
+        self.memo: dict[tuple[str, int, bool, bool], str | None] = {}
+        self.seen: dict[str, str | None] = {}
+
+    def __call__(self, f: Frame) -> str | None:
         key = (f.channel, f.arbitration_id, f.extended, f.fd)
-        if key in memo:
-            return memo[key]
+        if key in self.memo:
+            return self.memo[key]
+        chans = self.chans
         i = chans.resolve(f.channel)
-        spec = None if i is None or (f.fd and not chans.fd[i]) else matcher.match(i, f.arbitration_id, f.extended)
+        if f.channel not in self.seen and len(self.seen) < MEMO_MAX:
+            self.seen[f.channel] = chans.names[i] if i is not None else None
+        spec = None if i is None or (f.fd and not chans.fd[i]) else self.matcher.match(i, f.arbitration_id, f.extended)
         name = spec.name if spec is not None else None
-        if len(memo) < MEMO_MAX:
-            memo[key] = name
+        if len(self.memo) < MEMO_MAX:
+            self.memo[key] = name
         return name
 
-    return match
+    def merged_note(self, cfg: Config) -> str | None:
+        """A note when the log's several channels were all read as the machine's one bus (a frame of
+        another bus with a mapped identifier is then read as an input), as replay says it."""
+        if len(self.seen) > 1 and len(cfg.channel_list) == 1 and not cfg.channels.from_log:
+            return (
+                f"the log's channels {', '.join(sorted(self.seen))} were all read as {cfg.bus.channel}; "
+                f"name the one to read in the configuration's channels.from_log ({{LOG: {cfg.bus.channel}}})"
+            )
+        return None
 
 
 def bus_plan(cfg: Config, db: Database) -> BusPlan:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import logging
 from typing import Any
 
 import numpy as np
@@ -11,6 +12,8 @@ from cmcan import config as cfgmod
 from cmcan.assemble import check_against_dbc, dbc_for, frame_matcher, load_model_for
 from cmcan.errors import CmcanError, Kind
 from cmcan.preflight import load_config as _load_config
+
+log = logging.getLogger("cmcan")
 
 
 def load_config(path: str | None, check_dbc: bool = True) -> cfgmod.Config:
@@ -26,9 +29,12 @@ def load_points(path: str, cfg: cfgmod.Config, envelope: dict[str, tuple[float, 
     from cmcan.model.features import load_operating_points
 
     db = dbc_for(cfg)
-    return load_operating_points(
-        path, cfg.gate_limits, db, cfg.signals, cfg.rate_hz, cfg.drive.fixed, envelope, frame_matcher(cfg, db)
-    )
+    match = frame_matcher(cfg, db)
+    op = load_operating_points(path, cfg.gate_limits, db, cfg.signals, cfg.rate_hz, cfg.drive.fixed, envelope, match)
+    note = match.merged_note(cfg)
+    if note is not None:
+        log.warning("%s: %s", path, note)
+    return op
 
 
 def load_model(cfg: cfgmod.Config, path: str | None = None) -> Any:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 from pathlib import Path
 from typing import Any
@@ -161,9 +162,12 @@ def _load_data(args: argparse.Namespace, spec: Any, drive: Any) -> Any:
 
         cfg = load_config(args.config)
         db = dbc_for(cfg)
-        return gapdata.load(
-            args.real, args.quantity, cfg.gate_limits, db, cfg.signals, frame_matcher(cfg, db), drive=drive
-        )
+        match = frame_matcher(cfg, db)
+        data = gapdata.load(args.real, args.quantity, cfg.gate_limits, db, cfg.signals, match, drive=drive)
+        note = match.merged_note(cfg)
+        if note is not None:
+            logging.getLogger("cmcan").warning("%s: %s", args.real, note)
+        return data
     except PointsError as exc:
         code = {"noinput": Kind.NO_INPUT, "spec": Kind.CONFIG if args.points else Kind.USAGE}.get(
             exc.problem, Kind.DATA
