@@ -287,6 +287,18 @@ def test_diagnose_a_candump_log_through_the_dbc(tmp_path):
     assert res.returncode == 0, res.stderr
     rep = json.loads(res.stdout)
     assert rep["points"] > 3000 and rep["where"]["regions"]["steady"]["points"] > 0
+    assert "WARNING" not in res.stderr  # the shipped configuration is the reference drive
+    # a machine whose V_M is not the drive's the gap is measured against: said, not silently compared
+    import yaml
+
+    cfg = yaml.safe_load((ROOT / "config" / "cmcan.yaml").read_text())
+    cfg["drive"]["motor_disp_cc"] = 80.0
+    cfg["dbc"] = str(ROOT / "dbc" / "cmcan.dbc")
+    other = tmp_path / "other.yaml"
+    other.write_text(yaml.safe_dump(cfg))
+    args = ("gap", "diagnose", str(tmp_path / "r.log"), "--out", str(tmp_path / "o2"), "--no-plots", "--json")
+    res = run_cli(*args, "--config", str(other))
+    assert "is not the machine of" in res.stderr and "drive.motor_disp_cc 80" in res.stderr, res.stderr
 
 
 def _zema(tmp_path, *extra):

@@ -159,8 +159,19 @@ def _load_data(args: argparse.Namespace, spec: Any, drive: Any) -> Any:
             return gapdata.load_points(args.real, spec, args.quantity, drive=drive)
         from cmcan.assemble import dbc_for, frame_matcher
         from cmcan.cli.common import load_config
+        from cmcan.sim.scenario import drive_differences
 
         cfg = load_config(args.config)
+        for diff in drive_differences(drive, cfg.motor_disp_cc, cfg.drive.pump_disp_max_cc, cfg.oil):
+            # the simulator's drive against the log's machine: the gap would be the sizes' difference
+            logging.getLogger("cmcan").warning(
+                "%s: the drive the gap is measured against (%s) is not the machine of %s: %s; give --drive the "
+                "machine's drive, losses and fluid",
+                args.real,
+                args.drive or "the reference drive: no --drive",
+                cfg.source,
+                diff,
+            )
         db = dbc_for(cfg)
         match = frame_matcher(cfg, db)
         data = gapdata.load(args.real, args.quantity, cfg.gate_limits, db, cfg.signals, match, drive=drive)
