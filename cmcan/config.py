@@ -383,6 +383,7 @@ class OutputsConfig:
 class StateConfig:
     directory: Path
     save_every_s: float
+    origin: str = ""  # who named the directory, for messages: "" the file's state.directory, or "--state-dir"
 
 
 @dataclass(frozen=True)
@@ -716,7 +717,7 @@ def with_overrides(
     bus = replace(cfg.bus, **({"interface": interface} if interface else {}))
     if not state_dir:
         return replace(cfg, bus=bus)
-    state = replace(cfg.state, directory=Path(state_dir))
+    state = replace(cfg.state, directory=Path(state_dir), origin="--state-dir")
     uplink = cfg.uplink
     if uplink.outbox.path.is_relative_to(cfg.state.directory):  # the outbox lives in the state directory
         outbox = replace(uplink.outbox, path=Path(state_dir) / uplink.outbox.path.relative_to(cfg.state.directory))

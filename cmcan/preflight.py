@@ -119,7 +119,8 @@ def state_store(cfg: cfgmod.Config) -> StateStore:
     store = StateStore(cfg.state.directory)
     problem = store.check_writable()
     if problem is not None:
-        raise CmcanError(f"{problem} (state.directory in {cfg.source})", Kind.CANT_CREATE)
+        named = cfg.state.origin or f"state.directory in {cfg.source}"
+        raise CmcanError(f"{problem} ({named})", Kind.CANT_CREATE)
     return store
 
 

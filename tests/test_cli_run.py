@@ -101,6 +101,7 @@ def test_an_unwritable_state_directory(tmp_path):
     cfg = config_copy(tmp_path, **{"bus.interface": "virtual"})
     res = run_cli("run", "--config", str(cfg), "--state-dir", str(tmp_path / "missing"))
     assert res.returncode == EX_CANTCREAT and "state directory does not exist" in res.stderr
+    assert "(--state-dir)" in res.stderr and "state.directory in" not in res.stderr  # named by who gave it
 
 
 def test_systemd_unit_verifies():
