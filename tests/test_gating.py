@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
 from cmcan.monitor.gating import (
@@ -12,6 +12,8 @@ from cmcan.monitor.gating import (
     GateLimits,
     eval_times,
     gate,
+    gate_columns,
+    gate_point,
     scaled,
     table_stats,
     window_stats,
@@ -136,3 +138,160 @@ def test_table_points_skip_staleness_and_steadiness_but_not_the_rules():
     ]
     stats = table_stats({k: np.array([r[k] for r in rows]) for k in rows[0]})
     assert gate(stats, lim).tolist() == [Gate.EVALUATING, Gate.LOW_FLOW, Gate.IMPLAUSIBLE_INPUT, Gate.IMPLAUSIBLE_INPUT]
+
+
+# -- reverse travel, and the two implementations of the rules ----------------------------------------
+
+FORWARD = {"pump_speed_rpm": 2000.0, "pump_disp_cc": 60.0, "dp_bar": 300.0, "temp_c": 50.0, "motor_speed_rpm": 2600.0}
+FLOW_LIMITS = scaled("flow_lpm", 1.0, 1450.0, 4.6)  # a small open circuit: a flow meter, 6.67 l/min nominal
+FLOW_FORWARD = {"pump_speed_rpm": 1450.0, "pump_disp_cc": 4.6, "dp_bar": 160.0, "temp_c": 40.0, "flow_lpm": 6.6}
+
+
+def both_gates(points, limits, std=None, count=None, age=None, max_age_s=None, envelope=None) -> list[int]:
+    """The gate of each point by gate_point, after checking that gate_columns gives the same."""
+    roles = list(points[0])
+    std = std or [dict.fromkeys(roles, 0.0) for _ in points]
+    count = count or [dict.fromkeys(roles, 100) for _ in points]
+    age = age or [dict.fromkeys(roles, 0.0) for _ in points]
+    one = [
+        int(gate_point(m, s, c, a, limits, max_age_s, envelope))
+        for m, s, c, a in zip(points, std, count, age, strict=True)
+    ]
+    col = gate_columns(
+        {r: np.array([p[r] for p in points], dtype=np.float64) for r in roles},
+        {r: np.array([p[r] for p in std], dtype=np.float64) for r in roles},
+        {r: np.array([p[r] for p in count], dtype=np.int64) for r in roles},
+        {r: np.array([p[r] for p in age], dtype=np.float64) for r in roles},
+        limits,
+        max_age_s,
+        envelope,
+    )
+    assert col.tolist() == one
+    return one
+
+
+@pytest.mark.parametrize(
+    ("over", "expected"),
+    [
+        ({}, Gate.EVALUATING),
+        ({"motor_speed_rpm": -2600.0}, Gate.REVERSE),  # signed motor speed, magnitude displacement
+        ({"pump_disp_cc": -60.0}, Gate.REVERSE),  # signed displacement, magnitude motor speed
+        ({"pump_disp_cc": -60.0, "motor_speed_rpm": -2600.0}, Gate.REVERSE),  # both signed
+        ({"motor_speed_rpm": -9000.0}, Gate.REVERSE),  # the plausible range judges the magnitude
+        ({"pump_disp_cc": -20.0}, Gate.REVERSE),  # exactly the minimum displacement, backwards
+        ({"motor_speed_rpm": -300.0}, Gate.REVERSE),  # exactly the minimum output, backwards
+        ({"motor_speed_rpm": -20000.0}, Gate.IMPLAUSIBLE_INPUT),
+        ({"motor_speed_rpm": -9000.25}, Gate.IMPLAUSIBLE_INPUT),
+        ({"motor_speed_rpm": 20000.0}, Gate.IMPLAUSIBLE_INPUT),
+        ({"pump_disp_cc": -1000.5}, Gate.IMPLAUSIBLE_INPUT),
+        ({"pump_disp_cc": -60.0, "temp_c": 400.0}, Gate.IMPLAUSIBLE_INPUT),  # reversing, a broken sensor
+        ({"motor_speed_rpm": float("-inf")}, Gate.IMPLAUSIBLE_INPUT),
+        ({"motor_speed_rpm": float("nan")}, Gate.IMPLAUSIBLE_INPUT),
+        # near zero (a window about a change of direction, a machine at neutral): as before
+        ({"pump_disp_cc": -5.0}, Gate.LOW_DISPLACEMENT),
+        ({"pump_disp_cc": -0.0, "motor_speed_rpm": -0.0}, Gate.LOW_DISPLACEMENT),
+        ({"motor_speed_rpm": -250.0}, Gate.LOW_FLOW),
+        ({"motor_speed_rpm": 250.0}, Gate.LOW_FLOW),
+        ({"pump_disp_cc": 5.0}, Gate.LOW_DISPLACEMENT),
+        # reverse wins over the minimums (reversing with the engine at idle)
+        ({"pump_disp_cc": -60.0, "pump_speed_rpm": 500.0}, Gate.REVERSE),
+        ({"pump_speed_rpm": 500.0}, Gate.LOW_SPEED),
+    ],
+)
+def test_reverse_travel_is_its_own_gate_in_both_implementations(over, expected):
+    assert both_gates([{**FORWARD, **over}], GateLimits()) == [expected]
+
+
+def test_reverse_comes_after_freshness_and_before_steadiness_and_the_envelope():
+    back = {**FORWARD, "pump_disp_cc": -60.0, "motor_speed_rpm": -2600.0}
+    roles = list(back)
+    assert both_gates(
+        [back], GateLimits(), age=[{**dict.fromkeys(roles, 0.0), "dp_bar": 0.9}], max_age_s={"dp_bar": 0.5}
+    ) == [Gate.STALE_INPUT]
+    assert both_gates([back], GateLimits(), count=[{**dict.fromkeys(roles, 100), "dp_bar": 2}]) == [Gate.WARMING_UP]
+    assert both_gates([back], GateLimits(), std=[{**dict.fromkeys(roles, 0.0), "motor_speed_rpm": 50.0}]) == [
+        Gate.REVERSE
+    ]
+    env = {"pump_disp_cc": (10.0, 78.0), "dp_bar": (20.0, 560.0)}
+    assert both_gates([back], GateLimits(), envelope=env) == [Gate.REVERSE]
+    assert both_gates([FORWARD], GateLimits(), envelope=env) == [Gate.EVALUATING]
+
+
+def test_reverse_on_a_flow_machine():
+    assert both_gates([FLOW_FORWARD], FLOW_LIMITS) == [Gate.EVALUATING]
+    assert both_gates([{**FLOW_FORWARD, "flow_lpm": -6.6}], FLOW_LIMITS) == [Gate.REVERSE]
+    assert both_gates([{**FLOW_FORWARD, "pump_disp_cc": -4.6}], FLOW_LIMITS) == [Gate.REVERSE]
+    hi = FLOW_LIMITS.plausible["flow_lpm"][1]
+    assert both_gates([{**FLOW_FORWARD, "flow_lpm": -1.01 * hi}], FLOW_LIMITS) == [Gate.IMPLAUSIBLE_INPUT]
+
+
+def _pool(role: str, limits: GateLimits) -> list[float]:
+    """Values of a role around every edge of the rules, both signs, and the non-finite ones."""
+    lo, hi = limits.plausible[role]
+    mins = {
+        "pump_speed_rpm": limits.min_pump_speed_rpm,
+        "pump_disp_cc": limits.min_pump_disp_cc,
+        limits.output_role: limits.min_output,
+    }
+    edges = [lo, hi, np.nextafter(hi, np.inf), np.nextafter(lo, -np.inf), 0.0, -0.0, np.nan, np.inf, -np.inf]
+    if role in mins:
+        m = mins[role]
+        edges += [m, np.nextafter(m, 0.0), 4 * m]
+    edges += [-v for v in edges]
+    typical = {**FORWARD, **FLOW_FORWARD}[role]
+    return [float(v) for v in edges] + [typical] * 6 + [-typical] * 3
+
+
+@st.composite
+def random_points(draw):
+    limits = draw(st.sampled_from([GateLimits(), FLOW_LIMITS]))
+    roles = ["pump_speed_rpm", "pump_disp_cc", "dp_bar", "temp_c", limits.output_role]
+    n = draw(st.integers(1, 12))
+    points, stds, counts, ages = [], [], [], []
+    for _ in range(n):
+        m, s, c, a = {}, {}, {}, {}
+        # Mostly fresh, steady points with one or two values off their typical forward value: the
+        # gates past freshness and steadiness are reached too, not only STALE_INPUT.
+        stale, short, unsteady = (draw(st.integers(0, 9)) == 0 for _ in range(3))
+        for r in roles:
+            hi = limits.plausible[r][1]
+            typical = {**FORWARD, **FLOW_FORWARD}[r]
+            m[r] = draw(
+                st.one_of(
+                    st.just(typical),
+                    st.just(typical),
+                    st.sampled_from(_pool(r, limits)),
+                    st.floats(-2 * hi - 1, 2 * hi + 1),
+                )
+            )
+            s[r] = draw(st.sampled_from([0.1, 100.0, np.nan])) if unsteady else 0.0
+            c[r] = draw(st.sampled_from([limits.min_samples, limits.min_samples - 1, 0])) if short else 100
+            a[r] = draw(st.sampled_from([0.3, 0.6, np.inf])) if stale else 0.0
+        points.append(m)
+        stds.append(s)
+        counts.append(c)
+        ages.append(a)
+    max_age = draw(st.sampled_from([None, dict.fromkeys(roles, 0.5)]))
+    env = draw(st.sampled_from([None, {"pump_disp_cc": (10.0, 78.0), "dp_bar": (20.0, 560.0)}]))
+    return points, limits, stds, counts, ages, max_age, env
+
+
+def test_gate_point_and_gate_columns_agree_on_random_points():
+    """The streaming core's rules and the columnar engine's give the same gate for the same means,
+    and the random points reach the gates that matter here (counted, not hoped for)."""
+    from collections import Counter
+
+    seen: Counter[str] = Counter()
+
+    @settings(max_examples=400, deadline=None, derandomize=True, database=None)
+    @given(random_points())
+    def prop(drawn):
+        points, limits, stds, counts, ages, max_age, env = drawn
+        gates = both_gates(points, limits, stds, counts, ages, max_age, env)
+        for g in set(gates):
+            event(Gate(g).name)
+        seen.update(Gate(g).name for g in gates)
+
+    prop()
+    for g in (Gate.REVERSE, Gate.IMPLAUSIBLE_INPUT, Gate.EVALUATING, Gate.LOW_FLOW, Gate.EXTRAPOLATED):
+        assert seen[g.name] > 10, (g.name, dict(seen))

@@ -125,3 +125,28 @@ def test_training_on_data_with_worn_drives_warns_that_it_is_no_healthy_reference
     healthy = run_cli(*args, "--where", "pump_leak=0", "--out", str(out), "--force", "--json")
     assert healthy.returncode == 0, healthy.stderr
     assert not [w for w in strict_json(healthy.stdout)["warnings"] if "healthy drive" in w]
+
+
+def test_rows_in_reverse_are_left_out_of_training_and_gap_with_their_reason(tmp_path):
+    """A table whose flow is signed: the rows of reverse travel (negative flow) are refused as such by
+    train (the gate report names them) and by gap, not taken as data nor crash anything."""
+    rows = [r for r in read_csv(DATA) if float(r["pump_leak"]) == 0 and float(r["cooler_pct"]) == 100]
+    signed = [{**r, "fs1_lpm": repr(-float(r["fs1_lpm"]))} if i % 10 == 0 else r for i, r in enumerate(rows)]
+    data = write_rows(tmp_path / "signed.csv", signed)
+    res = run_cli("train", str(data), "--points", "--config", str(CONFIG), "--out", str(tmp_path / "m.onnx"), "--json")
+    assert res.returncode == 0, res.stderr
+    gates = strict_json(res.stdout)["gates"]
+    n_rev = len(range(0, len(rows), 10))
+    refused = gates["refused"]
+    assert refused["reverse"]["points"] == n_rev and "reverse travel" in refused["reverse"]["why"], gates
+    assert gates["passed"] == len(rows) - n_rev
+    from cmcan.config import load
+    from cmcan.gap import data as gapdata
+    from cmcan.io.points import read_points
+    from cmcan.roles import FLOW, MODEL_INPUTS
+
+    cfg = load(CONFIG)
+    pts = read_points(data, cfg.points, (*MODEL_INPUTS, FLOW))
+    d = gapdata.from_points(pts, FLOW, cfg.gate_limits)
+    assert d.refused == n_rev, d.refused_why
+    assert f"reverse travel: negative pump_disp_cc or flow_lpm ({n_rev} points)" in d.refused_why

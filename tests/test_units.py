@@ -197,7 +197,7 @@ def dbc_variant(tmp_path: Path, old: str, new: str, src: Path = ROOT / "dbc" / "
          "motor_speed_pred_rpm", "0..9000"),
         ("cm_alive_counter : 56|4@1+ (1,0) [0|15] \"count\" DISPLAY,TELEMATICS\n\nBO_ 929",
          "cm_alive_counter : 56|3@1+ (1,0) [0|7] \"count\" DISPLAY,TELEMATICS\n\nBO_ 929", "cm_alive_counter", "0..15"),
-        ("cm_gate : 52|4@1+ (1,0) [0|15]", "cm_gate : 52|3@1+ (1,0) [0|7]", "cm_gate", "0..10"),
+        ("cm_gate : 52|4@1+ (1,0) [0|15]", "cm_gate : 52|3@1+ (1,0) [0|7]", "cm_gate", "0..11"),
         ("warning_count : 48|16@1+ (1,0) [0|65535]", "warning_count : 48|8@1+ (1,0) [0|255]", "warning_count",
          "0..65535"),
     ],

@@ -37,7 +37,9 @@ from cmcan.monitor.gating import (
     GateLimits,
     eval_times,
     gate,
+    outside_plausible,
     scaled,
+    signed_roles,
     table_stats,
     window_stats,
 )
@@ -110,19 +112,22 @@ def gate_limits_for(quantity: str, limits: GateLimits | None = None, drive: Driv
 
 
 def implausible(means: Mapping[str, NDArray[np.float64]], limits: GateLimits) -> NDArray[np.bool_]:
-    """Points the monitor's gate refuses as implausible (an input or the output missing or outside its
-    plausible range), each point's values taken as already-averaged means (the gate's table rules)."""
-    return gate(table_stats(dict(means)), limits) == Gate.IMPLAUSIBLE_INPUT
+    """Points the gap cannot compare: those the monitor's gate refuses as implausible (an input or the
+    output missing or outside its plausible range) or as reverse travel (the drive and its model are
+    judged forward), each point's values taken as already-averaged means (the gate's table rules)."""
+    g = gate(table_stats(dict(means)), limits)
+    return (g == Gate.IMPLAUSIBLE_INPUT) | (g == Gate.REVERSE)
 
 
 def refusal(means: Mapping[str, NDArray[np.float64]], bad: NDArray[np.bool_], limits: GateLimits) -> str:
     """Which values the refused points hold and the plausible ranges they are outside, e.g.
     ``temp_c 308..331 degC outside the plausible range -40..130 degC (55 points)``."""
     parts = []
+    outside = np.zeros(len(bad), dtype=bool)
     for r, v in means.items():
         lo, hi = limits.plausible.get(r, (-np.inf, np.inf))
-        with np.errstate(invalid="ignore"):
-            out = bad & ~((v >= lo) & (v <= hi))
+        out = bad & outside_plausible(r, v, limits)  # a signed role by its magnitude, as the gate judges it
+        outside |= out
         if not out.any():
             continue
         vals = v[out]
@@ -132,6 +137,9 @@ def refusal(means: Mapping[str, NDArray[np.float64]], bad: NDArray[np.bool_], li
         if len(fin) and len(fin) < len(vals):
             seen += " or missing"
         parts.append(f"{r} {seen} outside the plausible range {lo:.4g}..{hi:.4g} {unit} ({int(out.sum())} points)")
+    reverse = bad & ~outside
+    if reverse.any():
+        parts.append(f"reverse travel: negative {' or '.join(signed_roles(limits))} ({int(reverse.sum())} points)")
     return "; ".join(parts)
 
 

@@ -24,7 +24,16 @@ from cmcan.errors import CmcanError, Kind
 from cmcan.frame import Frame, FrameColumns
 from cmcan.io.points import Condition, Points, cell_value
 from cmcan.io.runcsv import read_run_csv
-from cmcan.monitor.gating import Gate, GateLimits, WindowStats, eval_times, gate, table_stats, window_stats
+from cmcan.monitor.gating import (
+    Gate,
+    GateLimits,
+    WindowStats,
+    eval_times,
+    gate,
+    outside_plausible,
+    table_stats,
+    window_stats,
+)
 from cmcan.monitor.windows import dp_affine, dp_raw, role_affine
 from cmcan.roles import (
     DEFAULT_INPUTS,
@@ -404,6 +413,7 @@ def gate_report(op: OperatingPoints, limits: GateLimits, mask: NDArray[np.bool_]
         + ("motor_speed_rpm or min_flow_lpm)" if op.quantity == MOTOR_SPEED else "flow_lpm)"),
         Gate.TRANSIENT: "not steady: spread within the window above gating.max_std for " + _transient(op, limits, sel),
         Gate.EXTRAPOLATED: "outside the training envelope (evaluated)",
+        Gate.REVERSE: f"reverse travel: pump displacement or {op.quantity} negative (the drive is judged forward)",
     }
     refused = []
     for g in Gate:
@@ -425,8 +435,7 @@ def _implausible(op: OperatingPoints, limits: GateLimits, sel: NDArray[np.bool_]
     out = []
     for r, (lo, hi) in limits.plausible.items():
         if r in op.stats.mean:
-            v = op.stats.mean[r][m]
-            n = int(np.sum(~((v >= lo) & (v <= hi))))
+            n = int(np.sum(outside_plausible(r, op.stats.mean[r][m], limits)))  # signed roles by magnitude
             if n:
                 out.append(f"{r} outside [{lo:.4g}, {hi:.4g}] ({n})")
     return ", ".join(out) or "-"

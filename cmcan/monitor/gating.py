@@ -10,6 +10,12 @@ envelope must not silence the monitor. What an extrapolated point may trigger is
 machine's business (:mod:`cmcan.monitor.warnings`). Training applies the same rules (without the
 envelope, which it is about to define), so transients never teach the model.
 
+The drive is judged in its forward direction, the one its model is trained in. A machine whose bus
+sends a signed pump displacement (swash plate over centre) or a signed motor speed or flow reverses
+in normal operation: such a point is ``REVERSE``, neither evaluated nor a fault, and the plausible
+ranges of the pump displacement and the output judge their magnitudes (a motor turning at -3000 rpm
+is plausible, one at -20000 rpm is not).
+
 The default limits are the reference drive's (3000 rpm, 78 cm3/rev, 44 cm3/rev motor): :func:`scaled`
 sizes them for another machine from its nominal pump speed, displacement and flow.
 """
@@ -45,9 +51,11 @@ class Gate(IntEnum):
     LOW_DISPLACEMENT = 8  # pump displacement below its minimum
     LOW_FLOW = 9  # measured output (motor speed or flow) below its minimum
     MODEL_ERROR = 10  # the point was fit to evaluate, the model gave no plausible prediction
+    REVERSE = 11  # travelling in reverse (negative pump displacement or output): not judged, not a fault
 
 
 EVALUATED: frozenset[Gate] = frozenset({Gate.EVALUATING, Gate.EXTRAPOLATED})
+
 
 # The reference drive the default limits are sized for: nominal pump speed and displacement, and the
 # motor displacement that turns the minimum motor speed into a minimum flow.
@@ -165,6 +173,21 @@ def window_stats(
     return WindowStats(mean, std, count, age)
 
 
+def signed_roles(limits: GateLimits) -> tuple[str, str]:
+    """The roles a bus may send signed, with a negative value for reverse travel: their plausible
+    ranges judge the magnitude, and a clearly negative one makes the point ``REVERSE``."""
+    return (PUMP_DISP, limits.output_role)
+
+
+def outside_plausible(role: str, values: NDArray[np.float64], limits: GateLimits) -> NDArray[np.bool_]:
+    """Per value of ``role``: outside its plausible range (NaN too), the magnitude judged for the
+    roles of :func:`signed_roles` (the rule :func:`gate_point` applies to one point)."""
+    lo, hi = limits.plausible.get(role, (-math.inf, math.inf))
+    v = np.abs(values) if role in signed_roles(limits) else np.asarray(values)
+    with np.errstate(invalid="ignore"):
+        return ~((lo <= v) & (v <= hi))
+
+
 def gate_point(
     mean: dict[str, float],
     std: dict[str, float],
@@ -175,9 +198,15 @@ def gate_point(
     envelope: Mapping[str, tuple[float, float]] | None = None,
 ) -> Gate:
     """The gate of one operating point; the first failing rule in this order wins: no input, stale
-    input, warming up, implausible input, low pump speed, low displacement, low output, transient;
-    a point that passes them all is ``EXTRAPOLATED`` when a model input lies outside ``envelope``
-    (input name -> [min, max], bounds included), else ``EVALUATING``.
+    input, warming up, implausible input (the pump displacement and the output by their magnitude),
+    reverse, low pump speed, low displacement, low output, transient; a point that passes them all
+    is ``EXTRAPOLATED`` when a model input lies outside ``envelope`` (input name -> [min, max],
+    bounds included), else ``EVALUATING``.
+
+    ``REVERSE`` takes a pump displacement or an output that is negative by at least its minimum
+    (``min_pump_disp_cc``, ``min_output``): a window about a change of direction, or a machine at
+    neutral whose signed sensors read a little below zero, has a mean near zero and stays
+    ``LOW_DISPLACEMENT``, ``LOW_FLOW`` or ``TRANSIENT``.
 
     The monitor calls this per evaluation tick and training per window, so both apply the very same
     rules. All inputs silent (the machine is off, the bus idle) is ``NO_INPUT``, not a fault; some
@@ -197,11 +226,15 @@ def gate_point(
     for r in roles:
         if count[r] < limits.min_samples:
             return Gate.WARMING_UP
+    signed = signed_roles(limits)
     for r in roles:
         lo, hi = limits.plausible.get(r, (-math.inf, math.inf))
-        m = mean[r]
+        m = abs(mean[r]) if r in signed else mean[r]
         if not (lo <= m <= hi):  # also catches NaN
             return Gate.IMPLAUSIBLE_INPUT
+    d, o = mean[PUMP_DISP], mean[out]
+    if (d < 0.0 and d <= -limits.min_pump_disp_cc) or (o < 0.0 and o <= -limits.min_output):
+        return Gate.REVERSE
     if mean[PUMP_SPEED] < limits.min_pump_speed_rpm:
         return Gate.LOW_SPEED
     if abs(mean[PUMP_DISP]) < limits.min_pump_disp_cc:
@@ -267,9 +300,9 @@ def gate_columns(
         decide(count[r] < limits.min_samples, Gate.WARMING_UP)
     with np.errstate(invalid="ignore"):
         for r in roles:
-            lo, hi = limits.plausible.get(r, (-math.inf, math.inf))
-            m = mean[r]
-            decide(~((lo <= m) & (m <= hi)), Gate.IMPLAUSIBLE_INPUT)  # NaN too
+            decide(outside_plausible(r, mean[r], limits), Gate.IMPLAUSIBLE_INPUT)  # NaN too
+        d, o = mean[PUMP_DISP], mean[out_role]
+        decide(((d < 0.0) & (d <= -limits.min_pump_disp_cc)) | ((o < 0.0) & (o <= -limits.min_output)), Gate.REVERSE)
         decide(mean[PUMP_SPEED] < limits.min_pump_speed_rpm, Gate.LOW_SPEED)
         decide(np.abs(mean[PUMP_DISP]) < limits.min_pump_disp_cc, Gate.LOW_DISPLACEMENT)
         decide(mean[out_role] < limits.min_output, Gate.LOW_FLOW)
