@@ -634,5 +634,6 @@ def assemble(
     DbcError, SchemaError or ModelError naming the file and field (kinds: configuration, no input)."""
     db = dbc_for(cfg)
     check_against_dbc(cfg, db)
+    check_output_ranges(cfg, db)  # before the model: a DBC's problem is not hidden behind a model's
     model = load_model_for(cfg, model_path)
     return Assembled(cfg, db, model, build_monitor(cfg, db, model, totals, keep_timeline, log_aliases))

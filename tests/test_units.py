@@ -264,6 +264,14 @@ def test_check_refuses_a_narrow_output_signal(tmp_path):
     line = r.stderr.strip()
     assert f"{cfg}: outputs.cm_ratio.message:" in line and "CM_RATIO.cm_ratio_filt_pct" in line
     assert "0..2.55 %" in line and "0..200 %" in line and "8-bit" in line
+    # with a model that does not fit the machine yet (commissioning's first check): the DBC's problem
+    # is said first, not hidden behind the model's
+
+    def other_motor(raw):
+        raw["drive"]["motor_disp_cc"] = 80.0
+
+    r = run_cli("check", "--config", str(write_config(tmp_path, ROOT / "config" / "cmcan.yaml", dbc, other_motor)))
+    assert r.returncode == EX_CONFIG and "CM_RATIO.cm_ratio_filt_pct" in r.stderr, r.stderr
 
 
 def test_check_refuses_kpa_without_scale_and_accepts_it_with(tmp_path):
