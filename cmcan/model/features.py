@@ -427,7 +427,15 @@ def gate_report(op: OperatingPoints, limits: GateLimits, mask: NDArray[np.bool_]
 def _transient(op: OperatingPoints, limits: GateLimits, sel: NDArray[np.bool_]) -> str:
     m = sel & (op.gate == Gate.TRANSIENT)
     counts = {r: int(np.sum(op.stats.std[r][m] > lim)) for r, lim in limits.max_std.items() if r in op.stats.std}
-    return ", ".join(f"{r} ({n})" for r, n in sorted(counts.items(), key=lambda kv: -kv[1]) if n) or "-"
+    # each role with its limit (scaled for the machine: gating.scaled), as the other refusals say theirs
+    return (
+        ", ".join(
+            f"{r} above {limits.max_std[r]:.4g} {UNITS.get(r, '')} ({n})".replace("  (", " (")
+            for r, n in sorted(counts.items(), key=lambda kv: -kv[1])
+            if n
+        )
+        or "-"
+    )
 
 
 def _implausible(op: OperatingPoints, limits: GateLimits, sel: NDArray[np.bool_]) -> str:
