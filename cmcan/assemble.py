@@ -28,7 +28,7 @@ from cmcan.monitor.diagnostics import Dm1Params
 from cmcan.monitor.gating import GateLimits, prediction_ok
 from cmcan.monitor.health import HealthSpec
 from cmcan.monitor.inputs import MEMO_MAX, Channels, Matcher, overlap
-from cmcan.monitor.payloads import OutputMessage, Outputs, output_spans
+from cmcan.monitor.payloads import OutputMessage, Outputs, output_span, output_spans
 from cmcan.monitor.totals import Totals
 from cmcan.monitor.windows import Affine, dp_affine, role_affine
 from cmcan.roles import (
@@ -169,8 +169,8 @@ def check_output_ranges(cfg: Config, db: Database) -> None:
     """Each output signal cmcan fills in can carry what it sends in normal operation
     (:func:`cmcan.monitor.payloads.output_spans`): a signal too narrow would saturate (or wrap) and
     show, say, a CM ratio of 2.55 % as valid. Resolution is not judged, only the range."""
-    lo_out, hi_out = cfg.gate_limits.plausible[cfg.quantity]
-    spans = output_spans(QUANTITY_SIGNALS[cfg.quantity], (lo_out, hi_out), cfg.drive.nominal_flow_lpm)
+    span = output_span(cfg.drive.nominal_flow_lpm, cfg.drive.lpm_per_unit)
+    spans = output_spans(QUANTITY_SIGNALS[cfg.quantity], span, cfg.drive.nominal_flow_lpm)
     for key, out in cfg.outputs.items(cfg.quantity):
         msg = _message(cfg, db, out.message, f"outputs.{key}.message")
         for name in OUTPUT_SIGNALS[key]:

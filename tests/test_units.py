@@ -194,7 +194,7 @@ def dbc_variant(tmp_path: Path, old: str, new: str, src: Path = ROOT / "dbc" / "
         ("extra_leakage_lpm : 32|16@1- (0.01,0) [-300|300]", "extra_leakage_lpm : 32|16@1+ (0.01,0) [0|300]",
          "extra_leakage_lpm", "-234..234"),
         ("motor_speed_pred_rpm : 16|16@1+ (0.25,0) [0|10000]", "motor_speed_pred_rpm : 16|16@1+ (0.1,0) [0|0]",
-         "motor_speed_pred_rpm", "0..9000"),
+         "motor_speed_pred_rpm", "0..6647.73"),
         ("cm_alive_counter : 56|4@1+ (1,0) [0|15] \"count\" DISPLAY,TELEMATICS\n\nBO_ 929",
          "cm_alive_counter : 56|3@1+ (1,0) [0|7] \"count\" DISPLAY,TELEMATICS\n\nBO_ 929", "cm_alive_counter", "0..15"),
         ("cm_gate : 52|4@1+ (1,0) [0|15]", "cm_gate : 52|3@1+ (1,0) [0|7]", "cm_gate", "0..11"),

@@ -25,6 +25,16 @@ RATIO_SPAN_PCT = (0.0, 200.0)
 # time_below_threshold_s in whole seconds: at least 18 h of a low episode (16 bits of seconds);
 # longer episodes may saturate at the signal's maximum.
 TIME_BELOW_SPAN_S = (0.0, 65535.0)
+# The output quantity in normal operation: up to the drive's nominal delivery (nominal pump speed at
+# full displacement, over V_M for motor speed) with this headroom (a load pulling the motor, a pump
+# above its nominal speed). The gate's plausible range is wider still: a bound for broken sensors,
+# which a display need not show.
+OUTPUT_HEADROOM = 1.25
+
+
+def output_span(nominal_flow_lpm: float, lpm_per_unit: float) -> tuple[float, float]:
+    """The output quantity's span in normal operation, in its own unit (rpm or l/min)."""
+    return 0.0, OUTPUT_HEADROOM * nominal_flow_lpm / lpm_per_unit
 
 
 @dataclass(frozen=True)
@@ -41,15 +51,15 @@ def output_spans(
 ) -> dict[str, Span]:
     """Per output signal :meth:`Payloads.frames` fills in, the span it sends in normal operation:
     ratios over :data:`RATIO_SPAN_PCT`; the measured, predicted and white-box quantity over
-    ``output_range`` (the output's plausible range: what the gate evaluates and a prediction may
-    be); the extra leakage either way up to ``leak_max_lpm`` (the drive's nominal flow: a ratio of
-    0 or 200 % at nominal flow); flags, enumerations and counters over all their values."""
+    ``output_range`` (what the drive can deliver: :func:`output_span`); the extra leakage either way
+    up to ``leak_max_lpm`` (the drive's nominal flow: a ratio of 0 or 200 % at nominal flow); flags,
+    enumerations and counters over all their values."""
     lo_pct, hi_pct = RATIO_SPAN_PCT
     ratio = Span(lo_pct, hi_pct, f"CM ratios of {lo_pct:g} to {hi_pct:g} %")
     flag = Span(0.0, 1.0, "a flag")
     alive = Span(0.0, ALIVE_MODULO - 1.0, f"an alive counter modulo {ALIVE_MODULO}")
     meas, pred, wb, valid = quantity_signals
-    quantity = Span(*output_range, "the output's plausible range")
+    quantity = Span(*output_range, f"up to {OUTPUT_HEADROOM:g} x the drive's nominal delivery")
     return {
         "cm_ratio_raw_pct": ratio,
         "cm_ratio_filt_pct": ratio,
