@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import can
 import numpy as np
+import pytest
 
 from cmcan import config as cfgmod
 from cmcan.assemble import assemble, dbc_for
@@ -67,3 +70,22 @@ def first_warnings(history: list[dict], start_epoch_s: float) -> list[tuple[floa
 
 def ratio_ok(x: np.ndarray) -> bool:
     return bool(np.all(np.isfinite(x)))
+
+
+IMPLS = ("native", "numpy")  # the replay's reading and writing: by the C helpers, or with numpy
+
+
+@contextmanager
+def helpers_impl(impl: str) -> Iterator[None]:
+    """Read and write logs with the C helpers (skipped where the install could not build them) or
+    with the numpy code that stands in for them."""
+    from cmcan.io import native
+
+    saved = native.LIB
+    if impl == "native" and saved is None:
+        pytest.skip("the C helpers are not built here (no C compiler at install)")
+    native.LIB = saved if impl == "native" else None
+    try:
+        yield
+    finally:
+        native.LIB = saved

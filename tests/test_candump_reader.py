@@ -7,6 +7,7 @@ from hypothesis import strategies as st
 
 from cmcan.frame import from_message
 from cmcan.io.candump import iter_candump, iter_frames
+from tests.helpers import IMPLS, helpers_impl
 
 std_id = st.integers(0, 0x7FF).map(lambda i: f"{i:03X}")
 ext_id = st.integers(0, 0x1FFFFFFF).map(lambda i: f"{i:08X}")
@@ -90,24 +91,90 @@ odd_line = st.sampled_from(
 )
 
 
+# where the C parser's common shape ends: each either side of a limit it checks
+edge_line = st.sampled_from(
+    [
+        "(1767225600.000000) can0 7ff#00aAbBcC",  # lower-case hex
+        "(1767225600.000000) can0 800#00",  # 3 digits above 0x7FF
+        "(1767225600.000000) can0 1FFFFFFF#00",
+        "(1767225600.000000) can0 20000000#0000000000000000",  # the error flag
+        "(1767225600.000000) can0 3FFFFFFF#00",
+        "(1767225600.000000) can0 80000123#00",
+        "(1767225600.000000) can0 123#001122334455667788",  # 9 bytes, no '##'
+        "(1767225600.000000) can0 123#0",
+        "(1767225600.000000) can0 12#00",
+        "(1767225600.000000) can0 123456789#00",
+        "(1767225600.000000)  can0 123#00",  # two spaces
+        "(1767225600.000000) can0  123#00",
+        "(1767225600.000000)\tcan0 123#00",
+        "(1767225600.000000) can0 123#00\r",
+        "(1767225600.000000) can0 123#00 ",
+        " (1767225600.000000) can0 123#00",
+        "(9007199254740.991) can0 123#00",  # 2^53 - 1 in 16 digits
+        "(9007199254740.992) can0 123#00",  # 2^53
+        "(9999999999.999999999) can0 123#00",  # 19 digits
+        "(99999999999.999999999) can0 123#00",  # 20
+        "(0000000000000000001.5) can0 123#00",
+        "(1767225600.0) " + "c" * 31 + " 123#00",
+        "(1767225600.0) " + "c" * 32 + " 123#00",
+        "(1767225600.0) can\u00e90 123#00",
+        "(1767225600.0) can0 123#R",
+        "(1767225600.0) can0 123##1001122",
+        "(1767225600.0) can0 123#0g",
+    ]
+)
+many_channels = st.integers(0, 80).map(lambda k: f"(1767225600.{k:06d}) ch{k} 123#{k:02X}")
+
+
+@pytest.mark.parametrize("impl", IMPLS)
 @settings(max_examples=150, deadline=None)
-@given(st.lists(st.one_of(line, std_line, odd_line), min_size=1, max_size=60), st.integers(16, 400))
-def test_columnar_reader_gives_the_line_readers_frames(tmp_path_factory, lines, chunk):
+@given(
+    st.lists(st.one_of(line, std_line, odd_line, edge_line, many_channels), min_size=1, max_size=60),
+    st.integers(16, 400),
+)
+def test_columnar_reader_gives_the_line_readers_frames(tmp_path_factory, impl, lines, chunk):
+    from cmcan.io.candump_columns import iter_candump_columns
+
+    p = tmp_path_factory.mktemp("c") / "x.log"
+    p.write_bytes(("\n".join(lines) + "\n").encode("utf-8"))
+    with helpers_impl(impl):
+        try:
+            want = list(iter_candump(p))
+        except ValueError as exc:  # a line the reader of record refuses: the columnar one refuses it too
+            with pytest.raises(ValueError, match=str(exc).split(": ", 1)[1][:20].replace("(", r"\(")):
+                [f for c in iter_candump_columns(p, chunk_bytes=chunk) for f in c.frames()]
+            return
+        got = [f for c in iter_candump_columns(p, chunk_bytes=chunk) for f in c.frames()]
+    assert got == want
+
+
+# lines python-can reads as cmcan does (no error frames), in upper and lower case
+pc_line = st.tuples(
+    st.floats(0, 2e9, allow_nan=False).map(lambda t: f"({t:017.6f})"),
+    st.sampled_from(["can0", "vcan0", "1"]),
+    st.one_of(std_id, ext_id),
+    st.one_of(payload, payload, remote, fd),
+    st.booleans(),
+).map(lambda x: (f"{x[0]} {x[1]} {x[2]}#{x[3]}").lower() if x[4] else f"{x[0]} {x[1]} {x[2]}#{x[3]}")
+
+
+@pytest.mark.parametrize("impl", IMPLS)
+@settings(max_examples=60, deadline=None)
+@given(st.lists(pc_line, min_size=1, max_size=40))
+def test_columnar_reader_gives_python_cans_frames(tmp_path_factory, impl, lines):
+    """Straight against the library: python-can's CanutilsLogReader."""
     from cmcan.io.candump_columns import iter_candump_columns
 
     p = tmp_path_factory.mktemp("c") / "x.log"
     p.write_text("\n".join(lines) + "\n")
-    try:
-        want = list(iter_candump(p))
-    except ValueError as exc:  # a line the reader of record refuses: the columnar one refuses it too
-        with pytest.raises(ValueError, match=str(exc).split(": ", 1)[1][:20].replace("(", r"\(")):
-            [f for c in iter_candump_columns(p, chunk_bytes=chunk) for f in c.frames()]
-        return
-    got = [f for c in iter_candump_columns(p, chunk_bytes=chunk) for f in c.frames()]
-    assert got == want
+    ref = [from_message(m) for m in can.io.CanutilsLogReader(str(p))]
+    with helpers_impl(impl):
+        got = [f for c in iter_candump_columns(p, chunk_bytes=1 << 12) for f in c.frames()]
+    assert got == ref
 
 
-def test_columnar_reader_on_a_long_uniform_log(tmp_path):
+@pytest.mark.parametrize("impl", IMPLS)
+def test_columnar_reader_on_a_long_uniform_log(tmp_path, impl):
     from cmcan.io.candump_columns import iter_candump_columns
 
     lines = [
@@ -116,11 +183,13 @@ def test_columnar_reader_on_a_long_uniform_log(tmp_path):
     ]
     p = tmp_path / "u.log"
     p.write_text("".join(lines))
-    got = [f for c in iter_candump_columns(p, chunk_bytes=1 << 16) for f in c.frames()]
+    with helpers_impl(impl):
+        got = [f for c in iter_candump_columns(p, chunk_bytes=1 << 16) for f in c.frames()]
     assert got == list(iter_candump(p))
 
 
-def test_chunks_by_lines_hold_as_many_frames_whatever_the_identifier_length(tmp_path):
+@pytest.mark.parametrize("impl", IMPLS)
+def test_chunks_by_lines_hold_as_many_frames_whatever_the_identifier_length(tmp_path, impl):
     """With ``chunk_lines`` a log of 29-bit identifiers (longer lines) comes in chunks of as many
     frames as a log of 11-bit ones, and the frames are those of the line reader."""
     from cmcan.io.candump_columns import iter_candump_columns
@@ -133,7 +202,8 @@ def test_chunks_by_lines_hold_as_many_frames_whatever_the_identifier_length(tmp_
         ]
         p = tmp_path / f"{name}.log"
         p.write_text("".join(lines))
-        chunks = list(iter_candump_columns(p, chunk_bytes=1 << 17, chunk_lines=4000))
+        with helpers_impl(impl):
+            chunks = list(iter_candump_columns(p, chunk_bytes=1 << 17, chunk_lines=4000))
         assert [f for c in chunks for f in c.frames()] == list(iter_candump(p))
         sizes[name] = [len(c) for c in chunks]
     assert sizes["std"][1:-1] and sizes["std"][1:-1] == sizes["ext"][1:-1] == [4000] * len(sizes["std"][1:-1])

@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 
 from cmcan.errors import CmcanError, Kind
 from cmcan.frame import Frame, FrameColumns, from_message
+from cmcan.io import native
 from cmcan.io import textcols as tc
 
 # The formats python-can reads (by suffix, also gzipped text formats); .log is candump -l.
@@ -120,6 +121,24 @@ def candump_lines(cols: FrameColumns, channel: str | None = None) -> str:
         if not channel and len(cols.channel_names) != 1:  # frames of several buses: per frame
             slow[:] = True
             fast = fast[:0]
+        elif (
+            native.LIB is not None
+            and (
+                got := native.format_rows(
+                    len(fast),
+                    [
+                        native.TextColumn(native.FIXED, t[fast], b"(", 6),
+                        native.TextColumn(
+                            native.HEX_ID, cols.arbitration_id[fast], b") " + ch + b" ", widths=cols.extended[fast]
+                        ),
+                        native.TextColumn(native.HEX_DATA, cols.data[fast], b"#", widths=cols.dlc[fast]),
+                    ],
+                    b"\n",
+                )
+            )
+            is not None
+        ):  # the same lines by the C formatter, which holds no GIL
+            text = got.decode("ascii")
         else:
             ts = tc.fixed(t[fast], 6)
             cid = cols.arbitration_id[fast].astype(np.int64)

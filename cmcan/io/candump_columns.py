@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import gzip
 import zlib
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import BinaryIO
 
@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cmcan.frame import FrameColumns
+from cmcan.io import native
 from cmcan.io.candump import (
     CAN_ERR_FLAG,
     MAX_LINE_BYTES,
@@ -32,8 +33,11 @@ from cmcan.io.candump import (
     parse_candump_line,
 )
 
-CHUNK_BYTES = 2 << 20
-CHUNK_LINES = 45_000  # the columnar replay's chunk: about 2 MiB of lines with 11-bit identifiers
+CHUNK_BYTES = 4 << 20
+# the columnar replay's chunk: about 4 MiB of lines with 11-bit identifiers (the engine's cost per
+# chunk is spread over more frames; its memory grows with the chunk: the 4 M-frame target)
+CHUNK_LINES = 90_000
+SUB_BYTES = 1 << 20  # the numpy reader parses a chunk in pieces of this size
 _NIBBLE = np.full(256, 255, dtype=np.uint8)
 for _i, _c in enumerate(b"0123456789ABCDEF"):
     _NIBBLE[_c] = _i
@@ -72,7 +76,7 @@ def iter_candump_columns(
             data = rest + block
             cut = data.rfind(b"\n") + 1
             if cut:
-                cols, n_lines = parse_chunk(data[:cut], p, line0, channels)
+                cols, n_lines = parse_chunk(data, p, line0, channels, cut)
                 line0 += n_lines
                 if len(cols):
                     yield cols
@@ -98,9 +102,78 @@ def _read(f: BinaryIO, n: int, path: Path, line: int) -> bytes:
         raise LogError(f"{path}: cannot read past line {line}: {exc} (truncated or corrupt compressed log)") from None
 
 
-def parse_chunk(text: bytes, path: Path, line0: int, channels: dict[bytes, int]) -> tuple[FrameColumns, int]:
-    """Frames of the complete lines in ``text`` (which ends with a newline). ``channels`` maps
-    channel names to codes across chunks; ``line0`` is the number of the chunk's first line."""
+def parse_chunk(
+    text: bytes, path: Path, line0: int, channels: dict[bytes, int], length: int | None = None
+) -> tuple[FrameColumns, int]:
+    """Frames of the complete lines in ``text[:length]`` (which ends with a newline). ``channels`` maps
+    channel names to codes across chunks; ``line0`` is the number of the chunk's first line.
+    By the C parser when it was built, else with numpy in pieces of at most ``SUB_BYTES`` (its
+    temporaries, several times the text, stay small while the engine gets large chunks)."""
+    size = len(text) if length is None else length
+    if native.LIB is not None:
+        return _parse_native(text, size, path, line0, channels)
+    if size <= SUB_BYTES:
+        return _parse_numpy(text[:size] if size < len(text) else text, path, line0, channels)
+    parts: list[FrameColumns] = []
+    n_lines = start = 0
+    while start < size:
+        cut = text.rfind(b"\n", start, min(size, start + SUB_BYTES)) + 1
+        if cut <= start:  # a line longer than a piece (the slow path will say what is wrong with it)
+            cut = text.find(b"\n", start) + 1
+        cols, n = _parse_numpy(text[start:cut], path, line0 + n_lines, channels)
+        n_lines += n
+        start = cut
+        if len(cols):
+            parts.append(cols)
+    if not parts:
+        return _Out(0).columns(channels), n_lines
+    return (parts[0] if len(parts) == 1 else FrameColumns.concat(parts)), n_lines
+
+
+def _parse_native(
+    text: bytes, size: int, path: Path, line0: int, channels: dict[bytes, int]
+) -> tuple[FrameColumns, int]:
+    got = native.parse(text, size)
+    n = got.n_lines
+    out = _Out(n)
+    codes = np.array([_code(channels, name) for name in got.names], dtype=np.int16)
+    out.present = got.fast
+    out.t, out.cid, out.ext, out.dlc, out.data = got.timestamp_s, got.arbitration_id, got.extended, got.dlc, got.data
+    if len(codes):
+        out.ch = codes[np.maximum(got.chan, 0)]
+    if not got.fast.all():
+        _slow_lines(
+            text,
+            np.flatnonzero(np.frombuffer(text, dtype=np.uint8, count=size) == 10),
+            np.flatnonzero(~got.fast),
+            out,
+            path,
+            line0,
+            channels,
+        )
+    return out.columns(channels), n
+
+
+def _slow_lines(
+    text: bytes,
+    ends: NDArray[np.int64],
+    slow: Iterable[int],
+    out: _Out,
+    path: Path,
+    line0: int,
+    channels: dict[bytes, int],
+) -> None:
+    """Lines not of the common shape, by the line reader (which defines what a line means)."""
+    for i in sorted(slow):
+        start = int(ends[i - 1]) + 1 if i else 0
+        line = text[start : int(ends[i])].decode("ascii", errors="replace")
+        f = parse_candump_line(line, path, line0 + i)
+        if f is None:
+            continue
+        out.set_one(i, f, channels)
+
+
+def _parse_numpy(text: bytes, path: Path, line0: int, channels: dict[bytes, int]) -> tuple[FrameColumns, int]:
     buf = np.frombuffer(text, dtype=np.uint8)
     width = text.find(b"\n") + 1
     n_lines = len(buf) // width
@@ -127,13 +200,7 @@ def parse_chunk(text: bytes, path: Path, line0: int, channels: dict[bytes, int])
                 sub = idx[k : k + _BATCH]
                 rows = buf[starts[sub, None] + np.arange(length, dtype=np.int64)]
                 slow += _parse_group(rows, sub, out, channels)
-    for i in sorted(slow):
-        start = int(ends[i - 1]) + 1 if i else 0
-        line = text[start : int(ends[i])].decode("ascii", errors="replace")
-        f = parse_candump_line(line, path, line0 + i)
-        if f is None:
-            continue
-        out.set_one(i, f, channels)
+    _slow_lines(text, ends, slow, out, path, line0, channels)
     return out.columns(channels), n_lines
 
 
@@ -162,7 +229,10 @@ class _Out:
         assert isinstance(f, Frame)
         self.present[i] = True
         self.t[i] = f.timestamp_s
-        self.ch[i] = _code(channels, f.channel.encode())
+        # the name as bytes that decode back to it (``columns``): a character the line reader
+        # replaced (U+FFFD, from a byte that is not ASCII) stands for one such byte
+        name = bytes(ord(ch) if ord(ch) < 128 else 0xFF for ch in f.channel)
+        self.ch[i] = _code(channels, name)
         self.cid[i] = f.arbitration_id
         self.ext[i], self.rtr[i], self.err[i], self.fd[i] = f.extended, f.remote, f.error, f.fd
         self.dlc[i] = len(f.data)

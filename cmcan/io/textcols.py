@@ -54,6 +54,16 @@ _POW10 = np.array([10**k for k in range(1, 19)], dtype=np.int64)
 _PAIRS = np.frombuffer("".join(f"{i:02d}" for i in range(100)).encode("ascii"), dtype=np.uint16)
 
 
+def name_indexes(codes: NDArray[np.integer], names: dict[int, str]) -> tuple[NDArray[np.int64], list[bytes]] | None:
+    """Each code's place in the table of names (``Column.of_names`` order), and the names as bytes;
+    None when a code is not in the table."""
+    keys = np.asarray(sorted(names))
+    pos = np.searchsorted(keys, codes)
+    if len(pos) and not (pos.max() < len(keys) and (keys[pos] == codes).all()):
+        return None
+    return pos.astype(np.int64), [names[int(k)].encode("ascii") for k in keys]
+
+
 def _uint_digits(v: NDArray[np.int64], min_digits: int) -> tuple[NDArray[np.uint8], NDArray[np.int64]]:
     """Decimal digits of non-negative integers, right-aligned and zero-padded to a common width, and
     each one's digit count (at least ``min_digits``)."""
