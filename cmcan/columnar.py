@@ -176,6 +176,7 @@ class _Engine:
             return
         t = cols.timestamp_s[idx]
         ids = which[idx]
+        del which, need_len, good_len, short, mapped, live  # (a chunk's peak memory)
         groups = _groups(ids, len(self.inps))
         raws, ok, row, ctr, cs_ok = self._decode(cols, idx, groups)
         pos = 0
@@ -394,9 +395,13 @@ class _Engine:
         stop = int(np.argmax(irregular)) if irregular.any() else n
         if stop == 0:
             return pos
+        # the chunk's temporaries go before the samples are made (the peak memory of a chunk)
+        lf_end = float(lf[stop])
+        del u, finite, kmax, late_t, due_t, advances, lf, lf_prev, gap, step_back, odd_step, irregular, checks
         sl = slice(0, stop)
         t, late, accepted, verdict = t[sl], late[sl], accepted[sl], verdict[sl]
         k_after = np.where(late, k_prev[sl], np.maximum(k_prev[sl], g[sl])).astype(np.int64)
+        del k_prev, g
         k_end = int(k_after[-1])
         reach = [g[: np.searchsorted(g, stop)] for g in reach]  # within the stretch
         c = m.counters
@@ -415,7 +420,7 @@ class _Engine:
         if len(ticks_k):
             self._evaluate(ticks_k, trig, samples, erratic)
         # write the state back
-        clock.resume(k_end, float(lf[stop]))
+        clock.resume(k_end, lf_end)
         for role, smp in samples.items():
             smp.write_back(m.windows[role])
         if self._low_after is not None:
