@@ -198,22 +198,20 @@ class _Engine:
         a pure function of channel, identifier, format and FD flag, so asked once per combination.
         Error and remote frames are left unmatched (the core counts them before matching)."""
         which = np.full(len(cols), _NOT_DATA, dtype=np.int64)
-        sel = np.flatnonzero(live)
-        if not len(sel):
+        sel: NDArray[np.int64] | slice = slice(None) if live.all() else np.flatnonzero(live)
+        key = cols.arbitration_id[sel].astype(np.int64)
+        if not len(key):
             return which
-        key = (
-            cols.arbitration_id[sel].astype(np.int64)
-            | (cols.extended[sel].astype(np.int64) << 29)
-            | (cols.fd[sel].astype(np.int64) << 30)
-            | (cols.channel[sel].astype(np.int64) << 31)
-        )
+        # the key's other parts where a frame has them (the usual chunk: one channel, classic frames)
+        for part, shift in ((cols.extended, 29), (cols.fd, 30), (cols.channel, 31)):
+            if part.any():
+                key |= part[sel].astype(np.int64) << shift
         names = cols.channel_names
         if names[: len(self._m_names)] != self._m_names:  # channel codes mean other names now
             self._m_keys, self._m_codes = np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
         self._m_names = names
         at = np.searchsorted(self._m_keys, key)
-        hit = at < len(self._m_keys)
-        hit[hit] = self._m_keys[at[hit]] == key[hit]
+        hit = self._m_keys[np.minimum(at, len(self._m_keys) - 1)] == key if len(self._m_keys) else at < 0
         if not hit.all():  # combinations not seen before in this log: ask the core's matching
             new = _distinct(key[~hit])
             codes = np.array([self._code(k, names) for k in new.tolist()], dtype=np.int64)
@@ -372,7 +370,7 @@ class _Engine:
             g = np.where(g * P < u, g + 1, g)
             g = np.where((g - 1) * P >= u, g - 1, g)
         g = np.where(finite, g, -np.inf)
-        kmax = np.maximum.accumulate(np.concatenate([[float(k0)], g]))
+        kmax = _running_max(np.concatenate([[float(k0)], g]))
         k_prev = kmax[:-1]
         late_t = (k_prev - 1) * P - eps
         due_t = k_prev * P + eps
@@ -565,10 +563,14 @@ class _Engine:
                 tf, vf = t[f], verdict[f]
                 # newest_t before each of its frames, and the frames that set it (t >= newest_t: later
                 # ones win ties); a tick sees the frames before the one that completes it
-                run = np.maximum.accumulate(np.concatenate([[st.newest_t], tf]))
-                upd = tf >= run[:-1]
-                last = np.maximum.accumulate(np.where(upd, np.arange(len(f)), -1))
-                ok_after = np.where(last >= 0, vf[np.maximum(last, 0)] == OK, st.newest_ok)
+                run = np.concatenate([[st.newest_t], tf])
+                if tf[0] >= st.newest_t and (tf[1:] >= tf[:-1]).all():  # in order (the usual): each sets it
+                    ok_after = vf == OK
+                else:
+                    run = np.maximum.accumulate(run)
+                    upd = tf >= run[:-1]
+                    last = np.maximum.accumulate(np.where(upd, np.arange(len(f)), -1))
+                    ok_after = np.where(last >= 0, vf[np.maximum(last, 0)] == OK, st.newest_ok)
                 seen = np.searchsorted(f, trig)
                 nt = run[seen]
                 ok_t = np.where(seen > 0, ok_after[np.maximum(seen - 1, 0)], st.newest_ok)
@@ -1040,6 +1042,14 @@ def byte_sums(words: NDArray[np.unsignedinteger], mask: int | None = None) -> ND
     return w
 
 
+def _running_max(x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``np.maximum.accumulate(x)``; ``x`` itself when it never falls (the usual log: in time order),
+    which is checked faster than the running maximum is made."""
+    if len(x) < 2 or (x[1:] >= x[:-1]).all():
+        return x
+    return np.maximum.accumulate(x)
+
+
 def _groups(ids: NDArray[np.int64], n: int) -> list[NDArray[np.int64]]:
     """The positions of each of the ``n`` input messages' frames (``ids``: 0 to n-1), each in arrival
     order: one stable sort (a radix sort on small integers) instead of a pass over all frames per
@@ -1090,11 +1100,16 @@ class _RoleSamples:
         else:
             self.raw = np.concatenate([np.asarray(old_r, dtype=np.int64), raw.astype(np.int64)])
         self.frame_idx = frame_idx
-        self.rmax = np.maximum.accumulate(self.ts) if len(self.ts) else self.ts
+        self.rmax = _running_max(self.ts)
         self.last_t0 = win.last_t
-        zero = 0 if self.big else np.int64(0)
-        self.c1 = np.concatenate([[zero], np.cumsum(self.raw)])
-        self.c2 = np.concatenate([[zero], np.cumsum(self.raw * self.raw)])
+        if self.big:
+            self.c1 = np.concatenate([[0], np.cumsum(self.raw)])
+            self.c2 = np.concatenate([[0], np.cumsum(self.raw * self.raw)])
+        else:  # the prefix sums written in place after their leading zero
+            self.c1 = np.zeros(len(self.raw) + 1, dtype=np.int64)
+            self.c2 = np.zeros(len(self.raw) + 1, dtype=np.int64)
+            np.cumsum(self.raw, out=self.c1[1:])
+            np.cumsum(self.raw * self.raw, out=self.c2[1:])
         self.front = 0  # the deque's front after the last tick of the stretch
 
     def stats(
