@@ -17,7 +17,7 @@ from tests.vcan.support import TEST_FILE, run_vcan_tests_in_vm, vcan_here
 def main(argv: list[str]) -> int:
     if vcan_here():
         print("[vcan] vcan0 is here: running natively", flush=True)
-        return subprocess.call([sys.executable, "-m", "pytest", "-m", "vcan", TEST_FILE, *argv])
+        return subprocess.call([sys.executable, "-m", "pytest", "-m", "vcan", "-n0", TEST_FILE, *argv])
     print("[vcan] this kernel has no CAN: running in a throwaway VM", flush=True)
     run = run_vcan_tests_in_vm(argv)
     if run.error:

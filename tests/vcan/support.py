@@ -84,6 +84,7 @@ def run_vcan_tests_in_vm(pytest_args: list[str] | None = None, echo: bool = True
         TEST_FILE,
         "-p",
         "no:cacheprovider",
+        "-n0",  # one process in the VM: its timing tests want the guest's CPU to themselves
         "-v",
         "-rA",
         f"--junitxml={junit}",
