@@ -60,3 +60,16 @@ def db():
     from cmcan.dbc import load_dbc
 
     return load_dbc()
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None):
+    """Under xdist, a vcan test (setup, where the VM runs them all, call and teardown) has the
+    machine to itself; see ``tests/machine_share.py``."""
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        yield
+        return
+    from tests.machine_share import machine_share
+
+    with machine_share(exclusive=item.get_closest_marker("vcan") is not None):
+        yield
