@@ -25,13 +25,6 @@ def _drain(q) -> list:
     return out
 
 
-def _wait_until(cond, timeout: float = 20.0) -> None:
-    end = time.monotonic() + timeout
-    while not cond():
-        assert time.monotonic() < end, "timed out"
-        time.sleep(0.01)
-
-
 def test_shared_holders_run_together_and_an_exclusive_one_waits_for_them(tmp_path):
     ctx = mp.get_context("fork")
     log = ctx.Queue()
