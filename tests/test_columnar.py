@@ -34,9 +34,10 @@ def base():
     return as_frames(frames)
 
 
-def both(frames: list[Frame], chunk: int, wrap_model=None):
+def both(frames: list[Frame], chunk: int | list[int], wrap_model=None):
     """Timeline, frames and summary of each engine (fresh monitors, the shipped configuration;
-    ``wrap_model`` replaces the model by what it makes of it)."""
+    ``wrap_model`` replaces the model by what it makes of it). The columnar engine gets the frames
+    in chunks of ``chunk`` frames, or of the given sizes one after the other."""
     cfg = cfgmod.load()
     out = {}
     for engine in ("streaming", "columnar"):
@@ -47,7 +48,10 @@ def both(frames: list[Frame], chunk: int, wrap_model=None):
         if engine == "streaming":
             s = replay(mon, frames, [tl, fr])
         else:
-            chunks = [FrameColumns.from_frames(frames[i : i + chunk]) for i in range(0, len(frames), chunk)]
+            sizes = chunk if isinstance(chunk, list) else [chunk] * (len(frames) // chunk + 1)
+            ends = np.minimum(np.cumsum(sizes), len(frames))
+            starts = np.concatenate([[0], ends[:-1]])
+            chunks = [FrameColumns.from_frames(frames[i:j]) for i, j in zip(starts, ends, strict=True) if j > i]
             s = replay_columns(mon, chunks, [tl, fr])
         out[engine] = (tl.timeline, fr.frames_out, s, mon)
     return out["streaming"], out["columnar"]
@@ -154,6 +158,9 @@ def check_mangled(base, data, seed, chunk) -> None:
     rng = np.random.default_rng(seed)
     start = int(rng.integers(0, len(base) // 2))
     frames = mangle(base[start:], data.draw, rng)
+    event(f"chunks of {chunk} frames" if chunk != "mixed" else "chunks of mixed sizes")
+    if chunk == "mixed":  # as a reader's chunks of so many bytes are: from one frame (less than a tick) to thousands
+        chunk = np.exp(rng.uniform(0.0, np.log(5000.0), size=len(frames))).astype(int).tolist()
     a, b = both(frames, chunk)
     assert len(a[0]) > 0  # ticks were evaluated
     assert_same(a, b)
@@ -166,14 +173,14 @@ _MANGLED = {
 
 
 @settings(max_examples=15, **_MANGLED)
-@given(data=st.data(), seed=st.integers(0, 2**31), chunk=st.sampled_from([50, 997, 4096, 100_000]))
+@given(data=st.data(), seed=st.integers(0, 2**31), chunk=st.sampled_from(["mixed", 997, 4096, 100_000]))
 def test_random_mangled_logs_replay_the_same_in_both_engines(base, data, seed, chunk):
     check_mangled(base, data, seed, chunk)
 
 
 @pytest.mark.slow
 @settings(max_examples=120, **_MANGLED)
-@given(data=st.data(), seed=st.integers(0, 2**31), chunk=st.sampled_from([50, 997, 4096, 100_000]))
+@given(data=st.data(), seed=st.integers(0, 2**31), chunk=st.sampled_from(["mixed", 997, 4096, 100_000]))
 def test_many_more_mangled_logs_replay_the_same_in_both_engines(base, data, seed, chunk):
     check_mangled(base, data, seed, chunk)
 
