@@ -8,6 +8,7 @@ engines over small chunks: the same timeline, the same emitted frames, the same 
 
 from __future__ import annotations
 
+import itertools
 import json
 
 import numpy as np
@@ -48,10 +49,13 @@ def both(frames: list[Frame], chunk: int | list[int], wrap_model=None):
         if engine == "streaming":
             s = replay(mon, frames, [tl, fr])
         else:
-            sizes = chunk if isinstance(chunk, list) else [chunk] * (len(frames) // chunk + 1)
-            ends = np.minimum(np.cumsum(sizes), len(frames))
-            starts = np.concatenate([[0], ends[:-1]])
-            chunks = [FrameColumns.from_frames(frames[i:j]) for i, j in zip(starts, ends, strict=True) if j > i]
+            sizes = chunk if isinstance(chunk, list) else itertools.repeat(chunk)
+            chunks, i = [], 0
+            for n in sizes:
+                if i >= len(frames):
+                    break
+                chunks.append(FrameColumns.from_frames(frames[i : i + n]))
+                i += n
             s = replay_columns(mon, chunks, [tl, fr])
         out[engine] = (tl.timeline, fr.frames_out, s, mon)
     return out["streaming"], out["columnar"]
