@@ -59,13 +59,13 @@ import can
 
 from cmcan import config as cfgmod
 from cmcan.assemble import assemble, bus_plan, dbc_for
-from cmcan.columnar import replay_columns
 from cmcan.daemon import Daemon, DaemonOptions
 from cmcan.frame import FrameColumns
 from cmcan.io import native
 from cmcan.io.candump import write_candump
 from cmcan.io.columns import column_chunks
-from cmcan.replay import EmitWriter, ReplaySummary, TickColumns, TimelineWriter, replay_file
+from cmcan.monitor.tick import TickColumns
+from cmcan.replay import EmitWriter, ReplaySummary, TimelineWriter, replay_columns, replay_file
 from cmcan.sim import scenario as scn
 from cmcan.sim.frames import frames_from_run
 from cmcan.sim.run import simulate

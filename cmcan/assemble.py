@@ -23,14 +23,14 @@ from cmcan.frame import Frame
 from cmcan.j1939 import dm1 as j1939_dm1
 from cmcan.j1939 import ids
 from cmcan.model import GrayBoxModel, ModelError, default_model_path, load_model
-from cmcan.monitor.core import DpFromHighLow, InputMessage, Monitor, MonitorParams
+from cmcan.monitor.core import Monitor, MonitorParams
 from cmcan.monitor.diagnostics import Dm1Params
 from cmcan.monitor.gating import GateLimits, prediction_ok
 from cmcan.monitor.health import HealthSpec
-from cmcan.monitor.inputs import MEMO_MAX, Channels, Matcher, overlap
+from cmcan.monitor.inputs import MEMO_MAX, Channels, InputMessage, Matcher, overlap
 from cmcan.monitor.payloads import OutputMessage, Outputs, output_span, output_spans
 from cmcan.monitor.totals import Totals
-from cmcan.monitor.windows import Affine, dp_affine, role_affine
+from cmcan.monitor.windows import Affine, DpFromHighLow, dp_affine, role_affine
 from cmcan.roles import (
     DP,
     HIGH_PRESSURE,
@@ -187,7 +187,7 @@ def check_output_ranges(cfg: Config, db: Database) -> None:
                 )
 
 
-# -- the machine's buses: channels, identifier formats, J1939, input health (issue 11) --------------------
+# -- the machine's buses: channels, identifier formats, J1939, input health -----------------------------
 
 # Signal names that mark an alive counter or a checksum when the configuration does not name them.
 COUNTER_NAME = re.compile(r"(^|_)(alive_?|rolling_?|msg_?|message_?)?(counter|cnt|ctr)$|alivecounter$", re.I)
@@ -596,7 +596,6 @@ def build_monitor(
     db: Database,
     model: GrayBoxModel,
     totals: Totals | None = None,
-    keep_timeline: bool = False,
     log_aliases: Mapping[str, str] | None = None,
 ) -> Monitor:
     """A monitor for the configuration, its DBC and a loaded model (its envelope gates the points);
@@ -608,10 +607,9 @@ def build_monitor(
         input_messages(cfg, db),
         model,
         outputs(cfg, db),
-        totals or Totals(),
-        keep_timeline,
-        channels(cfg, log_aliases),
-        dm1_params(cfg, db),
+        totals=totals or Totals(),
+        channels=channels(cfg, log_aliases),
+        dm1=dm1_params(cfg, db),
     )
 
 
@@ -627,7 +625,6 @@ def assemble(
     cfg: Config,
     model_path: str | Path | None = None,
     totals: Totals | None = None,
-    keep_timeline: bool = False,
     log_aliases: Mapping[str, str] | None = None,
 ) -> Assembled:
     """DBC and model loaded and checked against the configuration, and the monitor built. Raises
@@ -636,4 +633,4 @@ def assemble(
     check_against_dbc(cfg, db)
     check_output_ranges(cfg, db)  # before the model: a DBC's problem is not hidden behind a model's
     model = load_model_for(cfg, model_path)
-    return Assembled(cfg, db, model, build_monitor(cfg, db, model, totals, keep_timeline, log_aliases))
+    return Assembled(cfg, db, model, build_monitor(cfg, db, model, totals, log_aliases))

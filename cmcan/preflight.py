@@ -124,13 +124,11 @@ def state_store(cfg: cfgmod.Config) -> StateStore:
     return store
 
 
-def prepare(
-    cfg: cfgmod.Config, need_state: bool = True, keep_timeline: bool = False, read_only: bool = False
-) -> Prepared:
+def prepare(cfg: cfgmod.Config, need_state: bool = True, read_only: bool = False) -> Prepared:
     """DBC, mapping, model and state directory checked against each other; the monitor built with
     the saved totals. ``read_only`` (``cmcan check``) changes nothing: a state file that cannot be
     used is an error naming it instead of being kept aside as the daemon does."""
-    prep = Prepared(assemble(cfg, keep_timeline=keep_timeline), None)
+    prep = Prepared(assemble(cfg), None)
     return with_state(prep, read_only=read_only) if need_state else prep
 
 
@@ -144,7 +142,7 @@ def with_state(prep: Prepared, read_only: bool = False, lock: bool = False) -> P
     held = StateLock(store.dir).acquire() if lock else None
     try:
         totals = store.read() if read_only else store.load()
-        monitor = build_monitor(cfg, parts.db, parts.model, totals, parts.monitor.keep_timeline)
+        monitor = build_monitor(cfg, parts.db, parts.model, totals)
     except BaseException:
         if held is not None:
             held.release()

@@ -1,10 +1,13 @@
 """Replay: a CAN log through the monitor core, exactly as the daemon would have processed it.
 
-The engine feeds the frames and hands what comes out to sinks in chunks: the evaluation ticks as
-columns (:class:`TickColumns`) and the output frames. Sinks write files as they go (a timeline CSV,
-a candump log of the emitted frames) or keep what they need (a plot's points, a fleet summary), so
-a replay's memory is bounded by the chunk, not by the log. A sink writes to a temporary file and
-renames it only when the replay completes: a failed replay leaves nothing behind.
+One driver for both engines: the streaming engine feeds the log frame by frame (``Monitor.feed``,
+as the daemon does), the columnar engine in chunks of arrays (``Monitor.feed_columns``); the
+monitor's ticks (as a :class:`~cmcan.monitor.tick.TickListener`) and output frames go to sinks in
+chunks: the evaluation ticks as columns (:class:`~cmcan.monitor.tick.TickColumns`) and the output
+frames. Sinks write files as they go (a timeline CSV, a candump log of the emitted frames) or keep
+what they need (a plot's points, a fleet summary), so a replay's memory is bounded by the chunk, not
+by the log. A sink writes to a temporary file and renames it only when the replay completes: a
+failed replay leaves nothing behind.
 """
 
 from __future__ import annotations
@@ -13,18 +16,19 @@ import os
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
-from numpy.typing import NDArray
 
 from cmcan.errors import CmcanError, Kind
 from cmcan.frame import Frame, FrameColumns
 from cmcan.io import native
 from cmcan.io import textcols as tc
+from cmcan.io.candump import candump_lines, iter_frames
+from cmcan.io.columns import column_chunks
 from cmcan.monitor.core import Monitor
 from cmcan.monitor.gating import Gate
-from cmcan.monitor.tick import LEVEL_NAMES, Tick
+from cmcan.monitor.tick import LEVEL_NAMES, TickBuffer, TickColumns
 from cmcan.monitor.warnings import Level, Reason
 from cmcan.roles import MOTOR_SPEED, QUANTITY_SIGNALS
 
@@ -51,68 +55,6 @@ class NoFrames(CmcanError, ValueError):
     """A log without a single frame: nothing to replay (the sinks leave nothing behind)."""
 
     kind = Kind.DATA
-
-
-@dataclass(frozen=True)
-class TickColumns:
-    """A chunk of evaluation ticks, one array per field of :class:`cmcan.monitor.tick.Tick`."""
-
-    t_s: NDArray[np.float64]
-    gate: NDArray[np.int8]
-    measured: NDArray[np.float64]  # the output quantity: motor speed (rpm) or flow (l/min)
-    predicted: NDArray[np.float64]
-    whitebox: NDArray[np.float64]
-    ratio_raw_pct: NDArray[np.float64]
-    ratio_filt_pct: NDArray[np.float64]
-    extra_leak_lpm: NDArray[np.float64]
-    filt_valid: NDArray[np.bool_]
-    level: NDArray[np.int8]
-    reason: NDArray[np.int8]
-    time_below_s: NDArray[np.float64]
-    # t_s + this: each tick on the run's continuous time base (the wall clock's steps undone); zeros
-    # when not given
-    run_shift_s: NDArray[np.float64] = None  # type: ignore[assignment]
-
-    def __post_init__(self) -> None:
-        if self.run_shift_s is None:
-            object.__setattr__(self, "run_shift_s", np.zeros(len(self.t_s)))
-
-    def __len__(self) -> int:
-        return len(self.t_s)
-
-    @property
-    def t_run_s(self) -> NDArray[np.float64]:
-        """The ticks' times on the run's continuous time base, which operating hours count on."""
-        return self.t_s + self.run_shift_s
-
-    @classmethod
-    def from_ticks(cls, ticks: Sequence[Tick]) -> TickColumns:
-        def col(name: str, dtype: Any) -> NDArray[Any]:
-            return np.fromiter((getattr(k, name) for k in ticks), dtype=dtype, count=len(ticks))
-
-        return cls(
-            t_s=col("t_s", np.float64),
-            gate=col("gate", np.int8),
-            measured=col("measured", np.float64),
-            predicted=col("predicted", np.float64),
-            whitebox=col("whitebox", np.float64),
-            ratio_raw_pct=col("ratio_raw_pct", np.float64),
-            ratio_filt_pct=col("ratio_filt_pct", np.float64),
-            extra_leak_lpm=col("extra_leak_lpm", np.float64),
-            filt_valid=col("filt_valid", np.bool_),
-            level=col("level", np.int8),
-            reason=col("reason", np.int8),
-            time_below_s=col("time_below_s", np.float64),
-            run_shift_s=col("run_shift_s", np.float64),
-        )
-
-    @classmethod
-    def concat(cls, chunks: Sequence[TickColumns]) -> TickColumns:
-        names = cls.__dataclass_fields__
-        if not chunks:
-            return cls.from_ticks([])
-
-        return cls(**{n: np.concatenate([getattr(c, n) for c in chunks]) for n in names})
 
 
 class Sink(Protocol):
@@ -251,8 +193,6 @@ class EmitWriter(_FileSink):
         self.channel = channel  # None: each frame on its own channel (can0 when it has none)
 
     def frames(self, frames: FrameColumns) -> None:
-        from cmcan.io.candump import candump_lines
-
         self.f.write(candump_lines(frames, self.channel))
 
 
@@ -400,58 +340,105 @@ class ReplaySummary:
         return (self.last_t + self.run_shift_s - self.first_t) / 3600.0
 
 
+Item = TypeVar("Item")
+
+
 def replay(monitor: Monitor, frames_in: Iterable[Frame], sinks: Sequence[Sink] = ()) -> ReplaySummary:
-    """Feed every frame to the monitor in log order (the streaming engine, frame by frame, exactly as
-    the daemon does); ticks and emitted frames go to the sinks in chunks."""
-    monitor.keep_timeline = any(s.wants_ticks for s in sinks)
-    want_frames = any(s.wants_frames for s in sinks)
-    feed = monitor.feed
+    """The streaming engine: every frame fed to the monitor in log order, one by one, exactly as the
+    daemon does."""
+    return _drive(monitor, frames_in, monitor.feed, lambda f: (f.timestamp_s, f.timestamp_s), sinks)
+
+
+def replay_columns(monitor: Monitor, chunks: Iterable[FrameColumns], sinks: Sequence[Sink] = ()) -> ReplaySummary:
+    """The columnar engine: chunks of frames fed as arrays; the same ticks, frames and totals as
+    :func:`replay` over the same frames one by one."""
+    wanted = any(s.wants_frames for s in sinks)
+
+    def feed(cols: FrameColumns) -> FrameColumns | None:
+        return monitor.feed_columns(cols, frames=wanted)
+
+    def span(cols: FrameColumns) -> tuple[float, float]:
+        return float(cols.timestamp_s[0]), float(cols.timestamp_s[-1])
+
+    return _drive(monitor, (c for c in chunks if len(c)), feed, span, sinks)
+
+
+def _drive(
+    monitor: Monitor,
+    items: Iterable[Item],
+    feed: Callable[[Item], list[Frame] | FrameColumns | None],
+    span: Callable[[Item], tuple[float, float]],
+    sinks: Sequence[Sink],
+) -> ReplaySummary:
+    """Feed every item, the ticks and output frames to the sinks; ``span(item)``: the times of an
+    item's first and last frame."""
+    ticks = TickBuffer(_TickSinks(sinks), CHUNK_TICKS)
+    out = _FrameSinks(sinks)
     first = last = None
-    out: list[Frame] = []
-    n_out = 0
-    timeline = monitor.timeline
-
-    def drain() -> None:
-        nonlocal n_out
-        if timeline:
-            chunk = TickColumns.from_ticks(timeline)
-            timeline.clear()
-            for s in sinks:
-                s.ticks(chunk)
-        if out:
-            n_out += len(out)
-            cols = FrameColumns.from_frames(out)
-            for s in sinks:
-                if s.wants_frames:
-                    s.frames(cols)
-            out.clear()
-
+    monitor.listeners.append(ticks)
     try:
-        for f in frames_in:
-            t = f.timestamp_s
+        item = None
+        for item in items:
             if first is None:
-                first = t
+                first = span(item)[0]
                 for s in sinks:
-                    s.start(t)
-            last = t
-            res = feed(f)
-            if res and want_frames:
-                out.extend(res)
-            if len(timeline) >= CHUNK_TICKS or len(out) >= 3 * CHUNK_TICKS:
-                drain()
+                    s.start(first)
+            out.add(feed(item))
         if first is None:
             raise NoFrames("no frames in the log")
-        tail = monitor.flush()
-        if want_frames:
-            out.extend(tail)
-        drain()
+        last = span(item)[1]  # type: ignore[arg-type]
+        out.add(monitor.flush())
+        ticks.flush()
+        out.flush()
     except BaseException:
         for s in sinks:
             s.abort()
         raise
+    finally:
+        monitor.listeners.remove(ticks)
     for s in sinks:
         s.close()
-    return summarize(monitor, first, last, n_out)
+    return summarize(monitor, first, last, out.n_out)
+
+
+class _TickSinks:
+    def __init__(self, sinks: Sequence[Sink]) -> None:
+        self.sinks = [s for s in sinks if s.wants_ticks]
+
+    def ticks(self, chunk: TickColumns) -> None:
+        for s in self.sinks:
+            s.ticks(chunk)
+
+
+class _FrameSinks:
+    """The output frames to the sinks that want them: frame lists gathered into chunks."""
+
+    def __init__(self, sinks: Sequence[Sink]) -> None:
+        self.sinks = [s for s in sinks if s.wants_frames]
+        self.pending: list[Frame] = []
+        self.n_out = 0
+
+    def add(self, frames: list[Frame] | FrameColumns | None) -> None:
+        if not frames or not self.sinks:
+            return
+        if isinstance(frames, FrameColumns):
+            self.flush()
+            self._send(frames)
+            return
+        self.pending.extend(frames)
+        if len(self.pending) >= 3 * CHUNK_TICKS:
+            self.flush()
+
+    def flush(self) -> None:
+        if self.pending:
+            cols = FrameColumns.from_frames(self.pending)
+            self.pending = []
+            self._send(cols)
+
+    def _send(self, cols: FrameColumns) -> None:
+        self.n_out += len(cols)
+        for s in self.sinks:
+            s.frames(cols)
 
 
 def operating(h: dict[str, Any], t0: float) -> dict[str, Any]:
@@ -486,20 +473,14 @@ def replay_file(
     progress: Callable[[int, int], None] | None = None,
 ) -> ReplaySummary:
     """Replay a log file with the chosen engine. Both give the same ticks, frames and summary; the
-    columnar engine reads and evaluates the log in large chunks of arrays, the streaming engine
-    frame by frame as the daemon does."""
-    from cmcan.io.candump import iter_frames
-
+    columnar engine reads and evaluates the log in large chunks of arrays (its files written from a
+    thread of their own while the engine goes on), the streaming engine frame by frame as the
+    daemon does. ``progress(bytes of the file read, frames)``: after each chunk (-1 bytes: unknown)."""
     if engine not in ENGINES:
         raise ValueError(f"engine {engine!r} is not one of {', '.join(ENGINES)}")
     try:
         if engine == "streaming":
             return replay(monitor, iter_frames(path), sinks)
-        # progress(bytes of the file read, frames): after each chunk (-1 bytes: unknown)
-        from cmcan.columnar import replay_columns
-        from cmcan.io.columns import column_chunks
-
-        # the files are written from a thread of their own while the engine goes on
         threaded: Sequence[Sink] = [SinkThread(sinks)] if sinks else ()
         return replay_columns(monitor, column_chunks(path, progress=progress), threaded)
     except NoFrames:

@@ -14,13 +14,38 @@ from cmcan import config as cfgmod
 from cmcan.assemble import assemble, dbc_for
 from cmcan.frame import Frame
 from cmcan.io.candump import write_candump
+from cmcan.monitor.core import Monitor
+from cmcan.monitor.tick import Tick, TickColumns
 from cmcan.sim import scenario as scn
 from cmcan.sim.frames import Frames, frames_from_run
 from cmcan.sim.run import Run, simulate
 
 
-def monitor(keep_timeline: bool = True, cfg: cfgmod.Config | None = None, totals=None):
-    return assemble(cfg or cfgmod.load(), totals=totals, keep_timeline=keep_timeline).monitor
+class TickLog(list):
+    """A tick listener that keeps every tick the monitor evaluates (memory grows with the run)."""
+
+    def tick(self, tick: Tick) -> None:
+        self.append(tick)
+
+    def ticks(self, chunk: TickColumns) -> None:
+        self.extend(chunk.tick(i) for i in range(len(chunk)))
+
+
+def timeline(mon: Monitor) -> TickLog:
+    """The ticks ``mon`` evaluated since :func:`monitor` made it (or since first asked)."""
+    for x in mon.listeners:
+        if isinstance(x, TickLog):
+            return x
+    log = TickLog()
+    mon.listeners.append(log)
+    return log
+
+
+def monitor(cfg: cfgmod.Config | None = None, totals=None, **assembled) -> Monitor:
+    """The shipped configuration's monitor (or ``cfg``'s), keeping its ticks (:func:`timeline`)."""
+    mon = assemble(cfg or cfgmod.load(), totals=totals, **assembled).monitor
+    timeline(mon)
+    return mon
 
 
 def frame(t: float, can_id: int, data: bytes, extended=False, remote=False, error=False, channel="can0") -> Frame:

@@ -18,10 +18,17 @@ from hypothesis import strategies as st
 
 from cmcan import config as cfgmod
 from cmcan.assemble import assemble
-from cmcan.columnar import replay_columns
 from cmcan.frame import Frame, FrameColumns
 from cmcan.io.candump import write_candump
-from cmcan.replay import EmitWriter, FrameCollector, TimelineCollector, TimelineWriter, replay, replay_file
+from cmcan.replay import (
+    EmitWriter,
+    FrameCollector,
+    TimelineCollector,
+    TimelineWriter,
+    replay,
+    replay_columns,
+    replay_file,
+)
 from tests.conftest import run_cli
 from tests.helpers import as_frames, sim_frames
 
@@ -74,15 +81,16 @@ def assert_same(a, b) -> None:
     # and the monitor is left in the same state: a replay could go on from either
     assert m_a.save_totals().to_dict() == m_b.save_totals().to_dict()
     assert m_a.clock.next_k == m_b.clock.next_k and m_a.clock.last_frame_t == m_b.clock.last_frame_t
-    for r, w in m_a.windows.items():
-        v = m_b.windows[r]
+    for r, w in m_a.windows.windows.items():
+        v = m_b.windows.windows[r]
         assert (list(w.ts), list(w.rs), w.s1, w.s2, w.last_t) == (list(v.ts), list(v.rs), v.s1, v.s2, v.last_t), r
-    assert m_a._low == m_b._low
+    assert m_a.windows.low == m_b.windows.low
     assert (m_a.payloads.alive, m_a.payloads.last_warning) == (m_b.payloads.alive, m_b.payloads.last_warning)
     # the input health of every message stream, and the channels the log's frames were read on
     fields = ("prev", "prev_t", "newest_t", "newest_ok", "timed_out", "counts")
-    for x, y in zip(m_a._inputs.values(), m_b._inputs.values(), strict=True):
+    for x, y in zip(m_a.slots, m_b.slots, strict=True):
         assert [getattr(x.stream, f) for f in fields] == [getattr(y.stream, f) for f in fields], x.spec.name
+    assert m_a.router.bad_length == m_b.router.bad_length
     assert m_a.channels_seen() == m_b.channels_seen()
 
 

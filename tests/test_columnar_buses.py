@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 from cmcan import config as cfgmod
 from cmcan.assemble import assemble, bus_plan, dbc_for
-from cmcan.columnar import byte_sums, replay_columns
+from cmcan.checksums import byte_sums
 from cmcan.frame import Frame, FrameColumns
 from cmcan.io.candump import iter_frames, write_frames
 from cmcan.io.candump_columns import iter_candump_columns
@@ -23,7 +23,7 @@ from cmcan.j1939 import ids
 from cmcan.monitor.core import Monitor
 from cmcan.monitor.diagnostics import Dm1Producer
 from cmcan.monitor.health import Stream
-from cmcan.replay import FrameCollector, TimelineCollector, replay
+from cmcan.replay import FrameCollector, TimelineCollector, replay, replay_columns
 from cmcan.sim import scenario as scn
 from cmcan.sim.frames import frames_from_run, with_source_address
 from cmcan.sim.run import simulate

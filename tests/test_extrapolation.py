@@ -21,6 +21,7 @@ from cmcan.assemble import assemble
 from cmcan.frame import Frame
 from cmcan.monitor.gating import Gate
 from tests.conftest import ROOT, run_cli
+from tests.helpers import timeline
 
 RIG = ROOT / "examples" / "zema-rig"
 
@@ -78,8 +79,9 @@ def test_a_leak_outside_the_envelope_is_warned_about_and_cleared_inside_it():
     first_healthy_after = next(i for i in range(first_leak, len(warm)) if warm[i]["pump_leak"] == "0")
     cold = [r for r in rows if r["cooler_pct"] == "100" and r["pump_leak"] == "0"][:40]
     stream = warm[: first_healthy_after + 20] + cold
-    parts = assemble(cfgmod.load(RIG / "cmcan.yaml"), keep_timeline=True)
+    parts = assemble(cfgmod.load(RIG / "cmcan.yaml"))
     mon = parts.monitor
+    ticks = timeline(mon)
     cycle_at, out = [], []
     for t, r, frame in rig_frames(parts.db, stream):
         out += mon.feed(frame)
@@ -94,12 +96,12 @@ def test_a_leak_outside_the_envelope_is_warned_about_and_cleared_inside_it():
     raised, cleared = hist
     # raised during the leak block, on points outside the envelope
     assert cycle(raised["t_s"])["pump_leak"] != "0"
-    raised_tick = next(k for k in mon.timeline if k.t_s == raised["t_s"])
+    raised_tick = next(k for k in ticks if k.t_s == raised["t_s"])
     assert raised_tick.gate == Gate.EXTRAPOLATED
-    leak_ticks = [k for k in mon.timeline if cycle(k.t_s)["pump_leak"] != "0"]
+    leak_ticks = [k for k in ticks if cycle(k.t_s)["pump_leak"] != "0"]
     assert sum(k.gate == Gate.EXTRAPOLATED for k in leak_ticks) / len(leak_ticks) > 0.9
     # the healthy warm cycles after the leak are outside the envelope too: they cannot clear it ...
-    warm_after = [k for k in mon.timeline if cycle(k.t_s) in warm[first_healthy_after:]]
+    warm_after = [k for k in ticks if cycle(k.t_s) in warm[first_healthy_after:]]
     assert all(k.gate == Gate.EXTRAPOLATED for k in warm_after)
     assert all(k.level.name == "LOW" for k in warm_after)
     assert np.mean([k.ratio_filt_pct for k in warm_after[-60:]]) > 98.5
@@ -108,7 +110,7 @@ def test_a_leak_outside_the_envelope_is_warned_about_and_cleared_inside_it():
     assert mon.counters["extrapolated"] > len(warm_after)
     # on the bus: CM_RATIO says extrapolated in cm_gate with a valid raw ratio; CM_FLOW carries the flows
     assert {f.arbitration_id for f in out} == {0x3A0, 0x3A3, 0x3A2}
-    by_t = {k.t_s: k for k in mon.timeline}
+    by_t = {k.t_s: k for k in ticks}
     ratio_msg, flow_msg = parts.db.get_message_by_name("CM_RATIO"), parts.db.get_message_by_name("CM_FLOW")
     for f in out[::97]:
         k = by_t[f.timestamp_s]

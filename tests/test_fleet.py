@@ -21,7 +21,7 @@ from cmcan.fleet.query import format_rows, run_sql
 from cmcan.fleet.sources import discover, machine_of
 from cmcan.fleet.task import LogJob, Options, process_log
 from cmcan.monitor.gating import Gate
-from cmcan.replay import TickColumns
+from cmcan.monitor.tick import TickColumns
 from tests.conftest import ROOT, run_cli
 from tests.helpers import sim_frames, write_log
 

@@ -13,7 +13,7 @@ from cmcan.model.features import operating_points, series_from_log
 from cmcan.monitor.gating import EVALUATED, Gate
 from cmcan.monitor.totals import Totals
 from cmcan.monitor.warnings import Level
-from tests.helpers import feed_all, frame, monitor, sim_frames, write_log
+from tests.helpers import feed_all, frame, monitor, sim_frames, timeline, write_log
 
 PUMP, PRESS, MOTOR, OIL = 0x100, 0x101, 0x102, 0x103
 
@@ -55,7 +55,7 @@ def test_core_gates_equal_the_training_features(short, tmp_path):
     from cmcan.monitor.gating import gate
 
     codes = gate(op.stats, cfg.gate_limits, envelope=mon.params.envelope)
-    by_t = {round(k.t_s, 3): k for k in mon.timeline}
+    by_t = {round(k.t_s, 3): k for k in timeline(mon)}
     matched = [
         (by_t[round(t, 3)], int(c), op.x[i], op.measured[i])
         for i, (t, c) in enumerate(zip(op.t_s, codes, strict=True))
@@ -187,9 +187,9 @@ def test_a_model_returning_nonsense_is_a_model_error_on_the_bus(short, nonsense)
     mon = monitor()
     mon.model = Nonsense()
     out = feed_all(mon, frames)
-    gates = {k.gate for k in mon.timeline}
+    gates = {k.gate for k in timeline(mon)}
     assert Gate.MODEL_ERROR in gates and Gate.IMPLAUSIBLE_INPUT not in gates
-    assert mon.counters["model_errors"] == sum(k.gate == Gate.MODEL_ERROR for k in mon.timeline) > 0
+    assert mon.counters["model_errors"] == sum(k.gate == Gate.MODEL_ERROR for k in timeline(mon)) > 0
     assert mon.counters["evaluated"] == 0 and mon.totals.warning_count == 0
     faults = [h for h in mon.totals.history if h["to"] == "fault"]
     assert faults and {h["reason"] for h in faults} == {Reason.MODEL_ERROR.name.lower()}
@@ -209,7 +209,7 @@ def test_leakage_raises_the_low_warning_and_estimates_the_flow():
     warns = [(h["t_s"] - run.start_epoch_s) / 3600.0 for h in mon.totals.history if h["to"] == "low"]
     assert len(warns) == 1 and 1.0 < warns[0] < 1.2
     # the per-point estimate (predicted - measured) * V_M against the simulator's truth at the same instants
-    late = [k for k in mon.timeline if k.gate in EVALUATED and (k.t_s - run.start_epoch_s) / 3600 > 1.05]
+    late = [k for k in timeline(mon) if k.gate in EVALUATED and (k.t_s - run.start_epoch_s) / 3600 > 1.05]
     est = np.array([(k.predicted - k.measured) * 44.0 / 1000 for k in late])
     idx = np.searchsorted(run["time_s"], [k.t_s - run.start_epoch_s for k in late])
     truth = run["true_extra_leak_lpm"][np.minimum(idx, len(run) - 1)]

@@ -27,6 +27,7 @@ from cmcan.sim import scenario as scn
 from cmcan.sim.frames import Frames, frames_from_run, with_source_address
 from cmcan.sim.run import simulate
 from tests.conftest import ROOT, run_cli
+from tests.helpers import monitor, timeline
 from tests.test_j1939 import pretty
 
 J1939_YAML = ROOT / "config" / "j1939-example.yaml"
@@ -76,7 +77,7 @@ def leak():
 
 def run_monitor(cfg, frames: list[Frame], totals=None):
     """The streaming core over the frames: the monitor (its timeline kept) and what it emitted."""
-    mon = assemble(cfg, totals=totals, keep_timeline=True).monitor
+    mon = monitor(cfg, totals=totals)
     out: list[Frame] = []
     for f in frames:
         out += mon.feed(f)
@@ -119,8 +120,8 @@ def test_a_controller_that_claims_another_address_still_decodes(leak):
     base, _ = run_monitor(cfg, frames.to_frames())
     mon, _ = run_monitor(cfg, moved.to_frames())
     assert mon.counters["accepted"] == len(frames) and mon.counters["checksum"] == 0
-    assert [tk.gate for tk in mon.timeline] == [tk.gate for tk in base.timeline]
-    assert [tk.ratio_filt_pct for tk in mon.timeline] == [tk.ratio_filt_pct for tk in base.timeline]
+    assert [tk.gate for tk in timeline(mon)] == [tk.gate for tk in timeline(base)]
+    assert [tk.ratio_filt_pct for tk in timeline(mon)] == [tk.ratio_filt_pct for tk in timeline(base)]
     # A machine that names its sender's address ignores the frames from another one: stale, then a fault
     only3 = {n: replace(cfg.message(n), source_addresses=(3,), source_addresses_set=True) for n in plan.counter}
     narrow, _ = run_monitor(replace(cfg, messages=only3), moved.to_frames())
@@ -291,7 +292,7 @@ def test_inputs_split_over_two_channels_replay_as_two_buses(leak, tmp_path):
     base, base_out = run_monitor(cfg, frames.to_frames())
     mon, out = run_monitor(two, list(iter_frames(log)))
     assert mon.counters["accepted"] == len(split)
-    assert [tk.ratio_filt_pct for tk in mon.timeline] == [tk.ratio_filt_pct for tk in base.timeline]
+    assert [tk.ratio_filt_pct for tk in timeline(mon)] == [tk.ratio_filt_pct for tk in timeline(base)]
     assert [(f.arbitration_id, f.data) for f in out] == [(f.arbitration_id, f.data) for f in base_out]
     # the same log with the single-channel configuration: every log channel is read as its one channel
     one, _ = run_monitor(cfg, list(iter_frames(log)))
@@ -302,7 +303,7 @@ def test_inputs_split_over_two_channels_replay_as_two_buses(leak, tmp_path):
     assert only0.counters["unknown_channel"] == sum(c == "can1" for c in split.channels("can0"))
     # a two-channel configuration renamed for the bench (vcan0/vcan1) reads the log through aliases
     renamed = cfgmod.rename_channels(two, {"can0": "vcan0", "can1": "vcan1"})
-    mon2 = assemble(renamed, keep_timeline=True, log_aliases={"can0": "vcan0", "can1": "vcan1"}).monitor
+    mon2 = monitor(renamed, log_aliases={"can0": "vcan0", "can1": "vcan1"})
     replay(mon2, iter_frames(log))
     assert mon2.counters["accepted"] == len(split)
 
@@ -322,7 +323,7 @@ def test_can_fd_frames_are_inputs_only_on_an_fd_bus(leak):
     fd_mon, _ = run_monitor(fd_cfg, fd_frames)
     plain, _ = run_monitor(cfg, frames.to_frames())
     assert fd_mon.counters["accepted"] == len(frames)
-    assert [tk.ratio_filt_pct for tk in fd_mon.timeline] == [tk.ratio_filt_pct for tk in plain.timeline]
+    assert [tk.ratio_filt_pct for tk in timeline(fd_mon)] == [tk.ratio_filt_pct for tk in timeline(plain)]
 
 
 def test_replay_cli_on_a_j1939_log_writes_extended_frames_with_channels(leak, tmp_path):
@@ -504,5 +505,5 @@ def test_a_wrong_checksum_is_refused_and_makes_the_point_implausible(leak):
     data[pump, 2] ^= 0x01  # one bit of the displacement, checksum left as it was
     mon, _ = run_monitor(cfg, replace(frames, data=data).to_frames())
     assert mon.counters["checksum"] == int(pump.sum()) == mon.snapshot()["inputs"]["HST_PUMP"]["checksum"]
-    gates = {round(tk.t_s - t0, 1): tk.gate for tk in mon.timeline}
+    gates = {round(tk.t_s - t0, 1): tk.gate for tk in timeline(mon)}
     assert gates[8.0] == Gate.IMPLAUSIBLE_INPUT and gates[10.0] != Gate.IMPLAUSIBLE_INPUT

@@ -18,7 +18,7 @@ def warnings_h(mon, start):
 
 def test_run_to_failure_warns_before_each_failure():
     run, frames = sim_frames("run_to_failure")
-    mon = monitor(keep_timeline=False)
+    mon = monitor()
     feed_all(mon, frames)
     events = warnings_h(mon, run.start_epoch_s)
     print(events)
@@ -37,7 +37,7 @@ def test_run_to_failure_warns_before_each_failure():
 def test_healthy_mixed_duty_100h_with_oil_30_to_90_raises_no_warning():
     run, frames = sim_frames("healthy_mixed_100h")
     assert run["temp_c"].min() < 31 and run["temp_c"].max() > 89
-    mon = monitor(keep_timeline=False)
+    mon = monitor()
     feed_all(mon, frames)
     assert mon.totals.history == [] and mon.totals.warning_count == 0
     assert mon.counters["evaluated"] > 10_000  # the drive was really evaluated, not gated out

@@ -17,12 +17,11 @@ import pytest
 
 from cmcan import config as cfgmod
 from cmcan.assemble import assemble, dbc_for
-from cmcan.columnar import replay_columns
 from cmcan.frame import FrameColumns
 from cmcan.io.candump import write_candump
 from cmcan.monitor.gating import EVALUATED, Gate
 from cmcan.monitor.warnings import Level
-from cmcan.replay import FrameCollector, TimelineCollector, replay
+from cmcan.replay import FrameCollector, TimelineCollector, replay, replay_columns
 from cmcan.sim import scenario as scn
 from cmcan.sim.frames import frames_from_run
 from cmcan.sim.run import simulate

@@ -5,9 +5,8 @@ import pytest
 
 from cmcan import config as cfgmod
 from cmcan.assemble import assemble
-from cmcan.columnar import replay_columns
 from cmcan.io.columns import column_chunks
-from cmcan.replay import EmitWriter, SinkThread, TimelineWriter, replay_file
+from cmcan.replay import EmitWriter, SinkThread, TimelineWriter, replay_columns, replay_file
 from tests.helpers import sim_frames, write_log
 
 
@@ -47,7 +46,7 @@ def test_a_failing_sink_fails_the_replay_and_leaves_nothing(log, tmp_path):
 def test_sink_thread_raises_at_close_when_the_last_chunk_failed(tmp_path):
     st = SinkThread([Broken(tmp_path / "t.csv")])
     st.start(0.0)
-    from cmcan.replay import TickColumns
+    from cmcan.monitor.tick import TickColumns
 
     st.ticks(TickColumns.from_ticks([]))
     with pytest.raises(OSError):

@@ -215,7 +215,8 @@ def test_timeline_rows_are_the_same_either_way(tmp_path_factory, impl, rows_, da
     """The timeline writer's rows by the C formatter or with arrays: the same bytes."""
     from cmcan.monitor.gating import Gate
     from cmcan.monitor.warnings import Level, Reason
-    from cmcan.replay import TickColumns, TimelineWriter
+    from cmcan.monitor.tick import TickColumns
+    from cmcan.replay import TimelineWriter
     from cmcan.roles import MOTOR_SPEED
 
     n = len(rows_)

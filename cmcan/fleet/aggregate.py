@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cmcan.monitor.gating import EVALUATED
-from cmcan.replay import TickColumns
+from cmcan.monitor.tick import TickColumns
 
 _EVALUATED = np.array(sorted(int(g) for g in EVALUATED), dtype=np.int8)  # a ratio, inside the envelope or not
 

@@ -193,9 +193,9 @@ def _drive(
 
 
 def _worker_failure(opt: Options, job: LogJob, exc: BaseException) -> dict[str, Any]:
-    from cmcan.fleet.task import _path_key
+    from cmcan.fleet.task import path_key
 
-    key = _path_key(job.log)
+    key = path_key(job.log)
     reason = f"{type(exc).__name__}: {exc}"
     ds.write_quarantine(
         Path(opt.dataset),

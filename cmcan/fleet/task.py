@@ -28,9 +28,9 @@ from cmcan.fleet import dataset as ds
 from cmcan.fleet.aggregate import RUN_SHIFT, Downsampler, LogStats
 from cmcan.frame import Frame
 from cmcan.monitor.gating import Gate
-from cmcan.monitor.tick import LEVEL_NAMES
+from cmcan.monitor.tick import LEVEL_NAMES, TickColumns
 from cmcan.monitor.warnings import Level, Reason
-from cmcan.replay import TickColumns, replay_file
+from cmcan.replay import replay_file
 
 GATE_NAMES = np.array([g.name.lower() for g in sorted(Gate)], dtype=object)
 LEVEL_NAME_ARR = np.array([LEVEL_NAMES[lv] for lv in sorted(Level)], dtype=object)
@@ -141,7 +141,7 @@ class FleetSink:
         pass
 
 
-def _path_key(log: str) -> str:
+def path_key(log: str) -> str:
     return hashlib.sha256(os.path.abspath(log).encode()).hexdigest()[:16] + "-" + "0" * 12
 
 
@@ -201,7 +201,7 @@ def _process_log(job: LogJob, opt: Options) -> dict[str, Any]:
         log_hash = ds.sha256_file(job.log)
     except OSError as exc:
         named = f" (named in {job.origin})" if job.origin else ""
-        return _quarantine(opt, job, _path_key(job.log), "read", f"cannot read the log: {exc}{named}", None, started)
+        return _quarantine(opt, job, path_key(job.log), "read", f"cannot read the log: {exc}{named}", None, started)
     try:
         inp = load_inputs(job.config, job.model)
     except (CmcanError, OSError, ValueError) as exc:

@@ -11,6 +11,11 @@ one cannot be a late delivery (a bus delivers in order; a logger merging buses i
 milliseconds): the clock stepped back, and the monitor moves its state onto the new time base
 instead of waiting, silent, until time catches up. A step forward looks like a gap here; the daemon,
 which can compare frame time with the boot-time clock, tells the monitor of it (``Monitor.shift_time``).
+
+The clock takes frames one by one (:meth:`TickClock.step`, :meth:`TickClock.started`) or plans a
+stretch of them at once (:meth:`TickClock.plan`, :meth:`TickClock.regular_until`,
+:meth:`TickClock.commit`): the same decisions from running maxima, up to the first frame the
+stretch cannot take (a gap, a step back, an unreadable time), which then goes one by one.
 """
 
 from __future__ import annotations
@@ -18,7 +23,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from cmcan.monitor.windows import TIME_EPS_S
+import numpy as np
+from numpy.typing import NDArray
+
+from cmcan.monitor.windows import TIME_EPS_S, running_max
 
 STEP_BACK_S = 0.5
 
@@ -34,13 +42,27 @@ class Step:
     late: bool = False
 
 
+@dataclass
+class ClockPlan:
+    """The clock's decisions for a stretch of input frames at times ``t`` (arrival order), from its
+    state when planned: ``g`` the first tick a frame would complete (-inf for a time that is not a
+    number), ``k_prev`` the clock's next tick before each frame, ``late`` the frames older than a
+    tick already evaluated."""
+
+    t: NDArray[np.float64]
+    g: NDArray[np.float64]
+    k_prev: NDArray[np.float64]
+    late: NDArray[np.bool_]
+
+
 class TickClock:
-    __slots__ = ("_due_t", "_late_t", "last_frame_t", "max_gap_s", "next_k", "period")
+    __slots__ = ("_due_t", "_late_t", "counts", "last_frame_t", "max_gap_s", "next_k", "period")
 
     def __init__(self, rate_hz: float, max_gap_s: float) -> None:
         self.period = 1.0 / rate_hz
         self.max_gap_s = max_gap_s
         self.last_frame_t = -math.inf
+        self.counts = {"late": 0, "clock_steps": 0}
         self._set_next(None)
 
     def _set_next(self, k: int | None) -> None:
@@ -56,14 +78,17 @@ class TickClock:
         return self._late_t <= t <= self._due_t
 
     def step(self, t: float) -> Step:
-        """The frame time ``t`` of an input frame (called when :meth:`in_step` is False)."""
+        """The frame time ``t`` of an input frame (called when :meth:`in_step` is False); a late frame
+        is counted."""
         if not math.isfinite(t):
+            self.counts["late"] += 1
             return Step(late=True)
         if self.next_k is None:
             return Step()
         if t < self._late_t:
             if t < self.last_frame_t - STEP_BACK_S:
                 return Step(back_by_s=self.last_frame_t - t)
+            self.counts["late"] += 1
             return Step(late=True)
         return Step(self._ticks_before(t))
 
@@ -79,21 +104,14 @@ class TickClock:
         return round(delta_s / self.period)
 
     def shift(self, ticks: int) -> None:
-        """Move onto a time base ``ticks`` periods later (negative: earlier): the newest frame's time
-        and the next tick move with it, so not a tick is lost or evaluated twice."""
+        """A step of the wall clock (counted): move onto a time base ``ticks`` periods later
+        (negative: earlier); the newest frame's time and the next tick move with it, so not a tick
+        is lost or evaluated twice."""
+        self.counts["clock_steps"] += 1
         if self.next_k is None:
             return
         self.last_frame_t += ticks * self.period
         self._set_next(self.next_k + ticks)
-
-    def resume(self, next_k: int, last_frame_t: float) -> None:
-        """Continue from a state computed elsewhere (the columnar replay's write-back)."""
-        self._set_next(next_k)
-        self.last_frame_t = last_frame_t
-
-    def reset(self) -> None:
-        self._set_next(None)
-        self.last_frame_t = -math.inf
 
     def advance(self, t: float) -> list[int]:
         """Time passes without frames (the daemon's idle timer): the ticks up to ``t``."""
@@ -132,3 +150,52 @@ class TickClock:
             k += 1
         self._set_next(k)
         return ks
+
+    # -- a stretch of frames at once ---------------------------------------------------------------
+
+    def plan(self, t: NDArray[np.float64]) -> ClockPlan:
+        """What :meth:`step` would decide for input frames at ``t`` one after the other, as arrays
+        (the clock started: ``next_k`` is set)."""
+        assert self.next_k is not None
+        P, eps = self.period, TIME_EPS_S
+        finite = np.isfinite(t)
+        # g: the smallest k with k P >= t - eps, robust to the rounding of t / P
+        u = t - eps
+        g = np.ceil(u / P)
+        for _ in range(2):
+            g = np.where(g * P < u, g + 1, g)
+            g = np.where((g - 1) * P >= u, g - 1, g)
+        g = np.where(finite, g, -np.inf)
+        k_prev = running_max(np.concatenate([[float(self.next_k)], g]))[:-1]
+        return ClockPlan(t, g, k_prev, t < (k_prev - 1) * P - eps)
+
+    def regular_until(self, plan: ClockPlan, accepted: NDArray[np.bool_]) -> tuple[int, float]:
+        """How many frames of the plan the stretch takes: up to the first that :meth:`step` would
+        take otherwise than the plan says (a time that is not a number, a step of the clock back, a
+        gap, a rounding edge). ``accepted``: the frames accepted as input (they move the newest
+        frame's time). Returns that count and the newest accepted frame's time up to there."""
+        t, g, k_prev, late = plan.t, plan.g, plan.k_prev, plan.late
+        advances = t > k_prev * self.period + TIME_EPS_S
+        lf = np.maximum.accumulate(np.concatenate([[self.last_frame_t], np.where(accepted, t, -np.inf)]))
+        lf_prev = lf[:-1]
+        gap = advances & (t - lf_prev > self.max_gap_s)
+        step_back = late & (t < lf_prev - STEP_BACK_S)  # the wall clock stepped back: re-based frame by frame
+        odd_step = ~late & ~advances & (g > k_prev)  # a frame in step must not move the clock
+        irregular = ~np.isfinite(t) | step_back | gap | odd_step
+        stop = int(np.argmax(irregular)) if irregular.any() else len(t)
+        return stop, float(lf[stop])
+
+    def ticks_of(self, plan: ClockPlan, stop: int) -> tuple[NDArray[np.int64], NDArray[np.int64], int]:
+        """The ticks the first ``stop`` frames of the plan complete, for each tick the index of the
+        frame that completes it (the frames before it are the tick's), and the next tick after them."""
+        k_after = np.where(plan.late[:stop], plan.k_prev[:stop], np.maximum(plan.k_prev[:stop], plan.g[:stop]))
+        k_end = int(k_after[-1])
+        ticks = np.arange(int(self.next_k), k_end, dtype=np.int64)  # type: ignore[arg-type]
+        return ticks, np.searchsorted(k_after.astype(np.int64), ticks, side="right"), k_end
+
+    def commit(self, plan: ClockPlan, stop: int, next_k: int, last_frame_t: float) -> None:
+        """The first ``stop`` frames of the plan taken (their late ones counted): the clock goes on
+        from the next tick ``next_k`` and the newest accepted frame's time."""
+        self.counts["late"] += int(np.count_nonzero(plan.late[:stop]))
+        self._set_next(next_k)
+        self.last_frame_t = last_frame_t

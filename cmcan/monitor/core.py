@@ -1,63 +1,76 @@
-"""The monitor core: frames with timestamps in, output frames and a timeline out. No I/O, no clock.
+"""The monitor core: frames with timestamps in, output frames and ticks out. No I/O, no clock.
 
-``Monitor.feed`` takes one received frame. It is matched to a mapped input message by its channel,
-identifier and format (:mod:`cmcan.monitor.inputs`) and checked (:mod:`cmcan.monitor.health`); an
-accepted frame updates the trailing windows of its roles (:mod:`cmcan.monitor.windows`). The tick
-clock (:mod:`cmcan.monitor.clock`) says which evaluation ticks a frame completes; each tick gates the
-operating point, asks the model for its prediction, updates the ratio filter and the warning machine,
-and returns the CM frames due (:mod:`cmcan.monitor.payloads`) and, on a J1939 machine, DM1
-(:mod:`cmcan.monitor.diagnostics`). The daemon and the replay drive this same object.
+``Monitor.feed`` takes one received frame, ``Monitor.feed_columns`` a chunk of frames as arrays; both
+drive the same stages through their two forms (one frame or tick at a time, many at once as
+arrays), each stage owning its state:
+
+- :mod:`~cmcan.monitor.inputs` routes a frame to its mapped input message (or counts why not);
+- :mod:`~cmcan.monitor.clock` says which evaluation ticks a frame completes and which frames are late;
+- :mod:`~cmcan.monitor.health` checks checksums, alive counters and timeouts per message;
+- :mod:`~cmcan.monitor.windows` keeps each role's trailing window of accepted samples;
+- at each tick: :func:`~cmcan.monitor.gating.gate_point` (or ``gate_columns``) gates the operating
+  point, :mod:`~cmcan.monitor.ratio` asks the model and forms the raw ratio and leakage,
+  :mod:`~cmcan.monitor.filter` averages them, :mod:`~cmcan.monitor.warnings` steps the warning machine,
+  :mod:`~cmcan.monitor.totals` keeps what survives a restart, :mod:`~cmcan.monitor.payloads` and
+  :mod:`~cmcan.monitor.diagnostics` make the CM frames and DM1, :mod:`~cmcan.monitor.release` orders
+  the output.
 
 One tick, in order (:meth:`Monitor._evaluate`), each step a function of the windows and the state
 the previous ticks left:
 
 1. window statistics of every gated role at the tick's time; a role the machine holds constant
    (``MonitorParams.constants``) is that value, fresh, with no spread;
-2. the gate (:func:`cmcan.monitor.gating.gate_point`) with the model's envelope: a verdict of
-   ``EVALUATING`` or ``EXTRAPOLATED`` (outside the envelope) evaluates the point, any other names why
-   not; an erratic input message (:func:`cmcan.monitor.health.tick`) makes it ``IMPLAUSIBLE_INPUT``;
-3. for an evaluated point one model call; a prediction that is not a positive finite number within
-   the output's plausible range (:func:`cmcan.monitor.gating.prediction_ok`) makes the tick
-   ``MODEL_ERROR`` (counted in ``model_errors``; for ``fault_after_s`` it is a fault with reason
-   ``model_error``);
+2. the gate with the model's envelope: ``EVALUATING`` or ``EXTRAPOLATED`` (outside the envelope)
+   evaluates the point, any other verdict names why not; an erratic input message
+   (:meth:`~cmcan.monitor.health.Health.tick`) makes it ``IMPLAUSIBLE_INPUT``;
+3. for an evaluated point one model call; an implausible prediction makes the tick ``MODEL_ERROR``
+   (:mod:`cmcan.monitor.ratio`);
 4. raw ratio = measured / predicted * 100 and leakage = (predicted - measured) * ``lpm_per_unit``
    into the moving-average filter, extrapolated points included;
 5. the warning machine steps with the gate and, when the point was evaluated and the filter is
-   valid, the filtered ratio: extrapolated points may raise a warning, never clear one
-   (:mod:`cmcan.monitor.warnings`);
-6. the CM frames due at this tick (``cm_gate`` carries the verdict, so a receiver sees that a ratio
-   came from an extrapolated point), and DM1 where configured.
+   valid, the filtered ratio: extrapolated points may raise a warning, never clear one;
+6. the tick goes to the listeners (:class:`~cmcan.monitor.tick.TickListener`), and its CM frames due
+   (``cm_gate`` carries the verdict) and DM1, where configured, are made.
 
 Output order: every output frame carries its time (a tick's time, or later for the packets of a
 J1939 transport session). ``feed(f)``, ``advance(t)`` and ``due(t)`` return, in order of time (equal
 times in the order they were made), the output frames not returned before whose time is at most the
-frame's time (``t``): the frames of the ticks evaluated and the transport packets that fell due.
-``flush()`` returns the rest. A step back of the frames' time (the wall clock) first returns every
-pending packet.
+frame's time (``t``). ``flush()`` returns the rest. A step back of the frames' time (the wall clock)
+first returns every pending packet. ``feed_columns`` returns a chunk's output frames the same way.
+
+The array path takes a chunk in *regular stretches* (input frames whose times move forward without
+gaps, time resets or unreadable stamps): the clock's decisions from running maxima, the checks and
+decoding per message, each tick's window statistics from prefix sums, the gate for all ticks at once,
+the model in one batched call, the filter from exact sums; then the warning machine and DM1 tick by
+tick where something can change. A frame no stretch can take goes through the per-frame path. Both
+paths give the same ticks, frames and state, bit for bit.
 """
 
 from __future__ import annotations
 
-import heapq
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any, Protocol
+from typing import Any
 
-from cmcan.frame import Frame
-from cmcan.monitor import health
+import numpy as np
+from numpy.typing import NDArray
+
+from cmcan.frame import Frame, FrameColumns
 from cmcan.monitor.clock import TickClock
 from cmcan.monitor.diagnostics import Dm1Params, Dm1Producer
 from cmcan.monitor.filter import RatioFilter
-from cmcan.monitor.gating import EVALUATED, Gate, GateLimits, gate_point, prediction_ok
-from cmcan.monitor.health import OK, OUT_OF_RANGE, REASONS, Stream
-from cmcan.monitor.inputs import MEMO_MAX, Channels, InputMessage, Matcher
+from cmcan.monitor.gating import Gate, GateLimits, gate_columns, gate_point
+from cmcan.monitor.health import OK, OUT_OF_RANGE, Health, Stream
+from cmcan.monitor.inputs import Channels, InputMessage, Router, payload_rows
 from cmcan.monitor.payloads import Outputs, Payloads
-from cmcan.monitor.tick import LEVEL_NAMES, Tick
-from cmcan.monitor.totals import HISTORY_MAX, Totals
-from cmcan.monitor.warnings import Level, Reason, Thresholds, WarningMachine
-from cmcan.monitor.windows import Affine, RoleWindow
-from cmcan.roles import DP, HIGH_PRESSURE, LOW_PRESSURE, MODEL_INPUTS, gated_roles
+from cmcan.monitor.ratio import Point, Points, Predictor, Ratio
+from cmcan.monitor.release import OutputQueue
+from cmcan.monitor.tick import LEVEL_NAMES, Tick, TickColumns, TickListener
+from cmcan.monitor.totals import Totals
+from cmcan.monitor.warnings import Level, Reason, Thresholds, Transition, WarningMachine, fault_raised, warning_raised
+from cmcan.monitor.windows import Affine, DpFromHighLow, Target, Windows
+from cmcan.roles import gated_roles
 
 COUNTERS = (
     "frames_total",
@@ -74,25 +87,17 @@ COUNTERS = (
     "counter_frozen",
     "counter_jump",
     "timeout",
+    "ticks",
+    "evaluated",
+    "extrapolated",
+    "model_errors",
+    "clock_steps",
 )
-# What each decoded value of an input frame does.
-_WINDOW, _HIGH, _LOW, _IGNORED = 0, 1, 2, 3
-
-
-class Predictor(Protocol):
-    def predict_one(
-        self, pump_speed_rpm: float, pump_disp_cc: float, dp_bar: float, temp_c: float
-    ) -> tuple[float, float]: ...
-
-
-@dataclass(frozen=True)
-class DpFromHighLow:
-    """dp = high - low, exact in integers: raw_dp = p * raw_high - q * raw_low (see
-    :func:`cmcan.monitor.windows.commensurate`), taken at each high-pressure sample with the newest
-    low-pressure sample."""
-
-    p: int
-    q: int
+_CONDITION = {
+    "ok": (Level.OK, Reason.NONE),
+    "low": (Level.LOW, Reason.RATIO_LOW),
+    "high": (Level.HIGH, Reason.RATIO_HIGH),
+}
 
 
 @dataclass(frozen=True)
@@ -115,261 +120,404 @@ class MonitorParams:
         return self.limits.output_role
 
 
-class _Input:
-    """A mapped input message at run time: its spec, what each decoded value does, its health."""
+class Slot:
+    """A mapped input message at run time: its spec, its health stream, where its values go."""
 
-    __slots__ = ("checked", "decode", "length", "plan", "spec", "stream")
+    __slots__ = ("add", "checked", "decode", "index", "length", "spec", "stream", "targets")
 
-    def __init__(self, spec: InputMessage, plan: tuple[tuple[RoleWindow | None, int], ...]) -> None:
+    def __init__(self, index: int, spec: InputMessage, stream: Stream, windows: Windows) -> None:
+        self.index = index
         self.spec = spec
         self.length = spec.length
         self.decode = spec.decode
-        self.plan = plan
-        self.stream = Stream(spec.health)
-        self.checked = spec.health.counter is not None or spec.health.checksum is not None
+        self.stream = stream
+        self.checked = spec.health.checked
+        self.targets: tuple[Target, ...] = windows.targets(spec.roles)
+        self.add = windows.adder(spec.roles)
 
 
-class _Channel:
-    """A channel name as frames carry it: its configured channel (index -1: none), FD or not, and
-    the input of each identifier seen on it so far (a cache of the pure matching function)."""
-
-    __slots__ = ("ext", "fd", "index", "std")
-
-    def __init__(self, index: int, fd: bool) -> None:
-        self.index = index
-        self.fd = fd
-        self.std: dict[int, _Input | None] = {}  # by 11-bit identifier
-        self.ext: dict[int, _Input | None] = {}  # by 29-bit identifier
-
-
-_MISS = object()
-
-
-@dataclass
 class Monitor:
-    params: MonitorParams
-    inputs: Sequence[InputMessage]
-    model: Predictor
-    outputs: Outputs
-    totals: Totals = field(default_factory=Totals)
-    keep_timeline: bool = False
-    channels: Channels = field(default_factory=Channels)
-    dm1: Dm1Params | None = None
-
-    def __post_init__(self) -> None:
-        p = self.params
+    def __init__(
+        self,
+        params: MonitorParams,
+        inputs: Sequence[InputMessage],
+        model: Predictor,
+        outputs: Outputs,
+        totals: Totals | None = None,
+        channels: Channels | None = None,
+        dm1: Dm1Params | None = None,
+    ) -> None:
+        p = self.params = params
+        self.inputs = tuple(inputs)
+        self.outputs = outputs
+        self.channels = channels or Channels()
+        self.dm1 = dm1
+        self.totals = totals or Totals()
         self.period = 1.0 / p.rate_hz
         self.clock = TickClock(p.rate_hz, max_gap_s=max(p.limits.window_s, 1.0))
-        self.windows = {r: RoleWindow() for r in gated_roles(p.output_role) if r not in p.constants}
-        self._constants = [(r, float(p.constants[r])) for r in MODEL_INPUTS if r in p.constants]
-        self.inputs = tuple(self.inputs)
-        self._inputs = {id(m): _Input(m, tuple(self._plan(r) for r in m.roles)) for m in self.inputs}
-        self._streams = [x.stream for x in self._inputs.values()]
-        self._matcher = Matcher(self.inputs, self.channels)
-        self._chans: dict[str, _Channel] = {}
-        self._later: list[tuple[float, int, Frame]] = []  # output frames due later (transport packets)
-        self._seq = 0
-        self._dm1 = Dm1Producer(self.dm1, self.totals) if self.dm1 is not None else None
-        self._low: int | None = None
-        self.counters = dict.fromkeys(COUNTERS, 0)
-        self.counters.update(ticks=0, evaluated=0, extrapolated=0, model_errors=0, clock_steps=0)
+        roles = gated_roles(p.output_role)
+        self.windows = Windows(
+            roles, p.affine, p.limits.window_s, p.limits.min_samples, p.constants, p.dp_from_high_low
+        )
+        self.health = Health([m.health for m in self.inputs])
+        self.slots = tuple(
+            Slot(i, m, s, self.windows) for i, (m, s) in enumerate(zip(self.inputs, self.health.streams, strict=True))
+        )
+        self.router = Router(self.inputs, self.channels, self.slots)
+        self.ratio = Ratio(model, p.limits, p.lpm_per_unit)
+        self.queue = OutputQueue()
+        self.dm1_producer = Dm1Producer(dm1, self.totals) if dm1 is not None else None
+        self.accepted = 0
+        self.n_ticks = 0
         # The wall clock's steps undone: frame time t is ``t + run_shift_s`` on the run's own continuous
         # time base (a clock correction is no time the machine ran), which operating hours count on.
         self.run_shift_s = 0.0
-        self.machine = WarningMachine(p.thresholds)
-        self.machine.condition = {"ok": Level.OK, "low": Level.LOW, "high": Level.HIGH}[self.totals.condition]
-        self.machine.condition_reason = {
-            Level.OK: Reason.NONE,
-            Level.LOW: Reason.RATIO_LOW,
-            Level.HIGH: Reason.RATIO_HIGH,
-        }[self.machine.condition]
+        level, reason = _CONDITION[self.totals.condition]
+        self.machine = WarningMachine(p.thresholds, condition=level, condition_reason=reason)
         n = p.filter_samples
         self.filter = RatioFilter(
             n, p.filter_min_samples, self.totals.filter_ratios[-n:], self.totals.filter_leaks[-n:]
         )
         self.payloads = Payloads(self.outputs)
         self.last_tick: Tick | None = None
-        self.timeline: list[Tick] = []
+        self.listeners: list[TickListener] = []
         self.transitions_since_save = 0
 
-    def _plan(self, role: str) -> tuple[RoleWindow | None, int]:
-        hl = self.params.dp_from_high_low is not None
-        if role == HIGH_PRESSURE and hl:
-            return None, _HIGH
-        if role == LOW_PRESSURE and hl:
-            return None, _LOW
-        if role in self.windows:
-            return self.windows[role], _WINDOW
-        return None, _IGNORED
+    @property
+    def model(self) -> Predictor:
+        return self.ratio.model
 
-    # -- frames in ---------------------------------------------------------------------------------
+    @model.setter
+    def model(self, model: Predictor) -> None:
+        self.ratio.model = model
+
+    @property
+    def counters(self) -> dict[str, int]:
+        """What happened to the frames and ticks so far (:data:`COUNTERS`), from each stage's counts."""
+        c = {**self.router.counts, **self.health.counts(), **self.clock.counts, **self.ratio.counts}
+        c.update(accepted=self.accepted, ticks=self.n_ticks)
+        return {k: c[k] for k in COUNTERS}
+
+    @property
+    def clock_steps(self) -> int:
+        """The steps of the wall clock the monitor moved its state by so far."""
+        return self.clock.counts["clock_steps"]
+
+    # -- one frame ---------------------------------------------------------------------------------
 
     def feed(self, frame: Frame) -> list[Frame]:
         """Take one received frame; returns the output frames due by its time (see the module)."""
-        t, channel, fid, extended, remote, error, fd, data = frame
-        c = self.counters
-        c["frames_total"] += 1
-        if error or remote:
-            c["error_frame" if error else "remote_frame"] += 1
-            return []
-        ch = self._chans.get(channel) or self._channel(channel)
-        if ch.index < 0:
-            c["unknown_channel"] += 1
-            return []
-        if fd and not ch.fd:
-            c["bad_fd"] += 1
-            return []
-        inp = (ch.ext if extended else ch.std).get(fid, _MISS)
-        if inp is _MISS:
-            inp = self._lookup(ch, fid, extended)
-        if inp is None:
-            c["unknown_id"] += 1
-            return []
-        n = len(data)
-        if n != inp.length:
-            if n < inp.length:
-                c["bad_length"] += 1
-                inp.stream.counts["bad_length"] += 1
-                return []
-            # longer than its message (a CAN FD frame padded to the next FD length): the message is its
-            # first bytes, and only they are checked (a J1939 checksum covers the 8-byte message)
-            data = data[: inp.length]
+        slot = self.router.route(frame)
+        return [] if slot is None else self.take(slot, frame)
+
+    def take(self, slot: Slot, frame: Frame) -> list[Frame]:
+        """A routed frame of ``slot``'s message: the ticks it completes, its checks, its samples."""
+        t, data = frame[0], frame[7]
+        if len(data) > slot.length:  # a CAN FD frame padded beyond its message: the message's bytes
+            data = data[: slot.length]
         out: list[Frame] = []
         clock = self.clock
         if not clock.in_step(t):  # a tick is due, or the frame is late (or its time is not a number)
             step = clock.step(t)
             if step.late:
-                c["late"] += 1
                 return []
             if step.back_by_s:
-                out = self._release(out, math.inf)
+                out = self.queue.release(out, math.inf)
                 self.shift_time(-step.back_by_s)
             for k in step.ticks:
                 out += self._evaluate(k)
-        stream = inp.stream
-        if inp.checked:
-            verdict = stream.check(t, fid, data)
-            if verdict != OK:
-                c[REASONS[verdict]] += 1
-                stream.note(t, verdict)
-                return self._release(out, t) if self._later else out
-        raws = inp.decode(data)
+        stream = slot.stream
+        verdict = stream.check(t, frame[2], data) if slot.checked else OK
+        raws = slot.decode(data) if verdict == OK else None
         if raws is None:
-            c["out_of_range"] += 1
-            stream.note(t, OUT_OF_RANGE)
-            return self._release(out, t) if self._later else out
-        c["accepted"] += 1
-        if t >= stream.newest_t:  # stream.note(t, OK), inlined: the common case
-            stream.newest_t = t
-            stream.newest_ok = True
-        clock.started(t)
-        high = None
-        for raw, (win, kind) in zip(raws, inp.plan, strict=True):
-            if kind == _WINDOW:
-                win.add(t, raw)  # type: ignore[union-attr]
-            elif kind == _HIGH:
-                high = raw
-            elif kind == _LOW:
-                self._low = raw
-        if high is not None and self._low is not None:
-            hl = self.params.dp_from_high_low
-            assert hl is not None
-            self.windows[DP].add(t, hl.p * high - hl.q * self._low)
-        return self._release(out, t) if self._later else out
-
-    def _channel(self, name: str) -> _Channel:
-        i = self.channels.resolve(name)
-        ch = _Channel(-1, False) if i is None else _Channel(i, self.channels.fd[i])
-        if len(self._chans) < MEMO_MAX:
-            self._chans[name] = ch
-        return ch
-
-    def _lookup(self, ch: _Channel, fid: int, extended: bool) -> _Input | None:
-        spec = self._matcher.match(ch.index, fid, extended)
-        inp = self._inputs[id(spec)] if spec is not None else None
-        memo = ch.ext if extended else ch.std
-        if len(memo) < MEMO_MAX:
-            memo[fid] = inp
-        return inp
+            stream.note(t, verdict if verdict != OK else OUT_OF_RANGE)
+        else:
+            self.accepted += 1
+            stream.note(t, OK)
+            clock.started(t)
+            slot.add(t, raws)
+        return self.queue.release(out, t) if self.queue.later else out
 
     def advance(self, t: float) -> list[Frame]:
         """Time passes without frames (the daemon's idle timer): evaluate up to ``t``."""
         out: list[Frame] = []
         for k in self.clock.advance(t):
             out += self._evaluate(k)
-        return self._release(out, t) if self._later else out
+        return self.queue.release(out, t) if self.queue.later else out
 
     def due(self, t: float) -> list[Frame]:
-        """The pending transport packets due by ``t``, without evaluating (the daemon's timer, the
-        columnar replay at the end of a stretch)."""
-        return self._release([], t) if self._later else []
+        """The pending transport packets due by ``t``, without evaluating (the daemon's timer)."""
+        return self.queue.release([], t) if self.queue.later else []
 
     @property
     def next_due_t(self) -> float:
         """The time of the next pending output frame (inf when none)."""
-        return self._later[0][0] if self._later else math.inf
+        return self.queue.next_due_t
 
     def flush(self) -> list[Frame]:
         """Evaluate the ticks up to the last frame (end of a replayed log); every pending frame."""
         out: list[Frame] = []
         for k in self.clock.flush():
             out += self._evaluate(k)
-        return self._release(out, math.inf)
-
-    def _release(self, out: list[Frame], t: float) -> list[Frame]:
-        """``out`` (frames of ticks, in time order) merged with the pending frames due by ``t``."""
-        later = self._later
-        if not later or later[0][0] > t:
-            return out
-        merged: list[Frame] = []
-        for f in out:
-            while later and later[0][0] <= f.timestamp_s:
-                merged.append(heapq.heappop(later)[2])
-            merged.append(f)
-        while later and later[0][0] <= t:
-            merged.append(heapq.heappop(later)[2])
-        return merged
+        return self.queue.release(out, math.inf)
 
     def shift_time(self, delta_s: float) -> None:
         """The wall clock stepped by ``delta_s``: move the windows and the tick clock onto the new
         time base (by whole evaluation periods, so the tick grid stays and no tick is lost or doubled),
         so the drive's samples keep their ages and the ratio goes on without a pause. The core finds
         steps back itself; the daemon tells it of steps forward."""
-        self.counters["clock_steps"] += 1
         ticks = self.clock.whole_ticks(delta_s)
         self.run_shift_s -= ticks * self.period
-        for w in self.windows.values():
-            w.shift(ticks * self.period)
-        for st in self._streams:
-            st.shift(ticks * self.period)
+        self.windows.shift(ticks * self.period)
+        self.health.shift(ticks * self.period)
         self.clock.shift(ticks)
+
+    # -- one tick ----------------------------------------------------------------------------------
+
+    def _evaluate(self, k: int) -> list[Frame]:
+        """One evaluation tick (the steps in the module's docstring)."""
+        p = self.params
+        t = k * self.period
+        mean, std, count, age = self.windows.stats(t)
+        g = gate_point(mean, std, count, age, p.limits, p.max_age_s, p.envelope)
+        if self.health.tick(t):  # an erratic input message makes the point implausible
+            g = Gate.IMPLAUSIBLE_INPUT
+        pt = self.ratio.point(mean, count, g)
+        if pt.evaluated:
+            self.filter.add(pt.ratio_raw_pct, pt.leak_lpm)
+        tick = self._judge(t, pt)
+        for listener in self.listeners:
+            listener.tick(tick)
+        return self._emit(k, tick)
+
+    def _judge(self, t: float, pt: Point) -> Tick:
+        """Steps 5 and 6 of a tick: the warning machine, the totals, the tick."""
+        flt, m, tot = self.filter, self.machine, self.totals
+        evaluated = pt.evaluated
+        filt_valid, filt = flt.valid, flt.ratio_pct
+        cond_before, fault_before = m.condition, m.fault_reason
+        for tr in m.step(t, self.period, pt.gate, filt if (filt_valid and evaluated) else None):
+            self._record(tr)
+        tot.warning_count += warning_raised(cond_before, m.condition)
+        tot.fault_count += fault_raised(fault_before, m.fault_reason)
+        tot.condition = LEVEL_NAMES[m.condition]
+        level = m.level
+        tot.tick(level, evaluated, self.period)
+        self.n_ticks += 1
+        self.last_tick = Tick(
+            t_s=t,
+            gate=pt.gate,
+            measured=pt.measured,
+            predicted=pt.predicted,
+            whitebox=pt.whitebox,
+            ratio_raw_pct=pt.ratio_raw_pct,
+            ratio_filt_pct=filt,
+            extra_leak_lpm=flt.leak_lpm,
+            filt_valid=filt_valid,
+            level=level,
+            reason=m.reason,
+            time_below_s=m.time_below_s,
+            run_shift_s=self.run_shift_s,
+        )
+        return self.last_tick
+
+    def _emit(self, k: int, tick: Tick) -> list[Frame]:
+        """The output frames of an evaluated tick: CM frames, and DM1 where configured; frames for
+        later (transport packets) wait in the queue."""
+        out = self.payloads.frames(k, tick, self.totals.warning_count)
+        if self.dm1_producer is not None:
+            m = self.machine
+            ratio = tick.ratio_filt_pct if tick.filt_valid and tick.gate == Gate.EVALUATING else None
+            dm = self.dm1_producer.step(k, tick.t_s, m.condition, m.fault_reason, ratio)
+            if dm:  # most ticks send no DM1
+                self.queue.queue(dm, tick.t_s, out)
+        return out
+
+    def _record(self, tr: Transition) -> None:
+        self.totals.record(tr, self.run_shift_s)
+        self.transitions_since_save += 1
+
+    # -- a chunk of frames as arrays ---------------------------------------------------------------
+
+    def feed_columns(self, cols: FrameColumns, frames: bool = True) -> FrameColumns | None:
+        """Take a chunk of received frames: as :meth:`feed` frame after frame, the output frames in
+        one piece (None when none, or when ``frames`` is False: the ticks are all the caller wants)."""
+        out = _Out(frames)
+        which = self.router.route_columns(cols)
+        idx = np.flatnonzero(which >= 0)
+        if not len(idx):
+            return out.result()
+        t = cols.timestamp_s[idx]
+        groups = _groups(which[idx], len(self.slots))
+        del which
+        dec = self._decode(cols, idx, groups)
+        pos = 0
+        while pos < len(idx):
+            end = pos
+            if self.clock.next_k is not None and math.isfinite(t[pos]):
+                end = self._stretch(t, groups, dec, pos, out)
+            if end == pos:  # a frame no stretch takes: the per-frame path
+                out.add_frames(self.take(self.slots[int(dec.message[pos])], cols.frame(int(idx[pos]))))
+                pos += 1
+            else:
+                pos = end
+        return out.result()
+
+    def _decode(self, cols: FrameColumns, idx: NDArray[np.int64], groups: list[NDArray[np.int64]]) -> _Decoded:
+        """Per input message the raw values of its frames, the DBC range check per frame, each frame's
+        row in its message's arrays, and its counter and checksum verdict."""
+        n = len(idx)
+        dec = _Decoded(
+            message=np.zeros(n, np.int64),
+            raws={},
+            ok=np.ones(n, bool),
+            row=np.zeros(n, np.int64),
+            ctr=np.zeros(n, np.int64),
+            cs_ok=np.ones(n, bool),
+        )
+        for slot, sel in zip(self.slots, groups, strict=True):
+            if not len(sel):
+                continue
+            rows = idx[sel]
+            data = payload_rows(cols, rows, slot.spec.width)
+            dec.raws[slot.index], dec.ok[sel] = slot.spec.decode_columns(data)
+            dec.message[sel] = slot.index
+            dec.row[sel] = np.arange(len(sel))
+            if slot.checked:
+                dec.ctr[sel], dec.cs_ok[sel] = slot.stream.integrity_columns(
+                    cols.arbitration_id[rows], data, slot.length
+                )
+        return dec
+
+    def _stretch(
+        self, t_all: NDArray[np.float64], groups_all: list[NDArray[np.int64]], dec: _Decoded, pos: int, out: _Out
+    ) -> int:
+        """Take the regular stretch of routed frames starting at ``pos``; returns its end."""
+        t = t_all[pos:]
+        plan = self.clock.plan(t)
+        # each message's frames from pos on that reach the checks (not late), in arrival order
+        reach = [g[np.searchsorted(g, pos) :] - pos for g in groups_all] if pos else groups_all
+        reach = [g[~plan.late[g]] for g in reach]
+        checks = self.health.check_columns(t, reach, dec.ctr[pos:], dec.cs_ok[pos:])
+        verdict = np.where(checks != OK, checks, np.where(dec.ok[pos:], OK, OUT_OF_RANGE)).astype(np.int8)
+        accepted = (verdict == OK) & ~plan.late
+        stop, last_frame_t = self.clock.regular_until(plan, accepted)
+        if stop == 0:
+            return pos
+        self.health.commit_counters(stop)
+        t, verdict, accepted = t[:stop], verdict[:stop], accepted[:stop]
+        reach = [g[: np.searchsorted(g, stop)] for g in reach]
+        self.accepted += int(accepted.sum())
+        per_message = []
+        for slot, r in zip(self.slots, reach, strict=True):
+            mine = r[accepted[r]]
+            at = dec.row[pos + mine]
+            per_message.append((slot.targets, mine, [v[at] for v in dec.raws.get(slot.index, ())]))
+        samples = self.windows.stretch(t, per_message)
+        ticks, trig, k_end = self.clock.ticks_of(plan, stop)
+        t_k = ticks.astype(np.float64) * self.period
+        erratic = self.health.tick_columns(t, reach, verdict, trig, t_k)
+        if len(ticks):
+            self._evaluate_columns(ticks, samples.stats(trig, t_k), erratic, out)
+        self.clock.commit(plan, stop, k_end, last_frame_t)
+        samples.commit()
+        return pos + stop
+
+    def _evaluate_columns(self, ks: NDArray[np.int64], stats: Any, erratic: NDArray[np.bool_], out: _Out) -> None:
+        """:meth:`_evaluate` at every tick of a stretch."""
+        p = self.params
+        mean, std, count, age = stats
+        gates = gate_columns(mean, std, count, age, p.limits, p.max_age_s, p.envelope)
+        gates[erratic] = Gate.IMPLAUSIBLE_INPUT
+        pts = self.ratio.points(mean, count, gates)
+        filt, filt_leak, valid = self.filter.add_columns(
+            pts.ratio_raw_pct[pts.evaluated], pts.leak_lpm, pts.evaluated, len(ks)
+        )
+        self._judge_columns(ks, pts, filt, filt_leak, valid, out)
+
+    def _judge_columns(
+        self,
+        ks: NDArray[np.int64],
+        pts: Points,
+        filt: NDArray[np.float64],
+        filt_leak: NDArray[np.float64],
+        valid: NDArray[np.bool_],
+        out: _Out,
+    ) -> None:
+        """:meth:`_judge` and :meth:`_emit` at every tick of a stretch."""
+        t_k = ks.astype(np.float64) * self.period
+        tot = self.totals
+        evaluated = np.zeros(len(ks), dtype=bool)
+        evaluated[pts.evaluated] = True
+        ratio_arg = np.where(valid & evaluated, filt, np.nan)
+        w = self.machine.run_columns(
+            t_k, pts.gate, ratio_arg, self.period, (tot.warning_count, tot.fault_count), self._record
+        )
+        tot.warning_count, tot.fault_count = w.warnings, w.faults
+        dm1 = None
+        if self.dm1_producer is not None:
+            ratio = np.where(valid & (pts.gate == Gate.EVALUATING), filt, np.nan)
+            dm1 = self.dm1_producer.run_columns(ks, t_k, w.condition, w.fault, ratio, self.queue.queue)
+        level = w.level
+        tot.condition = LEVEL_NAMES[self.machine.condition]
+        tot.ticks(level, len(pts.evaluated), self.period)
+        self.n_ticks += len(ks)
+        ticks = TickColumns(
+            t_s=t_k,
+            gate=pts.gate.astype(np.int8),
+            measured=pts.measured,
+            predicted=pts.predicted,
+            whitebox=pts.whitebox,
+            ratio_raw_pct=pts.ratio_raw_pct,
+            ratio_filt_pct=filt,
+            extra_leak_lpm=filt_leak,
+            filt_valid=valid,
+            level=level,
+            reason=w.reason,
+            time_below_s=w.time_below_s,
+            run_shift_s=np.full(len(ks), self.run_shift_s),  # no clock step within a stretch
+        )
+        self.last_tick = ticks.tick(len(ks) - 1)
+        for listener in self.listeners:
+            listener.ticks(ticks)
+        if out.wanted:
+            frames = self.payloads.frames_columns(ks, ticks, w.warning_count)
+            out.add_columns(self.queue.merge_columns(frames, dm1, float(t_k[-1])))
+        else:
+            self.payloads.skip_columns(ks, ticks)
+            self.queue.release([], float(t_k[-1]))  # the packets due meanwhile go, unwanted
+
+    # -- state -------------------------------------------------------------------------------------
 
     def take_over(self, old: Monitor) -> list[str]:
         """Go on where ``old`` (this machine's monitor under the previous configuration or model, the
         daemon's SIGHUP reload) left off: the totals and warning history, the warning machine with
         its debounce and fault timers (under the new thresholds), the ratio filter (its newest
-        ``filter_samples``), the counters, the alive counter, the DM1 state and the output frames
-        still due carry over. The input windows and input health carry over when the inputs are
-        matched, read and scaled as before, and the tick clock too when the rate is the same;
-        otherwise they start afresh. Returns what started afresh (empty: nothing)."""
+        ``filter_samples``), the counters, the alive counter, the DM1 state, the listeners and the
+        output frames still due carry over. The input windows and input health carry over when the
+        inputs are matched, read and scaled as before, and the tick clock too when the rate is the
+        same; otherwise they start afresh. Returns what started afresh (empty: nothing)."""
         p = self.params
         self.totals = old.totals
         ratios, leaks = old.filter.saved()
         n = p.filter_samples
         self.filter = RatioFilter(n, p.filter_min_samples, ratios[-n:], leaks[-n:])
         self.machine = replace(old.machine, th=p.thresholds)
-        self.counters.update(old.counters)
-        self.run_shift_s = old.run_shift_s
-        self.payloads.alive = old.payloads.alive
-        self.payloads.last_warning = old.payloads.last_warning
-        self.last_tick = old.last_tick
+        self.ratio.counts.update(old.ratio.counts)
+        self.accepted, self.n_ticks, self.run_shift_s = old.accepted, old.n_ticks, old.run_shift_s
+        self.payloads.continue_from(old.payloads)
+        self.last_tick, self.listeners = old.last_tick, old.listeners
         self.transitions_since_save = old.transitions_since_save
-        self._later, self._seq = old._later, old._seq
-        if old._dm1 is not None:
-            self.totals.dtc_active = list(old._dm1.active)
+        self.queue = old.queue
+        if old.dm1_producer is not None:
+            self.totals.dtc_active = list(old.dm1_producer.active)
         if self.dm1 is not None:
-            same_dm1 = old._dm1 is not None and self.dm1 == old.dm1
-            self._dm1 = old._dm1 if same_dm1 else Dm1Producer(self.dm1, self.totals)
+            same_dm1 = old.dm1_producer is not None and self.dm1 == old.dm1
+            self.dm1_producer = old.dm1_producer if same_dm1 else Dm1Producer(self.dm1, self.totals)
+        return self._take_inputs(old)
+
+    def _take_inputs(self, old: Monitor) -> list[str]:
+        p = self.params
         afresh = []
         same_inputs = (
             self.inputs == old.inputs
@@ -377,135 +525,20 @@ class Monitor:
             and p.affine == old.params.affine
             and p.constants == old.params.constants
             and p.dp_from_high_low == old.params.dp_from_high_low
-            and set(self.windows) == set(old.windows)
+            and set(self.windows.windows) == set(old.windows.windows)
         )
-        if same_inputs:  # the old windows, and the old plans and streams that point at them
-            self.windows = old.windows
-            self._inputs, self._streams, self._matcher = old._inputs, old._streams, old._matcher
-            self._chans = old._chans
-            self._low = old._low
+        if same_inputs:  # the old windows, and the old slots and streams that point at them
+            self.windows, self.health, self.slots, self.router = old.windows, old.health, old.slots, old.router
         else:
+            self.router.counts.update(old.router.counts)
+            self.health.base.update(old.health.counts())
             afresh.append("the input windows and health (inputs read differently: about a second of warming up)")
         if same_inputs and self.period == old.period and self.clock.max_gap_s == old.clock.max_gap_s:
             self.clock = old.clock
         else:
+            self.clock.counts.update(old.clock.counts)
             afresh.append("the tick clock (it starts on the next frame)")
         return afresh
-
-    # -- evaluation --------------------------------------------------------------------------------
-
-    def _evaluate(self, k: int) -> list[Frame]:
-        """One evaluation tick (the steps in the module's docstring)."""
-        p = self.params
-        t = k * self.period
-        window_s = p.limits.window_s
-        mean, std, count, age = {}, {}, {}, {}
-        for role, w in self.windows.items():
-            mean[role], std[role], count[role] = w.stats(t, window_s, p.affine[role])
-            age[role] = t - w.last_t
-        for role, value in self._constants:
-            mean[role], std[role], count[role], age[role] = value, 0.0, p.limits.min_samples, 0.0
-        g = gate_point(mean, std, count, age, p.limits, p.max_age_s, p.envelope)
-        g = self._health_gate(t, g)
-        out = p.output_role
-        meas = mean[out] if count[out] else 0.0
-        pred = wb = raw = 0.0
-        flt = self.filter
-        if g in EVALUATED:
-            try:
-                pred, wb = self.model.predict_one(
-                    mean["pump_speed_rpm"], mean["pump_disp_cc"], mean[DP], mean["temp_c"]
-                )
-            except Exception:  # a model that fails must not take the daemon down
-                pred = math.nan
-            if not prediction_ok(pred, p.limits):
-                self.counters["model_errors"] += 1
-                g = Gate.MODEL_ERROR
-                pred = wb = 0.0
-            else:
-                raw = meas / pred * 100.0
-                flt.add(raw, (pred - meas) * p.lpm_per_unit)
-                self.counters["evaluated"] += 1
-                if g == Gate.EXTRAPOLATED:
-                    self.counters["extrapolated"] += 1
-                self.totals.evaluated_s += self.period
-        filt_valid = flt.valid
-        filt = flt.ratio_pct
-        evaluated = g in EVALUATED
-        m = self.machine
-        cond_before, fault_before = m.condition, m.fault_reason
-        for tr in m.step(t, self.period, g, filt if (filt_valid and evaluated) else None):
-            self._record(tr.t_s, tr.level_from, tr.level_to, tr.reason, tr.ratio_pct)
-        if m.condition != cond_before and m.condition in (Level.LOW, Level.HIGH):
-            self.totals.warning_count += 1
-        if fault_before == Reason.NONE and m.fault_reason != Reason.NONE:
-            self.totals.fault_count += 1
-        self.totals.condition = LEVEL_NAMES[m.condition]
-        level, reason = m.level, m.reason
-        self.totals.time_in_level_s[LEVEL_NAMES[level]] += self.period
-        self.counters["ticks"] += 1
-        tick = Tick(
-            t_s=t,
-            gate=g,
-            measured=meas,
-            predicted=pred,
-            whitebox=wb,
-            ratio_raw_pct=raw if evaluated else 0.0,
-            ratio_filt_pct=filt,
-            extra_leak_lpm=flt.leak_lpm,
-            filt_valid=filt_valid,
-            level=level,
-            reason=reason,
-            time_below_s=m.time_below_s,
-            run_shift_s=self.run_shift_s,
-        )
-        self.last_tick = tick
-        if self.keep_timeline:
-            self.timeline.append(tick)
-        return self._emit(k, tick)
-
-    def _health_gate(self, t: float, g: Gate) -> Gate:
-        """An erratic input message makes the point implausible (:mod:`cmcan.monitor.health`)."""
-        return Gate.IMPLAUSIBLE_INPUT if health.tick(self._streams, t, self.counters) else g
-
-    def _emit(self, k: int, tick: Tick) -> list[Frame]:
-        """The output frames of an evaluated tick: CM frames, and DM1 where configured; frames for
-        later (transport packets) wait in the pending queue."""
-        out = self.payloads.frames(k, tick, self.totals.warning_count)
-        if self._dm1 is not None:
-            m = self.machine
-            ratio = tick.ratio_filt_pct if tick.filt_valid and tick.gate == Gate.EVALUATING else None
-            dm = self._dm1.step(k, tick.t_s, m.condition, m.fault_reason, ratio)
-            if dm:  # most ticks send no DM1
-                self.queue(dm, tick.t_s, out)
-        return out
-
-    def queue(self, frames: list[Frame], t: float, out: list[Frame]) -> None:
-        """Output frames of the tick at ``t``: those due now go to ``out``, the transport packets due
-        later into the pending queue (the columnar replay queues its DM1 frames here too)."""
-        for f in frames:
-            if f.timestamp_s > t:
-                heapq.heappush(self._later, (f.timestamp_s, self._seq, f))
-                self._seq += 1
-            else:
-                out.append(f)
-
-    def _record(self, t: float, frm: Level, to: Level, reason: Reason, ratio: float | None) -> None:
-        tot = self.totals
-        tot.history.append(
-            {
-                "t_s": t,
-                "from": LEVEL_NAMES[frm],
-                "to": LEVEL_NAMES[to],
-                "reason": reason.name.lower(),
-                "ratio_filt_pct": ratio,
-                "t_run_s": t + self.run_shift_s,  # on the continuous time base (``run_shift_s``)
-            }
-        )
-        del tot.history[:-HISTORY_MAX]
-        self.transitions_since_save += 1
-
-    # -- views -------------------------------------------------------------------------------------
 
     def save_totals(self) -> Totals:
         """The totals with the filter contents, ready to persist."""
@@ -516,8 +549,7 @@ class Monitor:
 
     def channels_seen(self) -> dict[str, str | None]:
         """Each channel name frames came with so far, and the configured channel it was read as."""
-        names = self.channels.names
-        return {k: (names[c.index] if c.index >= 0 else None) for k, c in self._chans.items()}
+        return self.router.channels_seen()
 
     def snapshot(self) -> dict[str, Any]:
         tk = self.last_tick
@@ -526,9 +558,67 @@ class Monitor:
             "reason": self.machine.reason.name.lower(),
             "ratio_filt_pct": tk.ratio_filt_pct if tk and tk.filt_valid else None,
             "gate": tk.gate.name.lower() if tk else None,
-            "counters": dict(self.counters),
+            "counters": self.counters,
             "warning_count": self.totals.warning_count,
             "evaluated_h": self.totals.evaluated_s / 3600.0,
-            "inputs": {x.spec.name or hex(x.spec.frame_id): dict(x.stream.counts) for x in self._inputs.values()},
+            "inputs": {
+                s.spec.name or hex(s.spec.frame_id): {"bad_length": self.router.bad_length[s.index], **s.stream.counts}
+                for s in self.slots
+            },
             "dtcs_active": list(self.totals.dtc_active),
         }
+
+
+@dataclass
+class _Decoded:
+    """A chunk's routed frames decoded: each frame's message, the raw values per message (one array
+    per value over the message's frames), the DBC range check, each frame's row in its message's
+    arrays, its counter and whether its checksum holds."""
+
+    message: NDArray[np.int64]
+    raws: dict[int, list[NDArray[np.int64]]]
+    ok: NDArray[np.bool_]
+    row: NDArray[np.int64]
+    ctr: NDArray[np.int64]
+    cs_ok: NDArray[np.bool_]
+
+
+class _Out:
+    """A chunk's output frames in order: pieces from stretches and frames from the per-frame path."""
+
+    def __init__(self, wanted: bool) -> None:
+        self.wanted = wanted
+        self.pieces: list[FrameColumns] = []
+        self.single: list[Frame] = []
+
+    def add_frames(self, frames: list[Frame]) -> None:
+        if self.wanted and frames:
+            self.single.extend(frames)
+
+    def add_columns(self, cols: FrameColumns | None) -> None:
+        if cols is None or not len(cols):
+            return
+        if self.single:
+            self.pieces.append(FrameColumns.from_frames(self.single))
+            self.single = []
+        self.pieces.append(cols)
+
+    def result(self) -> FrameColumns | None:
+        if self.single:
+            self.pieces.append(FrameColumns.from_frames(self.single))
+            self.single = []
+        if not self.pieces:
+            return None
+        return self.pieces[0] if len(self.pieces) == 1 else FrameColumns.concat(self.pieces)
+
+
+def _groups(ids: NDArray[np.int64], n: int) -> list[NDArray[np.int64]]:
+    """The positions of each of the ``n`` input messages' frames (``ids``: 0 to n-1), each in arrival
+    order: one stable sort (a radix sort on small integers) instead of a pass over all frames per
+    message."""
+    if n == 1:
+        return [np.arange(len(ids))]
+    small = ids.astype(np.int16 if n < (1 << 15) else np.int64)
+    order = np.argsort(small, kind="stable")
+    bounds = np.searchsorted(small[order], np.arange(n + 1))
+    return [order[bounds[j] : bounds[j + 1]] for j in range(n)]

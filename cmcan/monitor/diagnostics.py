@@ -17,13 +17,20 @@ DM1 goes out every ``every_ticks`` ticks (1 s) and at once when the lamp or the 
 with one DTC or none in one frame (the all-zero DTC when none is active), with more over BAM
 (:mod:`cmcan.j1939.transport`): TP.CM at the tick's time, each TP.DT ``bam_gap_s`` later. A node has
 one BAM at a time, so a change during a BAM is sent at the first tick after that BAM's last packet.
+
+One tick at a time (:meth:`Dm1Producer.step`), or a stretch of ticks (:meth:`Dm1Producer.run_columns`),
+which steps only the ticks where a step could do something.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
-from cmcan.frame import Frame
+import numpy as np
+from numpy.typing import NDArray
+
+from cmcan.frame import Frame, FrameColumns
 from cmcan.j1939 import dm1, ids, transport
 from cmcan.j1939.dm1 import Dtc, Fmi, Lamp, Lamps
 from cmcan.monitor.totals import Totals
@@ -149,3 +156,128 @@ class Dm1Producer:
         frames = transport.bam_frames(t, self.p.bam_gap_s, dm1.PGN_DM1, payload, self.p.source, self.p.channel)
         self.busy_until = frames[-1].timestamp_s
         return frames
+
+    # -- a stretch of ticks ------------------------------------------------------------------------
+
+    def run_columns(
+        self,
+        ks: NDArray[np.int64],
+        t_k: NDArray[np.float64],
+        cond: NDArray[np.int8],
+        fault: NDArray[np.int8],
+        ratio: NDArray[np.float64],
+        queue: Callable[[list[Frame], float, list[Frame]], None],
+    ) -> FrameColumns | None:
+        """:meth:`step` over a stretch of ticks (``ratio``: NaN where a tick gives none): the frames due
+        at their ticks, in order (None when there are none); ``queue(frames, t, out)`` takes a step's
+        frames (those due later wait there, as frame by frame).
+
+        A tick is stepped where the step could do something: a tick due by the period, a change of
+        condition or fault, a change still waiting to go out (``changed``), or anywhere while the
+        severity could move (a ratio beyond a severe threshold, or a severe flag set). Any other tick
+        would find its state unchanged and nothing due. And a run of due ticks with nothing changed
+        since a step that left one cached single frame resends that frame, which is what the step
+        would do at each of them."""
+        must, event = self._ticks_to_step(ks, cond, fault, ratio)
+        now: list[Frame] = []
+        now_at: list[int] = []  # the tick of each frame in ``now``
+        resend: list[tuple[NDArray[np.int64], bytes]] = []  # ticks that resend a cached frame, and it
+        must_i, events = np.flatnonzero(must), np.flatnonzero(event)
+        n = len(ks)
+
+        def stepped(i: int) -> int:  # the last tick stepped
+            while True:
+                r, t = float(ratio[i]), float(t_k[i])
+                dm = self.step(int(ks[i]), t, int(cond[i]), int(fault[i]), None if r != r else r)  # type: ignore[arg-type]
+                if dm:
+                    queue(dm, t, now)
+                    now_at.extend([i] * (len(now) - len(now_at)))
+                if not self.changed or i + 1 >= n:
+                    return i
+                i += 1  # a change waits to go out: every tick until it has
+
+        q = 0
+        while q < len(must_i):
+            i = int(must_i[q])
+            pl = self._payload
+            if not event[i] and self._resends(pl, int(cond[i]), int(fault[i]), float(t_k[i])):
+                # the due ticks up to the next event resend the cached frame (times only grow: all of
+                # them are past any transport in progress)
+                end = events[np.searchsorted(events, i)] if len(events) and events[-1] > i else n
+                q_end = int(np.searchsorted(must_i, end))
+                resend.append((must_i[q:q_end], pl[1]))  # type: ignore[index]
+                q = q_end
+                continue
+            q = int(np.searchsorted(must_i, stepped(i), side="right"))
+        return self._frames_of(t_k, now, now_at, resend)
+
+    def _ticks_to_step(
+        self, ks: NDArray[np.int64], cond: NDArray[np.int8], fault: NDArray[np.int8], ratio: NDArray[np.float64]
+    ) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+        """The ticks a step could do something at, and among them those that change something."""
+        p = self.p
+        with np.errstate(invalid="ignore"):
+            severe = (ratio < p.low_severe_pct) | (ratio > p.high_severe_pct)
+        if self.low_severe or self.high_severe or severe.any():
+            every = np.ones(len(ks), dtype=bool)
+            return every, every
+        event = np.zeros(len(ks), dtype=bool)  # the severity flags stay: only these ticks change anything
+        # the first tick against the state the producer was left in (by the stretch before)
+        event[0] = self.changed or self._last != (int(cond[0]), int(fault[0]), self.low_severe, self.high_severe)
+        event[1:] = (cond[1:] != cond[:-1]) | (fault[1:] != fault[:-1])
+        return event | (ks % p.every_ticks == 0), event
+
+    def _resends(self, pl: tuple[tuple[int, ...], bytes] | None, cond: int, fault: int, t: float) -> bool:
+        """Whether a due tick with nothing changed would resend the cached single frame."""
+        return (
+            not self.changed
+            and pl is not None
+            and len(pl[1]) <= 8
+            and self._last == (cond, fault, self.low_severe, self.high_severe)
+            and t > self.busy_until
+        )
+
+    def _frames_of(
+        self,
+        t_k: NDArray[np.float64],
+        now: list[Frame],
+        now_at: list[int],
+        resend: list[tuple[NDArray[np.int64], bytes]],
+    ) -> FrameColumns | None:
+        """The stepped ticks' frames and the resent ones as columns, in tick order (a tick's own
+        frames in their order)."""
+        if not now and not resend:
+            return None
+        parts, at = [], []
+        if now:
+            parts.append(FrameColumns.from_frames(now))
+            at.append(np.array(now_at, dtype=np.int64))
+        if resend:
+            r = np.concatenate([run for run, _ in resend])
+            data = np.zeros((len(r), 8), dtype=np.uint8)
+            dlc = np.zeros(len(r), dtype=np.int16)
+            at_run = 0
+            for run, payload in resend:  # the frame cached when the run began
+                data[at_run : at_run + len(run), : len(payload)] = np.frombuffer(payload, dtype=np.uint8)
+                dlc[at_run : at_run + len(run)] = len(payload)
+                at_run += len(run)
+            no = np.zeros(len(r), dtype=bool)
+            parts.append(
+                FrameColumns(
+                    timestamp_s=t_k[r],
+                    channel=np.zeros(len(r), dtype=np.int16),
+                    channel_names=(self.p.channel,),
+                    arbitration_id=np.full(len(r), self.frame_id, dtype=np.uint32),
+                    extended=np.ones(len(r), dtype=bool),
+                    remote=no,
+                    error=no,
+                    fd=no,
+                    dlc=dlc,
+                    data=data,
+                )
+            )
+            at.append(r)
+        cols = FrameColumns.concat(parts) if len(parts) > 1 else parts[0]
+        if len(parts) > 1:
+            cols = cols.take(np.argsort(np.concatenate(at), kind="stable"))
+        return cols

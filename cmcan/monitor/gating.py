@@ -214,6 +214,38 @@ def gate_point(
     """
     out = limits.output_role
     roles = [r for r in (*MODEL_INPUTS, out) if r in mean]
+    verdict = _inputs_gate(roles, mean, count, age_s, limits, max_age_s)
+    if verdict is not None:
+        return verdict
+    d, o = mean[PUMP_DISP], mean[out]
+    if (d < 0.0 and d <= -limits.min_pump_disp_cc) or (o < 0.0 and o <= -limits.min_output):
+        return Gate.REVERSE
+    if mean[PUMP_SPEED] < limits.min_pump_speed_rpm:
+        return Gate.LOW_SPEED
+    if abs(mean[PUMP_DISP]) < limits.min_pump_disp_cc:
+        return Gate.LOW_DISPLACEMENT
+    if mean[out] < limits.min_output:
+        return Gate.LOW_FLOW
+    for r, lim in limits.max_std.items():
+        if r in std and std[r] > lim:
+            return Gate.TRANSIENT
+    if envelope is not None:
+        for r, (lo, hi) in envelope.items():
+            if not (lo <= mean[r] <= hi):
+                return Gate.EXTRAPOLATED
+    return Gate.EVALUATING
+
+
+def _inputs_gate(
+    roles: list[str],
+    mean: dict[str, float],
+    count: dict[str, int],
+    age_s: dict[str, float],
+    limits: GateLimits,
+    max_age_s: Mapping[str, float] | None,
+) -> Gate | None:
+    """The first rules of :func:`gate_point`, on the inputs themselves: present, fresh, enough
+    samples, plausible. None when they pass."""
     missing = 0
     for r in roles:
         a = age_s[r]
@@ -232,23 +264,7 @@ def gate_point(
         m = abs(mean[r]) if r in signed else mean[r]
         if not (lo <= m <= hi):  # also catches NaN
             return Gate.IMPLAUSIBLE_INPUT
-    d, o = mean[PUMP_DISP], mean[out]
-    if (d < 0.0 and d <= -limits.min_pump_disp_cc) or (o < 0.0 and o <= -limits.min_output):
-        return Gate.REVERSE
-    if mean[PUMP_SPEED] < limits.min_pump_speed_rpm:
-        return Gate.LOW_SPEED
-    if abs(mean[PUMP_DISP]) < limits.min_pump_disp_cc:
-        return Gate.LOW_DISPLACEMENT
-    if mean[out] < limits.min_output:
-        return Gate.LOW_FLOW
-    for r, lim in limits.max_std.items():
-        if r in std and std[r] > lim:
-            return Gate.TRANSIENT
-    if envelope is not None:
-        for r, (lo, hi) in envelope.items():
-            if not (lo <= mean[r] <= hi):
-                return Gate.EXTRAPOLATED
-    return Gate.EVALUATING
+    return None
 
 
 def prediction_ok(predicted: float, limits: GateLimits) -> bool:

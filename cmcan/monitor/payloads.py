@@ -1,7 +1,9 @@
 """The CM output frames of an evaluated tick: which messages are due, their signal values, encoding.
 
 Kept apart from the evaluation so that what the ratio *is* and how the bus *carries* it change
-independently (another DBC, other periods, another channel).
+independently (another DBC, other periods, another channel). One tick's frames
+(:meth:`Payloads.frames`) or a stretch of ticks' frames as columns (:meth:`Payloads.frames_columns`),
+with the same alive counter and warning-change state.
 """
 
 from __future__ import annotations
@@ -10,13 +12,17 @@ import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
-from cmcan.codec import Layout, frame_encoder
-from cmcan.frame import Frame
+import numpy as np
+from numpy.typing import NDArray
+
+from cmcan.codec import Layout, encode_all, frame_encoder
+from cmcan.frame import Frame, FrameColumns
 from cmcan.monitor.gating import EVALUATED, Gate
-from cmcan.monitor.tick import Tick
+from cmcan.monitor.tick import Tick, TickColumns
 from cmcan.monitor.warnings import Level, Reason
 from cmcan.roles import MOTOR_SPEED, QUANTITY_SIGNALS
 
+_EVALUATED = np.array(sorted(int(g) for g in EVALUATED), dtype=np.int8)
 ALIVE_MODULO = 16
 WARNING_COUNT_MODULO = 65536  # warning_count is sent modulo this (a 16-bit counter wraps)
 # The CM ratios an output must carry: a drive that delivers nothing to twice its prediction. Beyond
@@ -121,6 +127,10 @@ class Payloads:
         self.alive = 0
         self.last_warning: tuple[int, int] | None = None
 
+    def continue_from(self, old: Payloads) -> None:
+        """Go on with the alive counter and warning state of the payloads this one replaces."""
+        self.alive, self.last_warning = old.alive, old.last_warning
+
     def _frame(self, t: float, msg: OutputMessage, values: Mapping[str, float]) -> Frame:
         return Frame(t, self.outputs.channel, msg.frame_id, msg.extended, False, False, False, msg.encode(values))
 
@@ -178,3 +188,103 @@ class Payloads:
                 )
             )
         return out
+
+    def frames_columns(self, ks: NDArray[np.int64], c: TickColumns, wcount: NDArray[np.int64]) -> FrameColumns:
+        """The frames of the ticks ``ks`` (their values ``c``, the warning count after each
+        ``wcount``) as :meth:`frames` makes them tick after tick, in that order."""
+        o = self.outputs
+        is_ratio = ks % o.ratio.every_ticks == 0
+        # the alive counter a tick's frames carry: its value before this tick's ratio frame counts it
+        alive = ((self.alive + np.cumsum(is_ratio) - is_ratio) % ALIVE_MODULO).astype(np.float64)
+        state = c.level.astype(np.int64) * 256 + c.reason.astype(np.int64)
+        prev = np.empty(len(ks), dtype=np.int64)
+        prev[0] = -1 if self.last_warning is None else self.last_warning[0] * 256 + self.last_warning[1]
+        prev[1:] = state[:-1]
+        self.skip_columns(ks, c)
+        evaluated = np.isin(c.gate, _EVALUATED).astype(np.float64)
+        valid = c.filt_valid
+        name_meas, name_pred, name_wb, name_valid = o.quantity_signals
+        parts = (
+            _encode(
+                o.ratio,
+                np.flatnonzero(is_ratio),
+                {
+                    "cm_ratio_raw_pct": c.ratio_raw_pct,
+                    "cm_ratio_filt_pct": np.where(valid, c.ratio_filt_pct, 0.0),
+                    "extra_leakage_lpm": np.where(valid, c.extra_leak_lpm, 0.0),
+                    "cm_raw_valid": evaluated,
+                    "cm_filt_valid": valid.astype(np.float64),
+                    "cm_gate": c.gate.astype(np.float64),
+                    "cm_alive_counter": alive,
+                },
+            ),
+            _encode(
+                o.quantity,
+                np.flatnonzero(ks % o.quantity.every_ticks == 0),
+                {
+                    name_meas: np.where(np.isfinite(c.measured), c.measured, 0.0),
+                    name_pred: c.predicted,
+                    name_wb: c.whitebox,
+                    name_valid: evaluated,
+                    "cm_alive_counter": alive,
+                },
+            ),
+            _encode(
+                o.warning,
+                np.flatnonzero((state != prev) | (ks % o.warning.every_ticks == 0)),
+                {
+                    "warning_level": c.level.astype(np.float64),
+                    "warning_reason": c.reason.astype(np.float64),
+                    "time_below_threshold_s": np.floor(c.time_below_s),
+                    "warning_count": (wcount % WARNING_COUNT_MODULO).astype(np.float64),
+                },
+            ),
+        )
+        return self._interleave(c.t_s, parts)
+
+    def skip_columns(self, ks: NDArray[np.int64], c: TickColumns) -> None:
+        """The state :meth:`frames_columns` leaves, without making the frames (nobody wants them)."""
+        is_ratio = ks % self.outputs.ratio.every_ticks == 0
+        self.alive = int((self.alive + int(is_ratio.sum())) % ALIVE_MODULO)
+        self.last_warning = (int(c.level[-1]), int(c.reason[-1]))
+
+    def _interleave(
+        self, t_s: NDArray[np.float64], parts: tuple[tuple[NDArray[np.int64], NDArray[np.uint8]], ...]
+    ) -> FrameColumns:
+        """Per tick its ratio, quantity and warning frames, in that order."""
+        o = self.outputs
+        msgs = (o.ratio, o.quantity, o.warning)
+        tick_of = np.concatenate([rows for rows, _ in parts])
+        kind_of = np.concatenate([np.full(len(rows), k, dtype=np.int64) for k, (rows, _) in enumerate(parts)])
+        data = np.zeros((len(tick_of), 8), dtype=np.uint8)
+        at = 0
+        for rows, payload in parts:
+            data[at : at + len(rows), : payload.shape[1]] = payload[:, :8]
+            at += len(rows)
+        order = np.lexsort((kind_of, tick_of))
+        tick_of, kind_of, data = tick_of[order], kind_of[order], data[order]
+        no = np.zeros(len(tick_of), dtype=bool)
+        return FrameColumns(
+            timestamp_s=t_s[tick_of],
+            channel=np.zeros(len(tick_of), dtype=np.int16),
+            channel_names=(o.channel,),
+            arbitration_id=np.array([m.frame_id for m in msgs], dtype=np.uint32)[kind_of],
+            extended=np.array([m.extended for m in msgs], dtype=bool)[kind_of],
+            remote=no,
+            error=no,
+            fd=no,
+            dlc=np.array([m.length for m in msgs], dtype=np.int16)[kind_of],
+            data=data,
+        )
+
+
+def _encode(
+    msg: OutputMessage, rows: NDArray[np.int64], values: dict[str, NDArray[np.float64]]
+) -> tuple[NDArray[np.int64], NDArray[np.uint8]]:
+    """Payloads of ``msg`` for the tick rows (n, length), as its per-frame encoder gives them."""
+    if msg.length > 8:
+        raise ValueError("an output message longer than 8 bytes: the array path writes classic frames")
+    data = encode_all(msg.layouts, msg.size, msg.length, {k: v[rows] for k, v in values.items()})
+    if msg.fill:  # J1939: the bits of no signal sent as 1
+        data |= np.frombuffer(msg.fill, dtype=np.uint8)[None, : msg.length]
+    return rows, data

@@ -1,8 +1,19 @@
-"""One evaluation tick's result: the operating point's verdict, prediction, ratio and warning state."""
+"""One evaluation tick's result, many ticks as columns, and the one way ticks leave the core.
+
+Every tick the monitor evaluates goes to its :class:`TickListener` s: one tick at a time
+(``tick``) from the per-frame path, a stretch of ticks as columns (``ticks``) from the array path,
+in the order they were evaluated. The daemon's uplink, the replay's files and the fleet's data set
+listen this way; nothing polls the monitor for its last tick.
+"""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
 
 from cmcan.monitor.gating import Gate
 from cmcan.monitor.warnings import Level, Reason
@@ -27,3 +38,135 @@ class Tick:
     reason: Reason
     time_below_s: float
     run_shift_s: float = 0.0  # t_s + this: the tick on the run's continuous time base (Monitor.run_shift_s)
+
+
+@dataclass(frozen=True)
+class TickColumns:
+    """A chunk of evaluation ticks, one array per field of :class:`Tick`."""
+
+    t_s: NDArray[np.float64]
+    gate: NDArray[np.int8]
+    measured: NDArray[np.float64]  # the output quantity: motor speed (rpm) or flow (l/min)
+    predicted: NDArray[np.float64]
+    whitebox: NDArray[np.float64]
+    ratio_raw_pct: NDArray[np.float64]
+    ratio_filt_pct: NDArray[np.float64]
+    extra_leak_lpm: NDArray[np.float64]
+    filt_valid: NDArray[np.bool_]
+    level: NDArray[np.int8]
+    reason: NDArray[np.int8]
+    time_below_s: NDArray[np.float64]
+    # t_s + this: each tick on the run's continuous time base (the wall clock's steps undone); zeros
+    # when not given
+    run_shift_s: NDArray[np.float64] = None  # type: ignore[assignment]
+
+    def __post_init__(self) -> None:
+        if self.run_shift_s is None:
+            object.__setattr__(self, "run_shift_s", np.zeros(len(self.t_s)))
+
+    def __len__(self) -> int:
+        return len(self.t_s)
+
+    @property
+    def t_run_s(self) -> NDArray[np.float64]:
+        """The ticks' times on the run's continuous time base, which operating hours count on."""
+        return self.t_s + self.run_shift_s
+
+    def tick(self, i: int) -> Tick:
+        """Row ``i`` as a :class:`Tick`."""
+        return Tick(
+            t_s=float(self.t_s[i]),
+            gate=Gate(int(self.gate[i])),
+            measured=float(self.measured[i]),
+            predicted=float(self.predicted[i]),
+            whitebox=float(self.whitebox[i]),
+            ratio_raw_pct=float(self.ratio_raw_pct[i]),
+            ratio_filt_pct=float(self.ratio_filt_pct[i]),
+            extra_leak_lpm=float(self.extra_leak_lpm[i]),
+            filt_valid=bool(self.filt_valid[i]),
+            level=Level(int(self.level[i])),
+            reason=Reason(int(self.reason[i])),
+            time_below_s=float(self.time_below_s[i]),
+            run_shift_s=float(self.run_shift_s[i]),
+        )
+
+    @classmethod
+    def from_ticks(cls, ticks: Sequence[Tick]) -> TickColumns:
+        def col(name: str, dtype: Any) -> NDArray[Any]:
+            return np.fromiter((getattr(k, name) for k in ticks), dtype=dtype, count=len(ticks))
+
+        return cls(
+            t_s=col("t_s", np.float64),
+            gate=col("gate", np.int8),
+            measured=col("measured", np.float64),
+            predicted=col("predicted", np.float64),
+            whitebox=col("whitebox", np.float64),
+            ratio_raw_pct=col("ratio_raw_pct", np.float64),
+            ratio_filt_pct=col("ratio_filt_pct", np.float64),
+            extra_leak_lpm=col("extra_leak_lpm", np.float64),
+            filt_valid=col("filt_valid", np.bool_),
+            level=col("level", np.int8),
+            reason=col("reason", np.int8),
+            time_below_s=col("time_below_s", np.float64),
+            run_shift_s=col("run_shift_s", np.float64),
+        )
+
+    @classmethod
+    def concat(cls, chunks: Sequence[TickColumns]) -> TickColumns:
+        if not chunks:
+            return cls.from_ticks([])
+        return cls(**{n: np.concatenate([getattr(c, n) for c in chunks]) for n in cls.__dataclass_fields__})
+
+
+class TickListener(Protocol):
+    """Where evaluated ticks go: one at a time from the per-frame path, as columns from the array
+    path, in evaluation order."""
+
+    def tick(self, tick: Tick) -> None: ...
+    def ticks(self, chunk: TickColumns) -> None: ...
+
+
+class TickChunks(Protocol):
+    """What takes ticks as columns only (a replay's sinks)."""
+
+    def ticks(self, chunk: TickColumns) -> None: ...
+
+
+class TickBuffer:
+    """A listener that hands ticks on as columns: single ticks gathered into chunks of up to
+    ``size`` (a chunk per tick would cost more than the tick), columns passed through after the
+    single ticks before them. :meth:`flush` hands on what is gathered."""
+
+    def __init__(self, to: TickChunks, size: int = 8192) -> None:
+        self.to = to
+        self.size = size
+        self.pending: list[Tick] = []
+
+    def tick(self, tick: Tick) -> None:
+        self.pending.append(tick)
+        if len(self.pending) >= self.size:
+            self.flush()
+
+    def ticks(self, chunk: TickColumns) -> None:
+        self.flush()
+        self.to.ticks(chunk)
+
+    def flush(self) -> None:
+        if self.pending:
+            chunk = TickColumns.from_ticks(self.pending)
+            self.pending = []
+            self.to.ticks(chunk)
+
+
+class OneByOne:
+    """Adapts a per-tick consumer (``tick`` only) to a listener: columns become single ticks."""
+
+    def __init__(self, to: Any) -> None:
+        self.to = to
+
+    def tick(self, tick: Tick) -> None:
+        self.to.tick(tick)
+
+    def ticks(self, chunk: TickColumns) -> None:
+        for i in range(len(chunk)):
+            self.to.tick(chunk.tick(i))

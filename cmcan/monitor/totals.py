@@ -6,10 +6,13 @@ import math
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
+import numpy as np
+from numpy.typing import NDArray
+
 from cmcan.errors import CmcanError, Kind
 from cmcan.j1939.dm1 import OC_MAX
 from cmcan.monitor.tick import LEVEL_NAMES
-from cmcan.monitor.warnings import Level, Reason
+from cmcan.monitor.warnings import Level, Reason, Transition, add_repeat
 
 HISTORY_MAX = 1000
 FORMAT = "cmcan-state/1"
@@ -36,6 +39,35 @@ class Totals:
     # J1939 DM1: occurrence count per DTC ("SPN:FMI") and the DTCs active at the last save
     dtc_occurrences: dict[str, int] = field(default_factory=dict)
     dtc_active: list[str] = field(default_factory=list)
+
+    def record(self, tr: Transition, run_shift_s: float) -> None:
+        """A level change, with its time on the run's continuous time base (``Monitor.run_shift_s``)."""
+        self.history.append(
+            {
+                "t_s": tr.t_s,
+                "from": LEVEL_NAMES[tr.level_from],
+                "to": LEVEL_NAMES[tr.level_to],
+                "reason": tr.reason.name.lower(),
+                "ratio_filt_pct": tr.ratio_pct,
+                "t_run_s": tr.t_s + run_shift_s,
+            }
+        )
+        del self.history[:-HISTORY_MAX]
+
+    def tick(self, level: Level, evaluated: bool, period_s: float) -> None:
+        """One tick's time: in its level, and evaluated or not."""
+        if evaluated:
+            self.evaluated_s += period_s
+        self.time_in_level_s[LEVEL_NAMES[level]] += period_s
+
+    def ticks(self, levels: NDArray[np.int8], n_evaluated: int, period_s: float) -> None:
+        """:meth:`tick` for a stretch of ticks: the same float additions, in the same order."""
+        for lv in Level:
+            cnt = int(np.count_nonzero(levels == lv))
+            if cnt:
+                name = LEVEL_NAMES[lv]
+                self.time_in_level_s[name] = add_repeat(self.time_in_level_s[name], period_s, cnt)
+        self.evaluated_s = add_repeat(self.evaluated_s, period_s, n_evaluated)
 
     def to_dict(self) -> dict[str, Any]:
         return {"format": FORMAT, **asdict(self)}

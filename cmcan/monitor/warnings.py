@@ -14,10 +14,16 @@ Two layers, each debounced in *evaluated* time (the sum of evaluation periods th
   many seconds of good input clear it. While faulted the published level is fault; the condition
   underneath is kept and comes back when the fault clears.
 Time is the evaluation ticks' own (frame time); nothing here reads a clock.
+
+A warning counts when the condition becomes low or high (:func:`warning_raised`), a fault when one
+rises (:func:`fault_raised`). The machine steps one tick at a time (:meth:`WarningMachine.step`) or
+runs a stretch of ticks (:meth:`WarningMachine.run_columns`), which skips runs of quiet ticks in the
+ok state in one step (:meth:`WarningMachine.skip`) and steps the others.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from enum import IntEnum
 
@@ -63,6 +69,38 @@ class Transition:
 
 # Durations add up tick by tick in floating point: ten 0.1 s ticks are 0.9999999999999999 s.
 _EPS = 1e-6
+
+
+def warning_raised(before: Level, after: Level) -> bool:
+    """A step that changed the condition to low or high raised a warning."""
+    return after != before and after in (Level.LOW, Level.HIGH)
+
+
+def fault_raised(before: Reason, after: Reason) -> bool:
+    return before == Reason.NONE and after != Reason.NONE
+
+
+@dataclass
+class WarningColumns:
+    """The machine after each tick of a stretch: its condition and reason, fault, the evaluated time
+    below the threshold, the warnings raised so far (``warning_count``), and the counts at the end."""
+
+    condition: NDArray[np.int8]
+    condition_reason: NDArray[np.int8]
+    fault: NDArray[np.int8]
+    time_below_s: NDArray[np.float64]
+    warning_count: NDArray[np.int64]
+    warnings: int
+    faults: int
+
+    @property
+    def level(self) -> NDArray[np.int8]:
+        return np.where(self.fault != 0, np.int8(Level.FAULT), self.condition).astype(np.int8)
+
+    @property
+    def reason(self) -> NDArray[np.int8]:
+        return np.where(self.fault != 0, self.fault, self.condition_reason).astype(np.int8)
+
 
 _FAULT_GATES = {
     Gate.STALE_INPUT: Reason.INPUT_STALE,
@@ -196,6 +234,46 @@ class WarningMachine:
                 adds = adds[breaks[-1] + 1 :]
             self.inside_s = add_repeat(self.inside_s, dt_s, int(np.count_nonzero(adds)))
         return below_after
+
+    def run_columns(
+        self,
+        t_k: NDArray[np.float64],
+        gates: NDArray[np.int8],
+        ratios: NDArray[np.float64],
+        dt_s: float,
+        counts: tuple[int, int],
+        record: Callable[[Transition], None],
+    ) -> WarningColumns:
+        """:meth:`step` at every tick of a stretch (``ratios``: NaN where a tick gives none), each
+        level change handed to ``record``; ``counts``: the warnings and faults raised before."""
+        n = len(t_k)
+        cond, creason, fault = (np.zeros(n, dtype=np.int8) for _ in range(3))
+        below = np.zeros(n, dtype=np.float64)
+        wcount = np.zeros(n, dtype=np.int64)
+        quiet = self.quiet(gates, ratios)
+        loud = np.append(np.flatnonzero(~quiet), n)
+        quiet_l, t_list, g_list, arg = quiet.tolist(), t_k.tolist(), gates.tolist(), ratios.tolist()
+        wc, fc = counts
+        i = 0
+        while i < n:
+            if quiet_l[i] and self.can_skip():  # a run of quiet ticks in the ok state: one step
+                j = int(loud[np.searchsorted(loud, i)])
+                below[i:j] = self.skip(gates[i:j], ratios[i:j], dt_s)
+                creason[i:j] = self.condition_reason
+                wcount[i:j] = wc
+                i = j
+                continue
+            a = arg[i]
+            cb, fb = self.condition, self.fault_reason
+            for tr in self.step(t_list[i], dt_s, g_list[i], None if a != a else a):
+                record(tr)
+            wc += warning_raised(cb, self.condition)
+            fc += fault_raised(fb, self.fault_reason)
+            cond[i], creason[i], fault[i] = self.condition, self.condition_reason, self.fault_reason
+            below[i] = self.time_below_s
+            wcount[i] = wc
+            i += 1
+        return WarningColumns(cond, creason, fault, below, wcount, wc, fc)
 
 
 def _rated(gates: NDArray[np.integer], ratios: NDArray[np.float64]) -> NDArray[np.bool_]:
