@@ -22,6 +22,7 @@ import contextlib
 import errno
 import logging
 import math
+import queue
 import select
 import signal
 import socket
@@ -46,7 +47,7 @@ from cmcan.ratelog import RateLimitedLog
 from cmcan.sdnotify import Notifier
 from cmcan.statefile import StateStore
 
-if TYPE_CHECKING:  # issue 15 (uplink): only for the type hint; the feed imports this module
+if TYPE_CHECKING:  # only for the type hint: the uplink's feed is an application beside this one
     from cmcan.uplink.feed import UplinkFeed
 
 log = logging.getLogger("cmcan.daemon")
@@ -73,6 +74,18 @@ class Reloaded:
     cfg: Config
     monitor: Monitor
     opens: Callable[[], can.BusABC] | Mapping[str, Callable[[], can.BusABC]]
+
+
+@dataclass
+class _LoopState:
+    """What the loop's steps remember between turns (monotonic times; frame times of the bus)."""
+
+    next_wd: float
+    next_status: float
+    last_save: float
+    saved_ticks: int = -1
+    last_rx_wall: float | None = None  # when the last frame arrived
+    last_frame_t: float = math.nan  # and its timestamp
 
 
 @dataclass
@@ -206,6 +219,9 @@ class Daemon:
         self.ratelog = RateLimitedLog(clock=clock)
         self.save_every_s = cfg.state.save_every_s
         self.uplink = uplink  # queues events and summaries for the outbox; never blocks
+        if uplink is not None:  # it hears every tick, and reads the counters of the monitor running now
+            uplink.attach(lambda: (self.monitor, self.stats))
+            monitor.listeners.append(uplink)
         # Frame time against a clock that neither steps nor stops in suspend: a jump of their
         # difference is the wall clock stepping (the kernel stamps frames with the wall clock).
         self.boot_clock = boot_clock or _boot_time
@@ -217,12 +233,15 @@ class Daemon:
         self._tp_waiting: deque[Frame] = deque()
         self.reloader: Callable[[], Reloaded] | None = None  # builds a validated configuration (SIGHUP)
         self._reload_requested = threading.Event()
+        self._reloading: threading.Thread | None = None  # a reload being built
+        self._reloaded: queue.SimpleQueue[Reloaded | BaseException] = queue.SimpleQueue()  # what it built
         self.stop_signal: int | None = None  # the signal that stopped the daemon, if one did
         # While run() runs, stop() and request_reload() write a byte here to end a wait: safe from a
         # signal handler, where setting a threading.Event could deadlock on the lock the wait holds.
         self._wake_r: socket.socket | None = None
         self._wake_w: socket.socket | None = None
         self._sleep = sleep or self._wait
+        self.loop = _LoopState(next_wd=clock(), next_status=clock(), last_save=clock())
 
     def _set_links(self, open_bus: Callable[[], can.BusABC] | Mapping[str, Callable[[], can.BusABC]]) -> None:
         opens = dict(open_bus) if isinstance(open_bus, Mapping) else {self.cfg.bus.channel: open_bus}
@@ -242,117 +261,154 @@ class Daemon:
     # -- the loop --------------------------------------------------------------------------------------
 
     def run(self) -> None:
-        opt = self.opt
-        last_rx_wall: float | None = None
-        last_frame_t = math.nan
-        next_wd = next_status = self.clock()
-        last_save = self.clock()
-        saved_ticks = -1
-        wd_every = self.notifier.watchdog_interval_s
+        """The loop: requests first, housekeeping (watchdog, status, state), the links, then a wait
+        for frames and their handling, or the idle step; each a method a test can drive."""
+        self._start()
+        while not self.stop_event.is_set():
+            self.handle_requests()
+            now = self.clock()
+            self.housekeeping(now)
+            live = self.links_up(now)
+            if not live:
+                self.wait_for_links()
+                continue
+            batch = self.receive(live)
+            if batch:
+                self.handle_frames(batch)
+            elif batch is not None:  # (None: the bus failed, and is being reopened)
+                self.idle()
+        self._shutdown()
+
+    def _start(self) -> None:
+        now = self.clock()
+        self.loop = _LoopState(next_wd=now, next_status=now, last_save=now)
         self._wake_r, self._wake_w = socket.socketpair()
         self._wake_w.setblocking(False)
         self.notifier.ready(self._status_text())
         log.info("cmcan running on %s %s", self.cfg.bus.interface, ", ".join(x.name for x in self.links))
-        while not self.stop_event.is_set():
-            if self._reload_requested.is_set():
-                self._reload_requested.clear()
-                self._reload()
-                for x in self.links:  # a reload is also "try again now" (the adapter was just plugged in)
-                    if x.bus is None:
-                        x.retry_at = -math.inf
-            now = self.clock()
-            if wd_every is not None and now >= next_wd:
-                self.notifier.watchdog()
-                next_wd = now + wd_every
-            # No wait below lasts past the next watchdog ping, whatever the links do.
-            until_wd = next_wd - now if wd_every is not None else math.inf
-            if now >= next_status:
-                self.notifier.status(self._status_text())
-                next_status = now + opt.status_every_s
-            # Save on every warning change at once, else periodically while the core evaluates;
-            # an idle gateway does not wear its flash rewriting unchanged totals.
-            ticks = self.monitor.counters["ticks"]
-            if self.store is not None and (
-                self.monitor.transitions_since_save or (now - last_save >= self.save_every_s and ticks != saved_ticks)
-            ):
-                self._save()
-                last_save, saved_ticks = now, ticks
 
-            live = self._live
-            if len(live) < len(self.links):
-                live = self._open_due(now)
-                if not live:  # every link down: wait for the first retry, the next ping or status, a request
-                    now = self.clock()  # an open that fails may take its time (a USB adapter's driver)
-                    until_wd = next_wd - now if wd_every is not None else math.inf
-                    retry = min(x.retry_at for x in self.links) - now
-                    self._sleep(max(0.0, min(retry, opt.backoff_max_s, until_wd, next_status - now)))
-                    continue
-            timeout = min(opt.recv_timeout_s, until_wd)
-            if self._tp_waiting:
-                timeout = max(0.0, min(timeout, self._tp_last_sent + self._tp_gap_s - now))
-            if len(live) == 1:  # one bus: as it comes
-                x = live[0]
-                try:
-                    msg = x.bus.recv(timeout=timeout)  # type: ignore[union-attr]
-                except (can.CanError, OSError, ValueError) as exc:
-                    self._bus_failed(x, "receive", exc)
-                    continue
-                batch: Sequence[tuple[Link, can.Message]] = ((x, msg),) if msg is not None else ()
-            else:
-                batch = self._receive(live, timeout)
-
-            now = self.clock()
-            for link, msg in batch:
-                if msg.is_error_frame:
-                    self.ratelog(
-                        logging.WARNING,
-                        "errframe",
-                        "error frame on %s: id 0x%X data %s",
-                        link.name,
-                        msg.arbitration_id,
-                        bytes(msg.data).hex(),
-                    )
-                try:
-                    if opt.stamps_on_wall_clock:
-                        self._watch_wall_clock(msg.timestamp)
-                    steps = self.monitor.counters["clock_steps"]
-                    out = self.monitor.feed(from_message(msg, link.name))
-                    if self.monitor.counters["clock_steps"] != steps:  # the core found a step back
-                        log.warning(
-                            "the wall clock stepped back by %.3f s; monitoring goes on on the new time base",
-                            last_frame_t - msg.timestamp,
-                        )
-                    if out and self.monitor.next_due_t != math.inf:  # a transport session's packets: spaced here
-                        out += self.monitor.due(math.inf)
-                except Exception:  # the core must never take the daemon down: log, count, go on
-                    self._internal_error()
-                    out = []
-                if out or self._tp_waiting:
-                    self._send(out)
-                self._observe()
-                last_rx_wall = now
-                last_frame_t = msg.timestamp
-            if not batch:
-                out = []
-                if last_rx_wall is not None and now - last_rx_wall >= opt.idle_after_s:
-                    try:
-                        out = self.monitor.advance(last_frame_t + (now - last_rx_wall))
-                        out += self.monitor.due(math.inf)
-                    except Exception:
-                        self._internal_error()
-                    self._observe()
-                if out or self._tp_waiting:
-                    self._send(out)
-        self._shutdown()
-
-    def _observe(self) -> None:
-        """Issue 15: the uplink looks at the core after each step (cheap unless a tick completed)."""
-        if self.uplink is None:
-            return
+    def handle_requests(self) -> None:
+        """A reload asked for by SIGHUP (signal handlers only set the flag and wake the loop) is built
+        off the loop, in a thread: reading files and loading a model, however long they take, must
+        not stop the loop answering SIGTERM and the watchdog. What it built is swapped in here,
+        between two frames."""
+        if self._reload_requested.is_set() and self._reloading is None:
+            self._reload_requested.clear()
+            self._begin_reload()
         try:
-            self.uplink.observe(self.monitor, self.stats)
-        except Exception:  # the uplink must not take the daemon down either
-            self._internal_error()
+            built = self._reloaded.get_nowait()
+        except queue.Empty:
+            return
+        self._reloading = None
+        self._finish_reload(built)
+        for x in self.links:  # a reload is also "try again now" (the adapter was just plugged in)
+            if x.bus is None:
+                x.retry_at = -math.inf
+
+    def housekeeping(self, now: float) -> None:
+        """The watchdog ping, the status line, and the state saved: on every warning change at once,
+        else periodically while the core evaluates (an idle gateway does not wear its flash
+        rewriting unchanged totals)."""
+        st = self.loop
+        wd_every = self.notifier.watchdog_interval_s
+        if wd_every is not None and now >= st.next_wd:
+            self.notifier.watchdog()
+            st.next_wd = now + wd_every
+        if now >= st.next_status:
+            self.notifier.status(self._status_text())
+            st.next_status = now + self.opt.status_every_s
+        ticks = self.monitor.n_ticks
+        if self.store is not None and (
+            self.monitor.transitions_since_save or (now - st.last_save >= self.save_every_s and ticks != st.saved_ticks)
+        ):
+            self._save()
+            st.last_save, st.saved_ticks = now, ticks
+
+    def _until_watchdog(self, now: float) -> float:
+        """No wait lasts past the next watchdog ping, whatever the links do."""
+        return self.loop.next_wd - now if self.notifier.watchdog_interval_s is not None else math.inf
+
+    def links_up(self, now: float) -> list[Link]:
+        """The open links, after trying those whose back-off has passed."""
+        return self._live if len(self._live) == len(self.links) else self._open_due(now)
+
+    def wait_for_links(self) -> None:
+        """Every link down: wait for the first retry, the next ping or status, or a request."""
+        now = self.clock()  # an open that fails may take its time (a USB adapter's driver)
+        retry = min(x.retry_at for x in self.links) - now
+        wait = min(retry, self.opt.backoff_max_s, self._until_watchdog(now), self.loop.next_status - now)
+        self._sleep(max(0.0, wait))
+
+    def receive(self, live: list[Link]) -> Sequence[tuple[Link, can.Message]] | None:
+        """The frames that arrived within the receive timeout (shorter while transport packets wait);
+        None when the one bus failed."""
+        now = self.clock()
+        timeout = min(self.opt.recv_timeout_s, self._until_watchdog(now))
+        if self._tp_waiting:
+            timeout = max(0.0, min(timeout, self._tp_last_sent + self._tp_gap_s - now))
+        if len(live) > 1:
+            return self._receive(live, timeout)
+        x = live[0]  # one bus: as it comes
+        try:
+            msg = x.bus.recv(timeout=timeout)  # type: ignore[union-attr]
+        except (can.CanError, OSError, ValueError) as exc:
+            self._bus_failed(x, "receive", exc)
+            return None
+        return ((x, msg),) if msg is not None else ()
+
+    def handle_frames(self, batch: Sequence[tuple[Link, can.Message]]) -> None:
+        """Each frame to the core, what it returns onto the buses. A frame the core cannot handle is
+        counted and logged, never the daemon's end."""
+        st = self.loop
+        now = self.clock()
+        for link, msg in batch:
+            if msg.is_error_frame:
+                self.ratelog(
+                    logging.WARNING,
+                    "errframe",
+                    "error frame on %s: id 0x%X data %s",
+                    link.name,
+                    msg.arbitration_id,
+                    bytes(msg.data).hex(),
+                )
+            try:
+                out = self._feed(link, msg, st.last_frame_t)
+            except Exception:  # the core must never take the daemon down: log, count, go on
+                self._internal_error()
+                out = []
+            if out or self._tp_waiting:
+                self._send(out)
+            st.last_rx_wall = now
+            st.last_frame_t = msg.timestamp
+
+    def _feed(self, link: Link, msg: can.Message, last_frame_t: float) -> list[Frame]:
+        if self.opt.stamps_on_wall_clock:
+            self._watch_wall_clock(msg.timestamp)
+        steps = self.monitor.clock_steps
+        out = self.monitor.feed(from_message(msg, link.name))
+        if self.monitor.clock_steps != steps:  # the core found a step back
+            log.warning(
+                "the wall clock stepped back by %.3f s; monitoring goes on on the new time base",
+                last_frame_t - msg.timestamp,
+            )
+        if out and self.monitor.next_due_t != math.inf:  # a transport session's packets: spaced here
+            out += self.monitor.due(math.inf)
+        return out
+
+    def idle(self) -> None:
+        """No frame within the receive timeout: after ``idle_after_s`` without frames, time goes on
+        in the core on the wall clock (ticks keep coming on a silent bus); waiting packets go out."""
+        st = self.loop
+        now = self.clock()
+        out: list[Frame] = []
+        if st.last_rx_wall is not None and now - st.last_rx_wall >= self.opt.idle_after_s:
+            try:
+                out = self.monitor.advance(st.last_frame_t + (now - st.last_rx_wall))
+                out += self.monitor.due(math.inf)
+            except Exception:
+                self._internal_error()
+        if out or self._tp_waiting:
+            self._send(out)
 
     def _watch_wall_clock(self, frame_t: float) -> None:
         """A step of the wall clock forward moves the monitor onto the new time base (a step back the
@@ -411,17 +467,38 @@ class Daemon:
         self._reload_requested.set()
         self._wake()
 
-    def _reload(self) -> None:
-        """Swap in the configuration and model the reloader builds and checks; if it cannot (a bad
-        file, a model that does not fit), say why and go on with the running ones."""
+    @property
+    def reload_pending(self) -> bool:
+        """A reload asked for and not yet swapped in (or refused)."""
+        return self._reload_requested.is_set() or self._reloading is not None
+
+    def _begin_reload(self) -> None:
         if self.reloader is None:
             log.warning("reload requested, but this daemon has nothing to reload from")
             return
         self.notifier.reloading()
-        try:
-            new = self.reloader()
-        except Exception as exc:  # a CmcanError names the file and field; anything else is a bug, logged
-            log.error("reload failed, running on with the previous configuration: %s", exc, exc_info=not _named(exc))
+        reloader = self.reloader
+
+        def build() -> None:
+            try:
+                built: Reloaded | BaseException = reloader()
+            except Exception as exc:  # said by the loop, which goes on with the running configuration
+                built = exc
+            self._reloaded.put(built)
+            self._wake()
+
+        self._reloading = threading.Thread(target=build, name="cmcan-reload", daemon=True)
+        self._reloading.start()
+
+    def _finish_reload(self, new: Reloaded | BaseException) -> None:
+        """Swap in the configuration and model the reloader built and checked; if it could not (a bad
+        file, a model that does not fit), say why and go on with the running ones."""
+        if isinstance(new, BaseException):  # a CmcanError names the file and field; anything else is a bug
+            log.error(
+                "reload failed, running on with the previous configuration: %s",
+                new,
+                exc_info=(type(new), new, new.__traceback__) if not _named(new) else None,
+            )
             self.notifier.ready(self._status_text())
             return
         old_cfg, old_mon = self.cfg, self.monitor
@@ -632,8 +709,8 @@ class Daemon:
         self.notifier.stopping()
         if self.store is not None:
             self._save()
-        if self.uplink is not None:  # issue 15: the period's last summary, then the queue written out
-            self.uplink.close(self.monitor, self.stats)
+        if self.uplink is not None:  # the period's last summary, then the queue written out
+            self.uplink.close()
         for x in self.links:
             self._close(x)
         for sock in (self._wake_r, self._wake_w):

@@ -41,11 +41,11 @@ def test_a_reload_of_the_same_configuration_is_seamless(leak):
     """Reloading an unchanged configuration and model gives, frame for frame, what the daemon would
     have sent without the reload: nothing started afresh."""
     first, second = split(leak, 0.5)
-    whole = monitor(keep_timeline=False)
+    whole = monitor()
     want = [f for fr in (*first, *second) for f in whole.feed(fr)] + whole.flush()
-    old = monitor(keep_timeline=False)
+    old = monitor()
     got = [f for fr in first for f in old.feed(fr)]
-    new = monitor(keep_timeline=False)
+    new = monitor()
     assert new.take_over(old) == []
     got += [f for fr in second for f in new.feed(fr)] + new.flush()
     assert got == want
@@ -54,7 +54,7 @@ def test_a_reload_of_the_same_configuration_is_seamless(leak):
 
 def test_a_reload_keeps_the_warning_and_says_what_starts_afresh(leak):
     first, second = split(leak, 0.7)
-    old = monitor(keep_timeline=False)
+    old = monitor()
     for fr in first:
         old.feed(fr)
     assert old.machine.level == Level.LOW and old.totals.warning_count == 1
@@ -82,7 +82,7 @@ def test_the_daemon_reloads_between_frames_and_keeps_running_on_a_bad_reload(lea
     cfg = cfgmod.load()
     msgs = messages(leak)
     bus = ScriptedBus(list(msgs))
-    d = Daemon(cfg, monitor(keep_timeline=False), None, lambda: bus, options=DaemonOptions(idle_after_s=3600))
+    d = Daemon(cfg, monitor(), None, lambda: bus, options=DaemonOptions(idle_after_s=3600))
     calls = []
 
     def reloader():
@@ -99,7 +99,7 @@ def test_the_daemon_reloads_between_frames_and_keeps_running_on_a_bad_reload(lea
         n = d.monitor.counters["frames_total"]
         if (n > len(msgs) // 3 and not calls) or (n > 2 * len(msgs) // 3 and len(calls) == 1):
             d.request_reload()
-        return n == len(msgs)
+        return n == len(msgs) and len(calls) == 2 and not d.reload_pending  # (a reload is built in a thread)
 
     run_daemon_until(d, progress)
     assert len(calls) == 2
@@ -264,7 +264,7 @@ def test_a_reload_during_the_back_off_is_applied_at_once_and_retries_the_bus():
         return ScriptedBus([])
 
     opt = DaemonOptions(backoff_min_s=30.0, backoff_max_s=30.0, status_every_s=3600.0)
-    d = Daemon(cfg, monitor(keep_timeline=False), None, open_bus, options=opt)
+    d = Daemon(cfg, monitor(), None, open_bus, options=opt)
 
     def reloader():
         events.append("reload")
@@ -294,7 +294,7 @@ def test_a_stop_during_the_back_off_ends_the_wait():
         raise OSError(19, "No such device")
 
     opt = DaemonOptions(backoff_min_s=30.0, backoff_max_s=30.0, status_every_s=3600.0)
-    d = Daemon(cfgmod.load(), monitor(keep_timeline=False), None, open_bus, options=opt)
+    d = Daemon(cfgmod.load(), monitor(), None, open_bus, options=opt)
     th = threading.Thread(target=d.run, daemon=True)
     th.start()
     assert _wait_until(lambda: d.stats["bus_errors"] == 1, 10)
@@ -352,3 +352,57 @@ def test_the_unit_comes_back_with_its_can_device():
     assert bound == ["sys-subsystem-net-devices-can0.device"]
     assert set(bound) <= set(keys["After"])
     assert set(keys["WantedBy"]) == {"multi-user.target", *bound}
+
+
+class _Pings:
+    """A notifier that counts watchdog pings (every 20 ms of the daemon's monotonic clock)."""
+
+    watchdog_interval_s = 0.02
+    enabled = True
+
+    def __init__(self) -> None:
+        self.pings = 0
+        self.sent: list[str] = []
+
+    def watchdog(self) -> None:
+        self.pings += 1
+
+    def __getattr__(self, name):  # ready, status, reloading, stopping: noted
+        return lambda *a: self.sent.append(name)
+
+
+def test_a_reload_that_hangs_keeps_the_loop_answering_frames_the_watchdog_and_sigterm():
+    """A reload builds its configuration and model off the loop: one that never finishes (a model that
+    hangs on load, a configuration on a stalled mount) leaves the daemon handling frames, pinging its
+    watchdog and stopping at once when told to, on the configuration it runs."""
+    import threading
+
+    release = threading.Event()
+    cfg = cfgmod.load()
+    msgs = messages(sim_frames("two_set_validation", duration_h=0.01)[1])
+    bus = ScriptedBus(list(msgs))
+    notifier = _Pings()
+    d = Daemon(cfg, monitor(), None, lambda: bus, notifier=notifier, options=DaemonOptions(idle_after_s=3600))
+    started = threading.Event()
+
+    def reloader():
+        started.set()
+        release.wait(60)
+        raise RuntimeError("never here in time")
+
+    d.reloader = reloader
+    th = threading.Thread(target=d.run, daemon=True)
+    th.start()
+    try:
+        d.request_reload()
+        assert started.wait(10)
+        pings = notifier.pings
+        assert _wait_until(lambda: d.monitor.counters["frames_total"] == len(msgs), 30)
+        assert _wait_until(lambda: notifier.pings >= pings + 5, 10)
+        assert d.reload_pending and "reloading" in notifier.sent
+        d.stop(signal.SIGTERM)
+        th.join(5)
+        assert not th.is_alive()  # stopped while the reload still hangs
+    finally:
+        release.set()
+        d.stop()

@@ -39,7 +39,7 @@ def quick_warning_config() -> cfgmod.Config:
 
 def test_the_daemon_queues_every_transition_and_a_summary_per_period(frames, tmp_path):
     cfg = quick_warning_config()
-    mon = monitor(keep_timeline=False, cfg=cfg)
+    mon = monitor(cfg=cfg)
     writer = OutboxWriter(str(tmp_path / "outbox.sqlite"), 10**9, 1e9).start()
     feed = UplinkFeed(mon, writer, summary_every_s=30.0)
     source = messages(frames)
@@ -69,7 +69,7 @@ def test_a_failing_outbox_never_stops_the_daemon(frames, tmp_path, monkeypatch, 
         raise sqlite3.OperationalError("disk I/O error")
 
     monkeypatch.setattr(Outbox, "append", broken)
-    mon = monitor(keep_timeline=False)
+    mon = monitor()
     writer = OutboxWriter(str(tmp_path / "outbox.sqlite"), 10**9, 1e9, queue_size=16, backoff_min_s=0.01).start()
     feed = UplinkFeed(mon, writer, summary_every_s=10.0)
     source = messages(frames)
@@ -93,7 +93,7 @@ def test_a_stuck_outbox_never_blocks_the_receive_loop(frames, tmp_path, monkeypa
         return real(self, rows)
 
     monkeypatch.setattr(Outbox, "append", stuck)
-    mon = monitor(keep_timeline=False)
+    mon = monitor()
     writer = OutboxWriter(str(tmp_path / "outbox.sqlite"), 10**9, 1e9, queue_size=16).start()
     feed = UplinkFeed(mon, writer, summary_every_s=10.0)
     source = messages(frames)
@@ -121,7 +121,7 @@ def test_a_bug_in_the_feed_is_counted_not_fatal(frames, tmp_path, monkeypatch):
         raise AttributeError("a renamed field")
 
     monkeypatch.setattr(feed_mod, "_sample", bad_sample)
-    mon = monitor(keep_timeline=False)
+    mon = monitor()
     writer = OutboxWriter(str(tmp_path / "outbox.sqlite"), 10**9, 1e9).start()
     feed = UplinkFeed(mon, writer, summary_every_s=10.0)
     source = messages(frames)[:20000]

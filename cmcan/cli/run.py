@@ -12,6 +12,7 @@ import can
 from cmcan import config as cfgmod
 from cmcan.assemble import assemble
 from cmcan.cli import signals
+from cmcan.cli.common import Subparsers
 from cmcan.daemon import Daemon, DaemonOptions, Reloaded, bus_kwargs, tune_socketcan
 from cmcan.monitor.inputs import InputMessage
 from cmcan.preflight import check_channel, load_config, prepare, with_state
@@ -21,7 +22,7 @@ from cmcan.uplink.feed import UplinkFeed
 log = logging.getLogger("cmcan")
 
 
-def add_subparser(sub: argparse._SubParsersAction) -> None:
+def add_subparser(sub: Subparsers) -> None:
     p = sub.add_parser(
         "run",
         help="run the monitoring daemon on the CAN bus",

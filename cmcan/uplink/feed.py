@@ -1,18 +1,19 @@
-"""The daemon's hook into the uplink: after each step of the core, queue what should leave the machine.
+"""The daemon's hook into the uplink: each tick the monitor evaluates, queue what should leave the machine.
 
-``UplinkFeed.observe`` is called by the daemon's receive loop after every frame or idle step; it costs
-an integer comparison unless the monitor completed a tick. On a tick it turns new warning transitions
-(``monitor.totals.history``) and the tick itself (``monitor.last_tick``, into the summary of its
-period) into entries and hands them to the writer's queue. It never blocks and never raises: a
-failure is counted and logged with a rate limit. This module is the only place that knows the
-monitor's attribute names, so a change of the core touches only ``_sample`` and ``_cumulative``.
+``UplinkFeed`` is one of the monitor's tick listeners (:class:`cmcan.monitor.tick.TickListener`). At
+each tick it folds the tick into the summary of its period and turns the warning transitions the
+tick recorded (``monitor.totals.history``) into entries, handed to the writer's queue with the
+counters of the monitor running now (the daemon's reload swaps the monitor and keeps its listeners).
+It never blocks and never raises: a failure is counted and logged with a rate limit.
 """
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from typing import Any
 
+from cmcan.monitor.tick import Tick, TickColumns
 from cmcan.ratelog import RateLimitedLog
 from cmcan.uplink.config import UplinkSettings
 from cmcan.uplink.records import Cumulative, SummaryBuilder, TickSample, new_history, transition_entry
@@ -26,7 +27,8 @@ class UplinkFeed:
         self.writer = writer
         self.errors = 0
         self.ratelog = RateLimitedLog(logger=log)
-        self._ticks = monitor.counters["ticks"]
+        # the monitor running now and the daemon's counters (the daemon attaches its own)
+        self.source: Callable[[], tuple[Any, dict[str, int]]] = lambda: (monitor, {})
         history = monitor.totals.history
         self._last_seen = history[-1] if history else None  # transitions before this start are old news
         self.summaries = SummaryBuilder(
@@ -40,16 +42,14 @@ class UplinkFeed:
         log.info("uplink outbox %s (summaries every %g s of frame time)", o.path, settings.summary_every_s)
         return cls(monitor, writer, settings.summary_every_s)
 
-    def observe(self, monitor: Any, stats: dict[str, int]) -> None:
-        """After a step of the core: queue new transitions and fold a new tick into its summary."""
-        ticks = monitor.counters["ticks"]
-        if ticks == self._ticks:
-            return
-        self._ticks = ticks
+    def attach(self, source: Callable[[], tuple[Any, dict[str, int]]]) -> None:
+        """Where the counters come from: the monitor running now and the daemon's own counters."""
+        self.source = source
+
+    def tick(self, tick: Tick) -> None:
+        """Queue new transitions and fold the tick into its period's summary."""
         try:
-            tick = monitor.last_tick
-            if tick is None:
-                return
+            monitor, stats = self.source()
             sample = _sample(tick)
             entries = self.summaries.add(sample, self._cumulative(monitor, stats))
             new = new_history(monitor.totals.history, self._last_seen)
@@ -65,10 +65,14 @@ class UplinkFeed:
             self.errors += 1
             self.ratelog(logging.ERROR, "uplink-feed", "uplink: cannot build an outbox entry", exc_info=True)
 
-    def close(self, monitor: Any, stats: dict[str, int]) -> None:
+    def ticks(self, chunk: TickColumns) -> None:
+        for i in range(len(chunk)):
+            self.tick(chunk.tick(i))
+
+    def close(self) -> None:
         """At shutdown: the current period's summary so far, then write out the queue."""
         try:
-            self.observe(monitor, stats)  # a tick completed by the very last step, if any
+            monitor, stats = self.source()
             for e in self.summaries.close(self._cumulative(monitor, stats)):
                 self.writer.submit(e)
         except Exception:
