@@ -214,8 +214,8 @@ def test_c_formatter_refuses_what_it_cannot_write():
 def test_timeline_rows_are_the_same_either_way(tmp_path_factory, impl, rows_, data):
     """The timeline writer's rows by the C formatter or with arrays: the same bytes."""
     from cmcan.monitor.gating import Gate
-    from cmcan.monitor.warnings import Level, Reason
     from cmcan.monitor.tick import TickColumns
+    from cmcan.monitor.warnings import Level, Reason
     from cmcan.replay import TimelineWriter
     from cmcan.roles import MOTOR_SPEED
 
