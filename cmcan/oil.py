@@ -47,12 +47,6 @@ class Oil:
         return self.kinematic_viscosity_cst(temp_c) * 1e-6 * self.density_kg_m3(temp_c)
 
 
-def dynamic_viscosity_scalar(temp_c: float, a: float, b: float, rho15: float, drho: float) -> float:
-    """Same law as :meth:`Oil.dynamic_viscosity_pa_s` for one float (the integrator's hot loop)."""
-    nu_cst = 10.0 ** (10.0 ** (a - b * math.log10(temp_c + KELVIN))) - 0.7
-    return nu_cst * 1e-6 * rho15 * (1.0 - drho * (temp_c - 15.0))
-
-
 VG46 = Oil()
 
 # ISO 3448 grades as mineral HLP oils (viscosity index about 100): kinematic viscosity at 40 C and 100 C.

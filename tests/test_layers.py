@@ -1,7 +1,11 @@
-"""Layers only point down: each module imports only from its own layer or the ones below.
+"""The house rules of the package, checked on its source with ``ast`` so that a shortcut fails here
+rather than in review:
 
-Checked on the source with ``ast`` (imports inside functions included), so a shortcut that crosses a
-layer fails here rather than in review.
+- layers only point down: each module imports only from its own layer or the ones below (imports
+  inside functions included), and no modules import each other in a circle;
+- no module reads or writes another object's underscore-named attribute or imports another module's
+  underscore-named name: what a stage shares, it shares by name;
+- the monitor core, the replay driver and the daemon are made of functions of at most 60 lines.
 """
 
 from __future__ import annotations
@@ -47,7 +51,6 @@ LAYERS: list[tuple[str, ...]] = [
     (
         "cmcan.daemon",
         "cmcan.replay",
-        "cmcan.columnar",
         "cmcan.demo",
         "cmcan.rebuild_default",
         "cmcan.uplink",
@@ -131,3 +134,123 @@ def test_no_raw_configuration_dict_outside_the_configuration_module():
             continue
         text = path.read_text(encoding="utf-8")
         assert "cfg.raw" not in text and "config.raw" not in text, path
+
+
+def _graph() -> dict[str, set[str]]:
+    """Each module of the package and the modules it names in an import (anywhere in it): for
+    ``from P import m`` the submodule ``P.m`` where there is one, else ``P``."""
+    graph = {}
+    for path in MODULES:
+        me = module_name(path)
+        targets = set()
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.Import):
+                targets |= {_existing(a.name) for a in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                targets |= {_existing(f"{node.module}.{a.name}") for a in node.names}
+        graph[me] = {t for t in targets if t != me and t in _NAMES}
+    return graph
+
+
+_NAMES = {module_name(p) for p in MODULES}
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan's algorithm)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on: set[str] = set()
+    out: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in sorted(graph[v]):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_no_import_cycle():
+    assert _cycles(_graph()) == []
+
+
+def test_the_cycle_finder_finds_a_cycle():
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}
+    assert _cycles(graph) == [["a", "b", "c"]]
+    assert _cycles({"a": {"b"}, "b": set()}) == []
+
+
+# namedtuple's own API, public despite its underscore
+_NAMEDTUPLE = {"_replace", "_fields", "_asdict", "_make", "_field_defaults"}
+
+
+def _private_uses(source: str) -> list[str]:
+    """Reads or writes of ``x._name`` where x is not ``self`` or ``cls``, and imports of ``_name``."""
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Attribute):
+            a = node.attr
+            private = a.startswith("_") and not a.startswith("__") and a not in _NAMEDTUPLE
+            own = isinstance(node.value, ast.Name) and node.value.id in ("self", "cls")
+            if private and not own:
+                found.append(f"line {node.lineno}: {ast.unparse(node)}")
+        elif isinstance(node, ast.ImportFrom):
+            for alias in node.names:
+                if alias.name.startswith("_") and not alias.name.startswith("__"):
+                    found.append(f"line {node.lineno}: import {alias.name} from {node.module}")
+    return found
+
+
+@pytest.mark.parametrize("path", MODULES, ids=module_name)
+def test_no_module_uses_another_ones_private_names(path):
+    assert _private_uses(path.read_text(encoding="utf-8")) == []
+
+
+def test_the_private_name_check_sees_them():
+    src = "from m import _hidden\nx = other._state\nself._mine = 1\nf._replace(a=1)\nother._n = 2\n"
+    assert _private_uses(src) == ["line 1: import _hidden from m", "line 2: other._state", "line 5: other._n"]
+
+
+SHORT = [p for p in MODULES if p.parent == PKG / "monitor" or p in (PKG / "replay.py", PKG / "daemon.py")]
+MAX_LINES = 60
+
+
+def _long_functions(source: str) -> list[str]:
+    out = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+            n = node.end_lineno - node.lineno + 1  # type: ignore[operator]
+            if n > MAX_LINES:
+                out.append(f"{node.name} (line {node.lineno}): {n} lines")
+    return out
+
+
+@pytest.mark.parametrize("path", SHORT, ids=module_name)
+def test_functions_of_the_core_replay_and_daemon_are_short(path):
+    assert _long_functions(path.read_text(encoding="utf-8")) == []
+
+
+def test_the_length_check_counts_lines():
+    body = "\n".join(f"    x = {i}" for i in range(MAX_LINES))
+    assert _long_functions(f"def f():\n{body}\n") == [f"f (line 1): {MAX_LINES + 1} lines"]
+    assert _long_functions("def g():\n    return 1\n") == []

@@ -6,6 +6,7 @@ import argparse
 from typing import Any
 
 from cmcan import units
+from cmcan.cli.common import Subparsers
 from cmcan.cli.errors import exit_code
 from cmcan.cli.jsonout import print_json
 from cmcan.config import Config
@@ -16,7 +17,7 @@ from cmcan.roles import UNITS
 from cmcan.statefile import StateLock
 
 
-def add_subparser(sub: argparse._SubParsersAction) -> None:
+def add_subparser(sub: Subparsers) -> None:
     p = sub.add_parser(
         "check",
         help="validate configuration, DBC and model together",

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -14,6 +14,12 @@ from cmcan.errors import CmcanError, Kind
 from cmcan.preflight import load_config as _load_config
 
 log = logging.getLogger("cmcan")
+
+
+class Subparsers(Protocol):
+    """What a subcommand's module uses of ``add_subparsers()``'s result (argparse's class is private)."""
+
+    def add_parser(self, name: str, **kwargs: Any) -> argparse.ArgumentParser: ...
 
 
 def load_config(path: str | None, check_dbc: bool = True) -> cfgmod.Config:

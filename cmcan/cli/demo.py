@@ -5,11 +5,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from cmcan.cli.common import Subparsers
 from cmcan.cli.jsonout import print_json
 from cmcan.errors import CmcanError, Kind
 
 
-def add_subparser(sub: argparse._SubParsersAction) -> None:
+def add_subparser(sub: Subparsers) -> None:
     p = sub.add_parser(
         "demo",
         help="run-to-failure demo through the real daemon on a virtual bus",

@@ -4,14 +4,14 @@ from __future__ import annotations
 
 import argparse
 
-from cmcan.cli.common import load_config, load_model, load_points
+from cmcan.cli.common import Subparsers, load_config, load_model, load_points
 from cmcan.cli.errors import ensure_writable, require_extra
 from cmcan.cli.jsonout import print_json
 from cmcan.errors import CmcanError, Kind
 from cmcan.model.evaluate import format_report, protocol
 
 
-def add_subparser(sub: argparse._SubParsersAction) -> None:
+def add_subparser(sub: Subparsers) -> None:
     p = sub.add_parser(
         "evaluate",
         help="evaluate a model on D_trn/D_tst/D_val",

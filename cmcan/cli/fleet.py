@@ -8,12 +8,13 @@ import time
 from pathlib import Path
 from typing import Any
 
+from cmcan.cli.common import Subparsers
 from cmcan.cli.errors import EX_DATAERR, ensure_writable, require_extra
 from cmcan.cli.jsonout import print_json
 from cmcan.errors import CmcanError, Kind
 
 
-def add_subparser(sub: argparse._SubParsersAction) -> None:
+def add_subparser(sub: Subparsers) -> None:
     p = sub.add_parser(
         "fleet",
         help="many machines' logs on Dask into a Parquet data set; report and SQL over it",

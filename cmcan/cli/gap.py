@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from cmcan.cli.common import Subparsers
 from cmcan.cli.jsonout import print_json
 from cmcan.errors import CmcanError, Kind
 from cmcan.roles import MODEL_INPUTS, QUANTITIES
@@ -15,7 +16,7 @@ from cmcan.roles import MODEL_INPUTS, QUANTITIES
 ROLES = (*MODEL_INPUTS, *QUANTITIES)
 
 
-def add_subparser(sub: argparse._SubParsersAction) -> None:
+def add_subparser(sub: Subparsers) -> None:
     p = sub.add_parser(
         "gap",
         help="sim-to-real gap diagnosis",

@@ -8,14 +8,14 @@ from pathlib import Path
 from typing import Any
 
 from cmcan.assemble import assemble
-from cmcan.cli.common import load_config
+from cmcan.cli.common import Subparsers, load_config
 from cmcan.cli.errors import ensure_writable, require_extra
 from cmcan.cli.jsonout import print_json
 from cmcan.errors import CmcanError, Kind
 from cmcan.replay import ENGINES, EmitWriter, TimelineCollector, TimelineWriter, replay_file
 
 
-def add_subparser(sub: argparse._SubParsersAction) -> None:
+def add_subparser(sub: Subparsers) -> None:
     p = sub.add_parser(
         "replay",
         help="run a CAN log through the monitor (timeline, emitted frames, warnings)",

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from cmcan.cli.common import add_data_options, load_config, load_data, load_model
+from cmcan.cli.common import Subparsers, add_data_options, load_config, load_data, load_model
 from cmcan.cli.errors import ensure_writable, require_extra
 from cmcan.cli.jsonout import print_json
 from cmcan.errors import CmcanError, Kind
@@ -22,7 +22,7 @@ PLAUSIBLE_MEDIAN_PCT = (50.0, 150.0)
 log = logging.getLogger("cmcan")
 
 
-def add_subparser(sub: argparse._SubParsersAction) -> None:
+def add_subparser(sub: Subparsers) -> None:
     p = sub.add_parser(
         "score",
         help="the CM ratio of every operating point of a data file (CSV out, JSON summary)",

@@ -6,6 +6,7 @@ import argparse
 import logging
 from pathlib import Path
 
+from cmcan.cli.common import Subparsers
 from cmcan.cli.errors import ensure_writable
 from cmcan.cli.jsonout import print_json
 from cmcan.dbc import load_dbc
@@ -21,7 +22,7 @@ from cmcan.sim.run import simulate
 _log = logging.getLogger("cmcan.simulate")
 
 
-def add_subparser(sub: argparse._SubParsersAction) -> None:
+def add_subparser(sub: Subparsers) -> None:
     p = sub.add_parser(
         "simulate",
         help="simulate a drive scenario to CSV and candump log",

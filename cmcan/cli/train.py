@@ -6,7 +6,7 @@ import argparse
 import logging
 import math
 
-from cmcan.cli.common import add_data_options, load_config, load_data
+from cmcan.cli.common import Subparsers, add_data_options, load_config, load_data
 from cmcan.cli.errors import ensure_writable, require_extra
 from cmcan.cli.jsonout import print_json
 from cmcan.errors import CmcanError, Kind
@@ -14,7 +14,7 @@ from cmcan.errors import CmcanError, Kind
 log = logging.getLogger("cmcan")
 
 
-def add_subparser(sub: argparse._SubParsersAction) -> None:
+def add_subparser(sub: Subparsers) -> None:
     p = sub.add_parser(
         "train",
         help="train the gray-box model on healthy data (needs cmcan[train])",

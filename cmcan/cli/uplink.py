@@ -9,6 +9,7 @@ import sys
 import time
 from types import FrameType
 
+from cmcan.cli.common import Subparsers
 from cmcan.cli.jsonout import print_json
 from cmcan.errors import CmcanError, Kind
 from cmcan.preflight import load_config
@@ -17,7 +18,7 @@ from cmcan.sdnotify import Notifier
 log = logging.getLogger("cmcan")
 
 
-def add_subparser(sub: argparse._SubParsersAction) -> None:
+def add_subparser(sub: Subparsers) -> None:
     p = sub.add_parser(
         "uplink",
         help="publish the daemon's outbox to the MQTT broker",

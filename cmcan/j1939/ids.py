@@ -79,7 +79,3 @@ def make_id(prio: int, pgn_: int, source: int, dest: int = GLOBAL_ADDRESS) -> in
 def with_source(can_id: Any, source: int) -> Any:
     """The same identifier sent from another source address."""
     return (can_id & ~0xFF & MAX_ID) | source
-
-
-def with_priority(can_id: int, prio: int) -> int:
-    return (can_id & ~(0x7 << 26)) | (prio << 26)

@@ -54,11 +54,6 @@ def bam_frames(t0_s: float, gap_s: float, pgn: int, payload: bytes, source: int,
     return out
 
 
-def session_s(size: int, gap_s: float) -> float:
-    """How long a BAM of ``size`` bytes takes from its TP.CM to its last TP.DT."""
-    return ((size + 6) // 7) * gap_s
-
-
 @dataclass
 class _Session:
     pgn: int

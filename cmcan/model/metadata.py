@@ -63,10 +63,10 @@ class ModelMeta:
             except json.JSONDecodeError as exc:
                 raise ModelError(f"{source}: metadata cmcan.{f} is not valid JSON: {exc}") from None
         meta = cls(**values)
-        meta._check(source)
+        meta.check(source)
         return meta
 
-    def _check(self, source: str) -> None:
+    def check(self, source: str) -> None:
         """Types and values of the fields the runtime relies on: a wrong one is named, not a crash later."""
 
         def bad(field: str, expected: str, got: Any) -> ModelError:

@@ -123,9 +123,6 @@ class DriveParams:
     def lossless(self) -> DriveParams:
         return replace(self, pump=UnitLosses(), motor=UnitLosses())
 
-    def with_values(self, values: dict[str, Any]) -> DriveParams:
-        return replace(self, **values)
-
 
 def laminar_leak_m3s(dp_pa: Any, mu_pas: Any, disp_m3_rad: float, cs: float) -> Any:
     return cs * disp_m3_rad * dp_pa / mu_pas
@@ -199,8 +196,3 @@ def steady_motor_speed_rpm(
         q_motor = q_motor - p.extra.leak_m3s(p.oil, n_p, dp, mu)
     per_rev = motor_flow_per_rev_m3(p, p.motor_disp_cc * CC * np.asarray(motor_disp_factor, dtype=float), dp)
     return np.maximum(q_motor, 0.0) / per_rev * 60.0
-
-
-def ideal_motor_speed_rpm(p: DriveParams, pump_speed_rpm: Any, pump_disp_cc: Any) -> Any:
-    """The lossless law n_M = n_P * V_P / V_M."""
-    return np.asarray(pump_speed_rpm, dtype=float) * np.asarray(pump_disp_cc, dtype=float) / p.motor_disp_cc
