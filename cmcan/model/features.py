@@ -253,7 +253,7 @@ def series_from_log(
                 sel = usable & (which == k) & (cols.dlc >= by_name[name].length)
                 if sel.any():
                     stamps[name].append(cols.timestamp_s[sel])
-                    payloads[name].append(cols.data[sel])
+                    payloads[name].append(_payloads(cols, sel, by_name[name].length))
     except FileNotFoundError as exc:
         raise DataError(str(exc), Kind.NO_INPUT) from None
     except (ValueError, OSError) as exc:
@@ -270,14 +270,17 @@ def series_from_log(
         raw = codec.decode_raw(m, data[order], [ref.signal])[ref.signal]
         raws[role] = (ts[order], raw)
         f = _affine(db, ref)
-        series[role] = (ts[order], raw * f.a + f.b)
+        series[role] = (ts[order], codec.as_float(raw) * f.a + f.b)
     if DP not in series and HIGH_PRESSURE in raws and LOW_PRESSURE in raws:
         hl = dp_affine(_affine(db, refs[HIGH_PRESSURE]), _affine(db, refs[LOW_PRESSURE]))
         if hl is None:
             raise DataError(f"{path}: high and low pressure resolutions are not commensurate; map dp_bar", Kind.CONFIG)
         f, p, q = hl
-        t, r = dp_raw(*raws[HIGH_PRESSURE], *raws[LOW_PRESSURE], p, q)
-        series[DP] = (t, r * f.a + f.b)
+        (t_h, r_h), (t_l, r_l) = raws[HIGH_PRESSURE], raws[LOW_PRESSURE]
+        if max(_magnitude(r_h) * p, _magnitude(r_l) * q) >= 1 << 62:  # p r_h - q r_l exact beyond int64 too
+            r_h, r_l = r_h.astype(object), r_l.astype(object)
+        t, r = dp_raw(t_h, r_h, t_l, r_l, p, q)
+        series[DP] = (t, codec.as_float(r) * f.a + f.b)
     constants = constants or {}
     missing = [r for r in gated_roles(quantity) if r not in series and r not in constants]
     if missing:
@@ -287,6 +290,24 @@ def series_from_log(
     for r, v in constants.items():
         series[r] = (t_out, np.full(len(t_out), float(v)))
     return series
+
+
+def _payloads(cols: FrameColumns, sel: NDArray[np.bool_], length: int) -> NDArray[np.uint8]:
+    """The selected frames' payloads, ``length`` bytes each: the columns' first 8 bytes, or for a
+    longer (CAN FD) message each whole payload."""
+    if length <= 8:
+        return cols.data[sel]
+    rows = np.flatnonzero(sel)
+    out = np.zeros((len(rows), length), dtype=np.uint8)
+    for i, r in enumerate(rows.tolist()):
+        d = cols.payload(r)[:length]
+        out[i, : len(d)] = np.frombuffer(d, dtype=np.uint8)
+    return out
+
+
+def _magnitude(raw: NDArray[Any]) -> int:
+    """The largest magnitude of raw values (exact for int64's minimum and for Python ints)."""
+    return max((abs(int(raw.min())), abs(int(raw.max()))), default=0) if len(raw) else 0
 
 
 def contiguous_spans(t: NDArray[np.float64], max_gap_s: float) -> list[tuple[float, float]]:
