@@ -299,12 +299,13 @@ def check_bus(cfg: Config, db: Database) -> None:
                 f"message {name} has a 29-bit identifier (0x{msg.frame_id:08X}) but 29-bit identifiers are off: "
                 "set frames.extended_ids: true (and j1939.enabled for a J1939 machine)",
             )
-        if msg.length > 8 and not fd[chan]:
+        if is_fd_message(msg) and not fd[chan]:
             raise SchemaError(
                 cfg.source,
                 field,
-                f"message {name} is a CAN FD message ({msg.length} bytes) but channel {chan} is not a CAN FD bus "
-                "(frames.fd for bus.channel, fd: true in channels.extra)",
+                f"message {name} is a CAN FD message ({fd_why(msg)}) but channel {chan} is not a CAN FD bus: "
+                "its frames would all be counted bad_fd (set frames.fd for bus.channel, fd: true in "
+                "channels.extra)",
             )
         mc = cfg.message(name)
         if mc.source_addresses_set and not _j1939_matched(cfg, msg):
@@ -333,11 +334,12 @@ def check_bus(cfg: Config, db: Database) -> None:
                 f"outputs.{key}.message",
                 f"message {out.message} has a 29-bit identifier but 29-bit identifiers are off (frames.extended_ids)",
             )
-        if msg.length > 8 and not fd[out_chan]:
+        if is_fd_message(msg) and not fd[out_chan]:
             raise SchemaError(
                 cfg.source,
                 f"outputs.{key}.message",
-                f"message {out.message} is a CAN FD message but the output channel {out_chan} is not a CAN FD bus",
+                f"message {out.message} is a CAN FD message ({fd_why(msg)}) but the output channel {out_chan} "
+                "is not a CAN FD bus",
             )
         fid = output_id(cfg, msg)
         for m in ins:
@@ -347,6 +349,16 @@ def check_bus(cfg: Config, db: Database) -> None:
                     f"outputs.{key}.message",
                     f"cmcan would send {out.message} as 0x{fid:X}, which is also input {m.name} on {out_chan}",
                 )
+
+
+def is_fd_message(msg: Message) -> bool:
+    """Whether a message travels in CAN FD frames: longer than 8 bytes, or declared FD by the DBC
+    (``VFrameFormat`` StandardCAN_FD / ExtendedCAN_FD, as cantools reads it) at any length."""
+    return msg.length > 8 or bool(msg.is_fd)
+
+
+def fd_why(msg: Message) -> str:
+    return f"{msg.length} bytes" if msg.length > 8 else f"declared FD in the DBC (VFrameFormat), {msg.length} bytes"
 
 
 def output_id(cfg: Config, msg: Message) -> int:
