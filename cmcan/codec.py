@@ -43,12 +43,25 @@ class Layout:
 
 
 def check_codable(msg: Message, names: Sequence[str] | None = None) -> str | None:
-    """None when the message's signals (``names``, or all) can be coded here, else why not."""
-    if msg.is_multiplexed():
-        return f"message {msg.name} is multiplexed"
+    """None when the signals ``names`` of the message can be coded here, else why not (a sentence
+    naming the signal). ``names`` None: the whole message, as cmcan sends an output message.
+
+    A signal of a multiplexed message that is not multiplexed itself sits in every frame at the same
+    place and is read as any other; a multiplexed one (present only for some values of the
+    multiplexer switch) is not. A floating-point signal is not read either."""
+    if names is None and msg.is_multiplexed():
+        return f"message {msg.name} is multiplexed: cmcan sends messages whose signals are in every frame"
     for s in msg.signals:
-        if (names is None or s.name in names) and s.is_float:
-            return f"signal {msg.name}.{s.name} is a floating-point signal"
+        if names is not None and s.name not in names:
+            continue
+        if s.multiplexer_ids is not None:
+            ids = ", ".join(str(i) for i in s.multiplexer_ids)
+            return (
+                f"signal {msg.name}.{s.name} is multiplexed (in a frame only when {s.multiplexer_signal} is {ids}): "
+                "cmcan reads signals that are in every frame of their message; map one that is not multiplexed"
+            )
+        if s.is_float:
+            return f"signal {msg.name}.{s.name} is a floating-point signal: cmcan reads integer signals"
     return None
 
 
