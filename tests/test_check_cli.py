@@ -33,8 +33,9 @@ def test_a_model_mismatch_says_the_configuration_dbc_and_mapping_passed(tmp_path
     cfg.write_text(yaml.safe_dump(raw))
     r = run_cli("check", "--config", str(cfg))
     assert r.returncode == EX_CONFIG
-    passed, error = r.stderr.strip().splitlines()[-2:]
-    assert passed.startswith("cmcan check: passed:") and "DBC" in passed and "signal mapping" in passed
-    assert "; model" not in passed and "motor displacement" in error
+    (line,) = r.stderr.strip().splitlines()  # one line: the error, then what passed before it
+    error, passed = line.split(" [passed before it: ")
+    assert "motor displacement" in error and "DBC" in passed and "signal mapping" in passed
+    assert "; model" not in passed
     out = json.loads(run_cli("check", "--config", str(cfg), "--json").stdout)
     assert out["ok"] is False and [p.split()[0] for p in out["passed"]] == ["configuration", "DBC", "signal"]

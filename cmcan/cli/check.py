@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -64,8 +63,8 @@ def run(args: argparse.Namespace) -> int:
         if args.json:
             print_json({"ok": False, "error": str(exc), "exit_code": exit_code(exc), "passed": passed})
             return exit_code(exc)
-        if passed:
-            print(f"cmcan check: passed: {'; '.join(passed)}", file=sys.stderr)
+        if passed:  # one line still: the error, then what passed before it
+            raise CmcanError(f"{exc} [passed before it: {'; '.join(passed)}]", exc.kind) from None
         raise
     m = prep.parts.model.meta
     shipped = args.config is None
