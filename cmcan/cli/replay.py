@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from cmcan.assemble import assemble
-from cmcan.cli.common import load_config
+from cmcan.cli.common import add_keep_truncated, load_config
 from cmcan.cli.errors import ensure_writable, require_extra
 from cmcan.cli.jsonout import print_json
 from cmcan.errors import CmcanError, Kind
@@ -47,6 +47,7 @@ def add_subparser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--json", action="store_true", help="print the summary (warnings, counters) as JSON")
     p.add_argument("--force", action="store_true", help="overwrite existing output files")
+    add_keep_truncated(p)
     p.set_defaults(func=run)
 
 
@@ -84,8 +85,12 @@ def run(args: argparse.Namespace) -> int:
     if plot is not None:
         sinks.append(plot)
     progress = _Progress(Path(args.log)) if sys.stdout.isatty() and not args.json else None
+    cuts: list = []  # where a log read with --keep-truncated was cut (cmcan.io.candump.Cut)
     try:
-        res = replay_file(args.log, mon, sinks, engine=args.engine, progress=progress)
+        if args.keep_truncated:
+            res = _replay_keeping_cut(args.log, mon, sinks, args.engine, progress, cuts.append)
+        else:
+            res = replay_file(args.log, mon, sinks, engine=args.engine, progress=progress)
     except CmcanError:  # a log that cannot be read names itself (truncated, corrupt, a reader missing)
         raise
     except (ValueError, OSError) as exc:
@@ -118,6 +123,7 @@ def run(args: argparse.Namespace) -> int:
         "final": res.snapshot,
         "totals": res.totals,
         "frames_emitted": res.frames_emitted if args.emit else None,
+        "cut": cuts[0].to_dict() if cuts else None,
     }
     if args.json:
         print_json(summary)
@@ -133,6 +139,24 @@ def run(args: argparse.Namespace) -> int:
         if not summary["warnings"]:
             print("  no warnings")
     return 0
+
+
+def _replay_keeping_cut(path: str, mon: Any, sinks: list, engine: str, progress: Any, on_cut: Any) -> Any:
+    """``replay_file`` with the readers told to keep a log cut short (until ``replay_file`` takes the
+    reader's ``keep_truncated`` and ``on_cut`` itself)."""
+    from cmcan.io.candump import iter_frames
+    from cmcan.replay import NoFrames, SinkThread, replay
+
+    try:
+        if engine == "streaming":
+            return replay(mon, iter_frames(path, keep_truncated=True, on_cut=on_cut), sinks)
+        from cmcan.columnar import replay_columns
+        from cmcan.io.columns import column_chunks
+
+        chunks = column_chunks(path, progress=progress, keep_truncated=True, on_cut=on_cut)
+        return replay_columns(mon, chunks, [SinkThread(sinks)] if sinks else ())
+    except NoFrames:
+        raise NoFrames(f"{path}: no frames in the log") from None
 
 
 class _Progress:

@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 from cmcan import codec
 from cmcan.errors import CmcanError, Kind
 from cmcan.frame import Frame, FrameColumns
+from cmcan.io.candump import Cut
 from cmcan.io.points import Condition, Points, cell_value
 from cmcan.io.runcsv import read_run_csv
 from cmcan.monitor.gating import (
@@ -229,12 +230,15 @@ def series_from_log(
     quantity: str = MOTOR_SPEED,
     constants: Mapping[str, float] | None = None,
     match: Callable[[Frame], str | None] | None = None,
+    keep_truncated: bool = False,
+    on_cut: Callable[[Cut], None] | None = None,
 ) -> Series:
     """Decode a CAN log into per-role series (vectorized per message), in each role's unit; dp from
     high and low pressure is formed as the monitor forms it; a constant role is its value at the
     output's samples. ``match`` says which mapped message a frame is (the monitor's rules: channels,
     29-bit and J1939 identifiers; see :func:`cmcan.assemble.frame_matcher`); by default a standard
-    frame with the message's identifier."""
+    frame with the message's identifier. A log cut short is refused, or with ``keep_truncated`` read
+    up to its last whole frame (the cut handed to ``on_cut``)."""
     from cmcan.io.columns import column_chunks
 
     refs = as_refs(mapping)
@@ -244,7 +248,7 @@ def series_from_log(
     payloads: dict[str, list[NDArray[np.uint8]]] = {n: [] for n in by_name}
     try:
         # the replay's columnar reader: chunks of arrays, the frames of each message by one mask
-        for cols in column_chunks(path):
+        for cols in column_chunks(path, keep_truncated=keep_truncated, on_cut=on_cut):
             names, which = _messages_of(cols, match, by_id)
             usable = ~(cols.remote | cols.error)
             for k, name in enumerate(names):
@@ -373,9 +377,12 @@ def load_operating_points(
     constants: Mapping[str, float] | None = None,
     envelope: dict[str, tuple[float, float]] | None = None,
     match: Callable[[Frame], str | None] | None = None,
+    keep_truncated: bool = False,
+    on_cut: Callable[[Cut], None] | None = None,
 ) -> OperatingPoints:
     """Operating points of a run CSV or a CAN log (chosen by the file's extension); ``envelope``
-    marks the points outside it ``EXTRAPOLATED``."""
+    marks the points outside it ``EXTRAPOLATED``. ``keep_truncated``, ``on_cut``: for a log cut
+    short, as :func:`series_from_log`."""
     p = Path(path)
     if not p.exists():
         raise DataError(f"{p}: file not found", Kind.NO_INPUT)
@@ -385,7 +392,7 @@ def load_operating_points(
             from cmcan.dbc import load_dbc
 
             db = load_dbc()
-        series = series_from_log(p, db, mapping, q, constants, match)
+        series = series_from_log(p, db, mapping, q, constants, match, keep_truncated, on_cut)
         return operating_points(series, limits, rate_hz, envelope, source=str(p))
     series, truth = series_from_csv(p, q, constants)
     return operating_points(series, limits, rate_hz, envelope, truth, source=str(p))
