@@ -492,7 +492,8 @@ class _Lines:
 
 
 def _python_can_frames(p: Path, keep_truncated: bool = False, on_cut: CutHandler | None = None) -> Iterator[Frame]:
-    """A log through python-can's reader for its format, every failure of it said in one line."""
+    """A log through python-can's reader for its format, every failure of it said in one line, a log
+    cut short refused or (``keep_truncated``) read to its last whole frame."""
     import can
 
     fmt = log_format(p)
@@ -513,35 +514,23 @@ def _python_can_frames(p: Path, keep_truncated: bool = False, on_cut: CutHandler
             cut = Cut(str(p), None, 0, str(exc).split(": ", 1)[-1])
     if fmt == ".csv":
         _check_csv_header(p)
+    found = _text_cut(p) if fmt in TEXT_FORMATS else None
+    if found is not None and found[1] == CUT_LINE:
+        # a last line without its line end: cut, unless it holds a whole frame (some writers end
+        # their last line without one); judged when it has been read
+        yield from _last_line_judged(p, fmt, found[0], keep_truncated, on_cut)
+        return
     reader = None
-    if fmt in TEXT_FORMATS:
-        found = _text_cut(p)
-        if found is not None:
-            line, reason = found
-            if not keep_truncated:
-                raise truncated_error(p, line, reason)
-            cut = Cut(str(p), line, 0, reason)
-            # python-can's reader of the format over the whole lines before the cut
-            text = gzip.open(p, "rt", errors="replace") if p.suffix == ".gz" else open(p, errors="replace")  # noqa: SIM115
-            readers = {".asc": can.ASCReader, ".trc": can.TRCReader, ".csv": can.CSVReader}
-            reader = readers[fmt](_Lines(text, line - 1))  # type: ignore[arg-type]
+    if found is not None:  # a compressed text log that ends early
+        line, reason = found
+        if not keep_truncated:
+            raise truncated_error(p, line, reason)
+        cut = Cut(str(p), line, 0, reason)
+        reader = _reader_up_to(p, fmt, line - 1)
     n = 0
-    names: set[str] = set()
     try:
         with reader if reader is not None else can.LogReader(str(p)) as messages:
-            for m in messages:
-                if not math.isfinite(m.timestamp):
-                    raise LogError(f"{p}: {_where(fmt, n)}: timestamp {m.timestamp!r} is not a time")
-                if not 0 <= m.arbitration_id <= 0x1FFFFFFF or len(m.data) > MAX_DATA_BYTES:
-                    raise LogError(
-                        f"{p}: {_where(fmt, n)}: not a CAN frame (identifier {m.arbitration_id}, {len(m.data)} data "
-                        f"bytes; CAN FD carries at most {MAX_DATA_BYTES})"
-                    )
-                f = from_message(m)
-                if f.channel not in names:
-                    names.add(f.channel)
-                    if len(names) > MAX_CHANNELS:
-                        raise LogError(f"{p}: {_where(fmt, n)}: more than {MAX_CHANNELS} channel names: not a CAN log")
+            for f, _ in _checked(messages, p, fmt):
                 n += 1
                 yield f
             if getattr(messages, "_tail", b""):  # BLFReader: an object left incomplete at the end
@@ -557,10 +546,104 @@ def _python_can_frames(p: Path, keep_truncated: bool = False, on_cut: CutHandler
         if cut is not None and fmt == ".blf":  # a cut BLF: python-can stops where its data end
             report_cut(Cut(cut.path, None, n, cut.reason), on_cut)
             return
-        where = f" at {_where(fmt, n)}" if fmt == ".csv" else f" after frame {n}" if n else ""
-        raise LogError(f"{p}: cannot read as a {fmt} log{where}: {type(exc).__name__}: {exc}") from None
+        raise _unreadable(p, fmt, n, exc) from None
     if cut is not None:
         report_cut(Cut(cut.path, cut.line, n, cut.reason), on_cut)
+
+
+def _unreadable(p: Path, fmt: str, n: int, exc: Exception) -> LogError:
+    where = f" at {_where(fmt, n)}" if fmt == ".csv" else f" after frame {n}" if n else ""
+    return LogError(f"{p}: cannot read as a {fmt} log{where}: {type(exc).__name__}: {exc}")
+
+
+def _reader_up_to(p: Path, fmt: str, n_lines: int):  # type: ignore[no-untyped-def]
+    """python-can's reader of a text format over the first ``n_lines`` lines of the file."""
+    import can
+
+    text = gzip.open(p, "rt", errors="replace") if p.suffix == ".gz" else open(p, errors="replace")  # noqa: SIM115
+    readers = {".asc": can.ASCReader, ".trc": can.TRCReader, ".csv": can.CSVReader}
+    return readers[fmt](_Lines(text, n_lines))
+
+
+def _checked(messages: Iterable, p: Path, fmt: str) -> Iterator[tuple[Frame, object]]:  # type: ignore[type-arg]
+    """Frames of python-can's messages, each a CAN frame with a time (LogError otherwise)."""
+    names: set[str] = set()
+    for n, m in enumerate(messages):
+        if not math.isfinite(m.timestamp):
+            raise LogError(f"{p}: {_where(fmt, n)}: timestamp {m.timestamp!r} is not a time")
+        if not 0 <= m.arbitration_id <= 0x1FFFFFFF or len(m.data) > MAX_DATA_BYTES:
+            raise LogError(
+                f"{p}: {_where(fmt, n)}: not a CAN frame (identifier {m.arbitration_id}, {len(m.data)} data "
+                f"bytes; CAN FD carries at most {MAX_DATA_BYTES})"
+            )
+        f = from_message(m)
+        if f.channel not in names:
+            names.add(f.channel)
+            if len(names) > MAX_CHANNELS:
+                raise LogError(f"{p}: {_where(fmt, n)}: more than {MAX_CHANNELS} channel names: not a CAN log")
+        yield f, m
+
+
+def _last_line_judged(p: Path, fmt: str, line: int, keep_truncated: bool, on_cut: CutHandler | None) -> Iterator[Frame]:
+    """A text log whose last line has no line end, read one frame behind: the last frame is kept
+    when the line held a whole one; the line is a cut when python-can cannot read it or its frame
+    has fewer data bytes than its length says (a line cut inside its last byte cannot be told)."""
+    import can
+
+    held: tuple[Frame, object] | None = None
+    n = 0
+    failure: Exception | None = None
+    try:
+        with can.LogReader(str(p)) as messages:
+            for item in _checked(messages, p, fmt):
+                if held is not None:
+                    n += 1
+                    yield held[0]
+                held = item
+    except CmcanError:
+        raise
+    except Exception as exc:  # python-can could not read the last line (or another: said below)
+        failure = exc
+    short = False
+    if held is not None and failure is None:
+        m = held[1]
+        short = not (m.is_remote_frame or m.is_error_frame) and len(m.data) < m.dlc  # type: ignore[attr-defined]
+    # python-can's TRC reader skips a line it cannot parse with a log message: a last line that reads
+    # as a frame line (it starts with a number) but gave no frame is a cut line too
+    skipped = False
+    if failure is None and not short and _starts_with_number(p):
+        before = sum(1 for _ in _checked(_reader_up_to(p, fmt, line - 1), p, fmt))
+        skipped = before == n + (held is not None)
+    if failure is None and not short and not skipped:
+        if held is not None:
+            yield held[0]
+        return
+    if (failure is not None or skipped) and held is not None:  # the frame before the cut line is whole
+        n += 1
+        yield held[0]
+    reason = CUT_LINE if failure is None else f"{CUT_LINE}; python-can: {type(failure).__name__}: {failure}"
+    if not keep_truncated:
+        raise truncated_error(p, line, reason)
+    report_cut(Cut(str(p), line, n, CUT_LINE), on_cut)
+
+
+def _starts_with_number(p: Path) -> bool:
+    """Whether the last line of a file starts with a number (a frame line of ASC and TRC does)."""
+    if p.suffix == ".gz":
+        with gzip.open(p, "rb") as g:
+            tail = b""
+            while block := g.read(1 << 20):
+                tail = (tail + block)[-MAX_LINE_BYTES:]
+    else:
+        with open(p, "rb") as f:
+            f.seek(max(0, p.stat().st_size - MAX_LINE_BYTES))
+            tail = f.read()
+    tokens = tail.rsplit(b"\n", 1)[-1].split()
+    try:
+        float(tokens[0]) if tokens else float("x")
+    except ValueError:
+        return False
+    return True
 
 
 def _where(fmt: str, n: int) -> str:
