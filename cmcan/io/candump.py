@@ -468,7 +468,7 @@ def _check_csv_header(p: Path) -> None:
         raise LogError(
             f"{p}: line 1: not a CAN log in python-can's CSV layout{savvy}: cmcan reads CSV logs with the header "
             f"{CSV_HEADER!r} (data in base64, as python-can writes them); got {first[:60]!r}. Export the log "
-            "as candump -l, ASC or BLF, or convert it with python-can (can.logconvert)"
+            "in another format (candump -l, Vector ASC or BLF) where the tool that wrote it offers one"
         )
 
 
