@@ -6,6 +6,7 @@ daemon, the replay, the demo and the tests build their monitors here.
 
 from __future__ import annotations
 
+import logging
 import math
 import re
 from collections.abc import Mapping
@@ -17,7 +18,7 @@ from cantools.database.can import Database, Message
 
 from cmcan import checksums, codec, units
 from cmcan.config import Config
-from cmcan.dbc import DbcError, covers, describe_signal, load_dbc, physical_range
+from cmcan.dbc import DbcError, covers, describe_signal, load_dbc, message_problems, physical_range
 from cmcan.errors import Kind
 from cmcan.frame import Frame
 from cmcan.j1939 import dm1 as j1939_dm1
@@ -45,6 +46,8 @@ from cmcan.roles import (
 )
 from cmcan.schema import SchemaError
 from cmcan.sim.frames import BusPlan
+
+log = logging.getLogger("cmcan.assemble")
 
 
 def dbc_for(cfg: Config) -> Database:
@@ -130,9 +133,8 @@ def check_against_dbc(cfg: Config, db: Database) -> None:
             )
         problem = codec.check_codable(msg, [ref.signal])
         if problem:
-            raise SchemaError(
-                cfg.source, f"signals.{role}", f"{problem} in {cfg.dbc_path}: cmcan reads integer signals"
-            )
+            raise SchemaError(cfg.source, f"signals.{role}", f"{problem} (in {cfg.dbc_path})")
+        _strict(cfg, db, msg, f"signals.{role}.message")
         sig = msg.get_signal_by_name(ref.signal)
         wrong = units.check_mapping(role, UNITS[role], ref.message, ref.signal, sig.unit, ref.scale, ref.offset)
         if wrong is not None:
@@ -152,7 +154,8 @@ def check_against_dbc(cfg: Config, db: Database) -> None:
             )
         problem = codec.check_codable(msg)
         if problem:
-            raise SchemaError(cfg.source, f"outputs.{key}.message", f"{problem} in {cfg.dbc_path}")
+            raise SchemaError(cfg.source, f"outputs.{key}.message", f"{problem} (in {cfg.dbc_path})")
+        _strict(cfg, db, msg, f"outputs.{key}.message")
     if HIGH_PRESSURE in cfg.signals and DP not in cfg.signals:
         high, low = _affine(db, cfg.signals[HIGH_PRESSURE]), _affine(db, cfg.signals[LOW_PRESSURE])
         if dp_affine(high, low) is None:
@@ -163,6 +166,37 @@ def check_against_dbc(cfg: Config, db: Database) -> None:
                 "integer ratio, so dp cannot be formed exactly; map dp_bar or use the same resolution",
             )
     check_bus(cfg, db)
+    ignored = dbc_warnings(cfg, db)
+    if ignored and (str(cfg.dbc_path), tuple(sorted(ignored))) not in _WARNED:
+        _WARNED.add((str(cfg.dbc_path), tuple(sorted(ignored))))
+        log.warning(
+            "%s: %d message(s) cmcan does not read fail cantools' strict check (ignored): %s",
+            cfg.dbc_path,
+            len(ignored),
+            "; ".join(f"{k}: {v}" for k, v in sorted(ignored.items())),
+        )
+
+
+_WARNED: set[tuple[str, tuple[str, ...]]] = set()  # said once a process (check runs at several steps)
+
+
+def _strict(cfg: Config, db: Database, msg: Message, field: str) -> None:
+    """A message cmcan reads or sends passes cantools' strict check, even in a DBC loaded leniently."""
+    why = message_problems(db).get(msg.name)
+    if why is not None:
+        raise SchemaError(cfg.source, field, f"message {msg.name} in {cfg.dbc_path}: {why}")
+
+
+def read_messages(cfg: Config) -> set[str]:
+    """The DBC messages cmcan reads (inputs) or sends (outputs) with this configuration."""
+    return {ref.message for ref in cfg.signals.values()} | {out.message for _, out in cfg.outputs.items(cfg.quantity)}
+
+
+def dbc_warnings(cfg: Config, db: Database) -> dict[str, str]:
+    """Problems of DBC messages cmcan does not read or send (cantools' strict check, value tables
+    without a signal), by message: warnings, not errors."""
+    used = read_messages(cfg)
+    return {k: v for k, v in message_problems(db).items() if k not in used}
 
 
 def check_output_ranges(cfg: Config, db: Database) -> None:
@@ -223,6 +257,7 @@ def integrity(cfg: Config, msg: Message) -> Integrity:
     """The counter and checksum of an input message; SchemaError names the field when unclear."""
     mc = cfg.message(msg.name)
     names = [s.name for s in msg.signals]
+    multiplexed = {s.name for s in msg.signals if s.multiplexer_ids is not None}  # not in every frame
     where = f"messages.{msg.name}"
 
     def pick(given: str | None, pattern: re.Pattern[str], what: str, key: str) -> str | None:
@@ -235,8 +270,12 @@ def integrity(cfg: Config, msg: Message) -> Integrity:
                     f"{where}.{key}",
                     f"message {msg.name} has no signal {given!r}; it has {', '.join(names)}",
                 )
+            if given in multiplexed:
+                raise SchemaError(
+                    cfg.source, f"{where}.{key}", f"{given} is multiplexed: the {what} must be in every frame"
+                )
             return given
-        found = [n for n in names if pattern.search(n)]
+        found = [n for n in names if pattern.search(n) and n not in multiplexed]
         if len(found) > 1:
             raise SchemaError(
                 cfg.source,
@@ -299,12 +338,13 @@ def check_bus(cfg: Config, db: Database) -> None:
                 f"message {name} has a 29-bit identifier (0x{msg.frame_id:08X}) but 29-bit identifiers are off: "
                 "set frames.extended_ids: true (and j1939.enabled for a J1939 machine)",
             )
-        if msg.length > 8 and not fd[chan]:
+        if is_fd_message(msg) and not fd[chan]:
             raise SchemaError(
                 cfg.source,
                 field,
-                f"message {name} is a CAN FD message ({msg.length} bytes) but channel {chan} is not a CAN FD bus "
-                "(frames.fd for bus.channel, fd: true in channels.extra)",
+                f"message {name} is a CAN FD message ({fd_why(msg)}) but channel {chan} is not a CAN FD bus: "
+                "its frames would all be counted bad_fd (set frames.fd for bus.channel, fd: true in "
+                "channels.extra)",
             )
         mc = cfg.message(name)
         if mc.source_addresses_set and not _j1939_matched(cfg, msg):
@@ -333,11 +373,12 @@ def check_bus(cfg: Config, db: Database) -> None:
                 f"outputs.{key}.message",
                 f"message {out.message} has a 29-bit identifier but 29-bit identifiers are off (frames.extended_ids)",
             )
-        if msg.length > 8 and not fd[out_chan]:
+        if is_fd_message(msg) and not fd[out_chan]:
             raise SchemaError(
                 cfg.source,
                 f"outputs.{key}.message",
-                f"message {out.message} is a CAN FD message but the output channel {out_chan} is not a CAN FD bus",
+                f"message {out.message} is a CAN FD message ({fd_why(msg)}) but the output channel {out_chan} "
+                "is not a CAN FD bus",
             )
         fid = output_id(cfg, msg)
         for m in ins:
@@ -347,6 +388,16 @@ def check_bus(cfg: Config, db: Database) -> None:
                     f"outputs.{key}.message",
                     f"cmcan would send {out.message} as 0x{fid:X}, which is also input {m.name} on {out_chan}",
                 )
+
+
+def is_fd_message(msg: Message) -> bool:
+    """Whether a message travels in CAN FD frames: longer than 8 bytes, or declared FD by the DBC
+    (``VFrameFormat`` StandardCAN_FD / ExtendedCAN_FD, as cantools reads it) at any length."""
+    return msg.length > 8 or bool(msg.is_fd)
+
+
+def fd_why(msg: Message) -> str:
+    return f"{msg.length} bytes" if msg.length > 8 else f"declared FD in the DBC (VFrameFormat), {msg.length} bytes"
 
 
 def output_id(cfg: Config, msg: Message) -> int:

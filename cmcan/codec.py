@@ -6,8 +6,8 @@ Here a signal's place in a frame is a :class:`Layout` read from cantools' own de
 and a mask of one integer holding the frame, little-endian (Intel) or big-endian (Motorola).
 :func:`extract` and :func:`insert` work on a Python ``int`` (one frame) and on ``numpy`` arrays of
 ``uint64`` (many frames) alike, so the monitor, the simulator and training share one bit extractor;
-tests check it against cantools. Integer signals only: a multiplexed message or a float signal
-cannot be a cmcan input or output (``check_codable`` says so).
+tests check it against cantools, every width from 1 to 64 bits. Integer signals only: a float signal
+or a multiplexed one cannot be a cmcan input or output (``check_codable`` says so).
 """
 
 from __future__ import annotations
@@ -43,12 +43,25 @@ class Layout:
 
 
 def check_codable(msg: Message, names: Sequence[str] | None = None) -> str | None:
-    """None when the message's signals (``names``, or all) can be coded here, else why not."""
-    if msg.is_multiplexed():
-        return f"message {msg.name} is multiplexed"
+    """None when the signals ``names`` of the message can be coded here, else why not (a sentence
+    naming the signal). ``names`` None: the whole message, as cmcan sends an output message.
+
+    A signal of a multiplexed message that is not multiplexed itself sits in every frame at the same
+    place and is read as any other; a multiplexed one (present only for some values of the
+    multiplexer switch) is not. A floating-point signal is not read either."""
+    if names is None and msg.is_multiplexed():
+        return f"message {msg.name} is multiplexed: cmcan sends messages whose signals are in every frame"
     for s in msg.signals:
-        if (names is None or s.name in names) and s.is_float:
-            return f"signal {msg.name}.{s.name} is a floating-point signal"
+        if names is not None and s.name not in names:
+            continue
+        if s.multiplexer_ids is not None:
+            ids = ", ".join(str(i) for i in s.multiplexer_ids)
+            return (
+                f"signal {msg.name}.{s.name} is multiplexed (in a frame only when {s.multiplexer_signal} is {ids}): "
+                "cmcan reads signals that are in every frame of their message; map one that is not multiplexed"
+            )
+        if s.is_float:
+            return f"signal {msg.name}.{s.name} is a floating-point signal: cmcan reads integer signals"
     return None
 
 
@@ -83,37 +96,66 @@ def frame_bytes(msg: Message) -> int:
 
 
 def extract(word: Any, lay: Layout) -> Any:
-    """The raw (integer) value of a signal from the frame word(s): ``int`` or ``uint64`` arrays."""
+    """The raw (integer) value of a signal from the frame word(s): ``int`` or ``uint64`` arrays.
+
+    Every width a DBC allows (1 to 64 bits) is read exactly. Arrays come back as ``int64``, which
+    holds every signed value and every unsigned one below 2**63; an unsigned 64-bit signal's values
+    reach 2**64 - 1, so its array holds Python ints (dtype ``object``), exact as the per-frame path."""
     if isinstance(word, np.ndarray):
-        raw = ((word >> np.uint64(lay.shift)) & np.uint64(lay.mask)).astype(np.int64)
-        if lay.signed:
-            raw = np.where(raw >= (1 << (lay.length - 1)), raw - (1 << lay.length), raw)
-        return raw
+        bits = (word.astype(np.uint64, copy=False) >> np.uint64(lay.shift)) & np.uint64(lay.mask)
+        if lay.signed:  # the sign bit moved to the top and shifted back arithmetically: no Python int
+            up = np.uint64(64 - lay.length)
+            return (bits << up).view(np.int64) >> np.int64(64 - lay.length)
+        return bits.astype(np.int64) if lay.length < 64 else bits.astype(object)
     raw = (word >> lay.shift) & lay.mask
     if lay.signed and raw >> (lay.length - 1):
         raw -= 1 << lay.length
     return raw
 
 
+def fits_int64(lay: Layout) -> bool:
+    """Whether every raw value of the signal fits an ``int64`` (all but unsigned 64-bit signals)."""
+    return lay.signed or lay.length < 64
+
+
 def insert(word: Any, raw: Any, lay: Layout) -> Any:
     """``word`` with the signal's bits set to ``raw`` (two's complement for negative values)."""
     if isinstance(word, np.ndarray):
-        bits = np.asarray(raw, dtype=np.int64).astype(np.uint64) & np.uint64(lay.mask)
+        r = np.asarray(raw)
+        if r.dtype == object:  # Python ints beyond int64 (an unsigned 64-bit signal)
+            bits = np.array([int(v) & lay.mask for v in r.tolist()], dtype=np.uint64)
+        else:
+            bits = r.astype(np.int64).astype(np.uint64) & np.uint64(lay.mask)
         return word | (bits << np.uint64(lay.shift))
     return word | ((int(raw) & lay.mask) << lay.shift)
 
 
+def _raw_limits(lay: Layout) -> tuple[float, float]:
+    """The signal's raw range as floats within it (2**63 - 1 is 2**63 as a float: the next one down)."""
+    lo = -(1 << (lay.length - 1)) if lay.signed else 0
+    hi = (1 << (lay.length - 1)) - 1 if lay.signed else lay.mask
+    hi_f = float(hi)
+    if int(hi_f) > hi:
+        hi_f = math.nextafter(hi_f, 0.0)
+    return float(lo), hi_f
+
+
 def to_raw(lay: Layout, value: Any) -> Any:
-    """Physical value -> raw, saturated to the signal's range and rounded to its resolution (half to
-    even, like cantools). NaN becomes the range minimum (or 0): encoding never fails."""
+    """Physical value -> raw, saturated to the signal's range (and to what its bits hold) and rounded
+    to its resolution (half to even, like cantools). NaN becomes the range minimum (or 0): encoding
+    never fails."""
+    lo, hi = _raw_limits(lay)
     if isinstance(value, np.ndarray):
         v = np.clip(np.nan_to_num(value, nan=lay.minimum if lay.minimum > -math.inf else 0.0), lay.minimum, lay.maximum)
-        return np.round((v - lay.offset) / lay.scale).astype(np.int64)
+        r = np.clip(np.round((v - lay.offset) / lay.scale), lo, hi)
+        if fits_int64(lay):
+            return r.astype(np.int64)
+        return np.array([int(x) for x in r.tolist()], dtype=object)  # beyond int64: Python ints
     v = float(value)
     if v != v:
         v = lay.minimum if lay.minimum > -math.inf else 0.0
     v = lay.minimum if v < lay.minimum else lay.maximum if v > lay.maximum else v
-    return round((v - lay.offset) / lay.scale)
+    return round(min(max((v - lay.offset) / lay.scale, lo), hi))
 
 
 def quantize(msg: Message, name: str, phys: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -141,7 +183,7 @@ def _words(data: NDArray[np.uint8], big_endian: bool) -> NDArray[np.uint64]:
 def extract_all(data: NDArray[np.uint8], lays: Sequence[Layout], size: int) -> list[NDArray[np.int64]]:
     """Raw values of each layout from frames (n, >= their length) of a message read as ``size`` bytes."""
     if size > 8:
-        out = [np.empty(data.shape[0], dtype=np.int64) for _ in lays]
+        out = [np.empty(data.shape[0], dtype=np.int64 if fits_int64(x) else object) for x in lays]
         need_be = any(x.big_endian for x in lays)
         for i, row in enumerate(data):
             d = bytes(row[:size]).ljust(size, b"\0")
@@ -153,6 +195,12 @@ def extract_all(data: NDArray[np.uint8], lays: Sequence[Layout], size: int) -> l
     le = _words(data, False) if any(not x.big_endian for x in lays) else None
     be = _words(data, True) if any(x.big_endian for x in lays) else None
     return [extract(be if x.big_endian else le, x) for x in lays]
+
+
+def as_float(raw: NDArray[Any]) -> NDArray[np.float64]:
+    """Raw values as ``float64`` (an ``object`` array of an unsigned 64-bit signal too), each the
+    nearest double to its integer, as numpy converts ``int64``."""
+    return raw.astype(np.float64)
 
 
 def decode_raw(msg: Message, data: NDArray[np.uint8], names: Sequence[str]) -> dict[str, NDArray[np.int64]]:
@@ -167,7 +215,7 @@ def decode(msg: Message, data: NDArray[np.uint8], names: Sequence[str] | None = 
     out = {}
     for k in names:
         lay = layout(msg, k)
-        out[k] = raws[k] * lay.scale + lay.offset
+        out[k] = as_float(raws[k]) * lay.scale + lay.offset
     return out
 
 

@@ -1,7 +1,21 @@
-"""Loading the signal database (DBC) with strict checking, and finding the one cmcan ships."""
+"""Loading the signal database (DBC), and finding the one cmcan ships.
+
+A vendor's DBC describes hundreds of messages, and cmcan reads a handful: a problem in a message
+cmcan does not read (overlapping signals, a value table for a signal the message lacks) must not
+refuse the whole file. A DBC that loads under cantools' strict checks is taken as it is; one that
+does not is loaded leniently, each message is then checked with cantools' own strict check
+(``Message.refresh(strict=True)``: overlapping signals, signals beyond the message), and value
+tables naming no signal are dropped. :func:`message_problems` says what was found, by message: the
+configuration check refuses a problem in a message cmcan reads or sends and only warns about the
+others.
+"""
 
 from __future__ import annotations
 
+import logging
+import re
+import weakref
+from collections.abc import Mapping
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
@@ -10,6 +24,8 @@ import cantools
 from cantools.database.can import Database
 
 from cmcan.errors import CmcanError, Kind
+
+log = logging.getLogger("cmcan.dbc")
 
 
 class DbcError(CmcanError, ValueError):
@@ -32,6 +48,16 @@ def load_dbc(path: str | Path | None = None) -> Database:
     return _load(str(p.resolve()) if p.exists() else str(p))
 
 
+# problems found in a leniently loaded database, by message name (absent: none)
+_PROBLEMS: weakref.WeakKeyDictionary[Database, dict[str, str]] = weakref.WeakKeyDictionary()
+
+
+def message_problems(db: Database) -> Mapping[str, str]:
+    """What cantools' strict checks found wrong with each message of a DBC loaded by
+    :func:`load_dbc`, by message name (empty for a file that loads strictly)."""
+    return _PROBLEMS.get(db, {})
+
+
 @lru_cache(maxsize=8)
 def _load(path: str) -> Database:
     p = Path(path)
@@ -39,11 +65,81 @@ def _load(path: str) -> Database:
         raise DbcError(f"{p}: DBC file not found")
     try:
         db = cantools.database.load_file(str(p), strict=True)
-    except Exception as exc:  # cantools raises several parser/validation types
-        raise DbcError(f"{p}: not a valid DBC: {exc}") from None
+    except Exception as strict_exc:  # cantools raises several parser/validation types
+        db = _load_lenient(p, strict_exc)
     if not isinstance(db, Database):
         raise DbcError(f"{p}: not a CAN database")
     return db
+
+
+# a value table statement for one signal (not VAL_TABLE_): VAL_ <frame id> <signal> <value "text">... ;
+_VAL = re.compile(r"^[ \t]*VAL_[ \t]+(\d+)[ \t]+(\w+)\b[^;]*;[ \t]*\r?\n?", re.M)
+_BO = re.compile(r"^[ \t]*BO_[ \t]+(\d+)[ \t]+(\w+)[ \t]*:", re.M)
+_SG = re.compile(r"^[ \t]*SG_[ \t]+(\w+)", re.M)
+
+
+def _load_lenient(p: Path, strict_exc: Exception) -> Database:
+    """A DBC that failed cantools' strict load, loaded without it, with its messages checked one by
+    one; DbcError with the strict load's reason when it does not load at all."""
+    if p.suffix.lower() != ".dbc":
+        raise DbcError(f"{p}: not a valid DBC: {strict_exc}") from None
+    try:
+        text = p.read_text(encoding="cp1252")  # cantools' own default for DBC files
+        text, dropped = _drop_orphan_value_tables(text)
+        db = cantools.database.load_string(text, "dbc", strict=False)
+    except Exception as exc:
+        raise DbcError(f"{p}: not a valid DBC: {strict_exc if str(exc) == str(strict_exc) else exc}") from None
+    if not isinstance(db, Database):
+        raise DbcError(f"{p}: not a CAN database")
+    problems: dict[str, str] = {}
+    for msg in db.messages:
+        try:
+            msg.refresh(strict=True)
+        except Exception as exc:
+            problems[msg.name] = str(exc)
+        finally:
+            msg.refresh(strict=False)
+    for name, signals in dropped.items():
+        note = f"value tables (VAL_) for signals it does not have: {', '.join(signals)}"
+        problems[name] = f"{problems[name]}; {note}" if name in problems else note
+    _PROBLEMS[db] = problems
+    for name, why in sorted(problems.items()):
+        log.info("%s: message %s does not pass cantools' strict check: %s", p, name, why)
+    return db
+
+
+def _drop_orphan_value_tables(text: str) -> tuple[str, dict[str, list[str]]]:
+    """The DBC text without the ``VAL_`` statements that name a signal its message does not have (or
+    a message the file does not have), which cantools refuses at any strictness; and those dropped,
+    by message name (or frame id)."""
+    signals: dict[int, set[str]] = {}
+    names: dict[int, str] = {}
+    bos = list(_BO.finditer(text))
+    for i, bo in enumerate(bos):
+        end = bos[i + 1].start() if i + 1 < len(bos) else len(text)
+        block = text[bo.end() : end]
+        # a message's signals are the SG_ lines right after its BO_ line, up to the first other line
+        sg = []
+        for line in block.splitlines()[1:]:
+            m = _SG.match(line)
+            if m is None:
+                if line.strip():
+                    break
+                continue
+            sg.append(m.group(1))
+        fid = int(bo.group(1))
+        signals[fid] = set(sg)
+        names[fid] = bo.group(2)
+    dropped: dict[str, list[str]] = {}
+
+    def keep(m: re.Match[str]) -> str:
+        fid, sig = int(m.group(1)), m.group(2)
+        if sig in signals.get(fid, ()):
+            return m.group(0)
+        dropped.setdefault(names.get(fid, f"frame id {fid}"), []).append(sig)
+        return ""
+
+    return _VAL.sub(keep, text), dropped
 
 
 def raw_range(signal: Any) -> tuple[int, int]:

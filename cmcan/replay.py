@@ -24,7 +24,7 @@ from cmcan.errors import CmcanError, Kind
 from cmcan.frame import Frame, FrameColumns
 from cmcan.io import native
 from cmcan.io import textcols as tc
-from cmcan.io.candump import candump_lines, iter_frames
+from cmcan.io.candump import Cut, candump_lines, iter_frames
 from cmcan.io.columns import column_chunks
 from cmcan.monitor.core import Monitor
 from cmcan.monitor.gating import Gate
@@ -471,17 +471,22 @@ def replay_file(
     sinks: Sequence[Sink] = (),
     engine: str = "columnar",
     progress: Callable[[int, int], None] | None = None,
+    keep_truncated: bool = False,
+    on_cut: Callable[[Cut], None] | None = None,
 ) -> ReplaySummary:
     """Replay a log file with the chosen engine. Both give the same ticks, frames and summary; the
     columnar engine reads and evaluates the log in large chunks of arrays (its files written from a
     thread of their own while the engine goes on), the streaming engine frame by frame as the
-    daemon does. ``progress(bytes of the file read, frames)``: after each chunk (-1 bytes: unknown)."""
+    daemon does. ``progress(bytes of the file read, frames)``: after each chunk (-1 bytes: unknown).
+    A log cut short is refused, or with ``keep_truncated`` read up to its last whole frame and the cut
+    handed to ``on_cut`` (:mod:`cmcan.io.candump`)."""
     if engine not in ENGINES:
         raise ValueError(f"engine {engine!r} is not one of {', '.join(ENGINES)}")
+    cut = {"keep_truncated": keep_truncated, "on_cut": on_cut}
     try:
         if engine == "streaming":
-            return replay(monitor, iter_frames(path), sinks)
+            return replay(monitor, iter_frames(path, **cut), sinks)
         threaded: Sequence[Sink] = [SinkThread(sinks)] if sinks else ()
-        return replay_columns(monitor, column_chunks(path, progress=progress), threaded)
+        return replay_columns(monitor, column_chunks(path, progress=progress, **cut), threaded)
     except NoFrames:
         raise NoFrames(f"{path}: no frames in the log") from None

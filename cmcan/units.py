@@ -16,9 +16,14 @@ from dataclasses import dataclass
 
 # A scale within this factor of the conversion's is the conversion with a calibration trim on top;
 # further off, the conversion was forgotten, doubled or is another one (kPa read as bar is 100x, a
-# resolution written twice 2x, psi as bar 14.5x, rev/s as rpm 60x). Between units that need no
-# conversion (rpm and 1/min), any scale is the machine's: a gear ratio cannot be told from a mistake.
+# resolution written twice 2x, psi as bar 14.5x, rev/s as rpm 60x). A signal already in the role's
+# unit needs a scale of 1, trimmed at most as much: a pressure, temperature, displacement or flow
+# scaled by 0.01 or 2 is a resolution applied twice, not a property of the machine.
 MAX_TRIM = 1.25
+# Except speeds: a speed sensor on another shaft reads the pump's or motor's speed through a gear
+# ratio, which cannot be told from a mistake: between speed units that need no conversion (rpm and
+# 1/min), any scale is the machine's.
+FREE_SCALE = frozenset({"speed"})
 # An offset within this share of the conversion's (at least 0.01 of the unit) is the conversion
 # rounded as people write it (degF: scale 0.5556, offset -17.78).
 OFFSET_RTOL = 0.01
@@ -116,6 +121,11 @@ class Conversion:
 
     scale: float
     offset: float
+    dimension: str = ""
+
+    @property
+    def identity(self) -> bool:
+        return self.scale == 1.0 and self.offset == 0.0
 
 
 def conversion(source: Unit, target: Unit) -> Conversion | None:
@@ -123,7 +133,7 @@ def conversion(source: Unit, target: Unit) -> Conversion | None:
     if source.dimension != target.dimension:
         return None
     scale = source.scale / target.scale
-    return Conversion(scale, (source.offset - target.offset) / target.scale)
+    return Conversion(scale, (source.offset - target.offset) / target.scale, source.dimension)
 
 
 @dataclass(frozen=True)
@@ -162,6 +172,12 @@ def check_mapping(
     if conv.offset != 0.0:
         needs += f" and offset: {_num(conv.offset)}"
     if not scale_fits(scale, conv):
+        if conv.identity:
+            return Problem(
+                "scale",
+                f"{where} is in {source.text}, as {role} is: it needs no scale (1, within a trim of "
+                f"{MAX_TRIM:g}x), got scale {_num(scale)}; the DBC's scale already gives {source.text}",
+            )
         return Problem(
             "scale", f"{where} is in {source.text}, {role} in {target.text}: {needs}, got scale {_num(scale)}"
         )
@@ -174,8 +190,9 @@ def check_mapping(
 
 def scale_fits(scale: float, conv: Conversion) -> bool:
     """A configured scale (either sign: a direction convention) for a signal that needs ``conv``:
-    anything between units that need no conversion, else within :data:`MAX_TRIM` of its scale."""
-    if conv.scale == 1.0 and conv.offset == 0.0:
+    within :data:`MAX_TRIM` of its scale; any scale between speed units that need no conversion
+    (:data:`FREE_SCALE`: a gear ratio)."""
+    if conv.identity and conv.dimension in FREE_SCALE:
         return True
     return scale != 0.0 and 1.0 / MAX_TRIM <= abs(scale) / conv.scale <= MAX_TRIM
 

@@ -285,6 +285,6 @@ def test_timestamps_of_other_formats_must_be_times(tmp_path):
 
     p = tmp_path / "nan.csv"
     p.write_text("timestamp,arbitration_id,extended,remote,error,dlc,data\nnan,0x100,0,0,0,1,AA==\n")
-    with pytest.raises(LogError, match=r"nan.csv: frame 1: timestamp nan is not a time"):
+    with pytest.raises(LogError, match=r"nan.csv: line 2: timestamp nan is not a time"):
         list(iter_frames(p))
     assert np.isnan(next(iter(can.LogReader(str(p)))).timestamp)  # python-can takes it as it is

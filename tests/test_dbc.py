@@ -284,8 +284,8 @@ def test_physical_range_is_what_the_encoder_sends_back(n, signed, scale, offset,
 
     from cmcan.dbc import physical_range
 
-    if a is not None and b is not None:
-        a, b = min(a, b), max(a, b)
+    if a is not None and b is not None and a > b:  # (min and max of -0.0 and 0.0 would both be -0.0)
+        a, b = b, a
     sig = Signal("x", 0, n, is_signed=signed and n > 1, conversion=BaseConversion.factory(scale=scale, offset=offset))
     sig.minimum, sig.maximum = a, b
     lay = codec.Layout(

@@ -64,11 +64,11 @@ def test_conversions_into_the_role_units(source, target, scale, offset):
     conv = units.conversion(a, b)
     assert conv is not None
     assert math.isclose(conv.scale, scale, rel_tol=1e-6) and math.isclose(conv.offset, offset, abs_tol=1e-9)
-    # the conversion is what check_mapping accepts, and a factor of ten off is refused (between units
-    # that need no conversion, any scale is a ratio of the machine's)
+    # the conversion is what check_mapping accepts, and a factor of ten off is refused (between speed
+    # units that need no conversion, any scale is a gear ratio of the machine's)
     assert units.check_mapping("r", target, "M", "s", source, scale, offset) is None
     off = units.check_mapping("r", target, "M", "s", source, scale * 10, offset)
-    if scale == 1.0 and offset == 0.0:
+    if scale == 1.0 and offset == 0.0 and a.dimension == "speed":
         assert off is None
     else:
         assert off is not None and off.key == "scale"
@@ -112,8 +112,8 @@ def test_an_unknown_or_empty_unit_is_not_judged(unit):
 )
 def test_a_scale_is_the_conversion_give_or_take_a_trim(spelling, factor, flip):
     """Every spelling of the table into its dimension's base unit: the conversion's scale (either
-    sign) times a trim within MAX_TRIM passes, further off fails with the hint; between units that
-    need no conversion, any scale passes (a gear ratio, a calibration)."""
+    sign) times a trim within MAX_TRIM passes, further off fails with the hint; between speed units
+    that need no conversion, any scale passes (a gear ratio)."""
     unit = units.lookup(spelling)
     assert unit is not None
     base = units.lookup(
@@ -122,12 +122,12 @@ def test_a_scale_is_the_conversion_give_or_take_a_trim(spelling, factor, flip):
     conv = units.conversion(unit, base)
     scale = conv.scale * factor * (-1.0 if flip else 1.0)
     p = units.check_mapping("r", base.text, "M", "s", spelling, scale, conv.offset)
-    identity = conv.scale == 1.0 and conv.offset == 0.0
-    event(f"identity={identity}, within={1 / units.MAX_TRIM <= factor <= units.MAX_TRIM}")
-    if identity or 1 / units.MAX_TRIM + 0.01 <= factor <= units.MAX_TRIM - 0.01:
+    free = conv.identity and unit.dimension == "speed"
+    event(f"identity={conv.identity}, free={free}, within={1 / units.MAX_TRIM <= factor <= units.MAX_TRIM}")
+    if free or 1 / units.MAX_TRIM + 0.01 <= factor <= units.MAX_TRIM - 0.01:
         assert p is None
     elif factor < 1 / units.MAX_TRIM - 0.01 or factor > units.MAX_TRIM + 0.01:
-        assert p is not None and p.key == "scale" and "needs scale" in p.text
+        assert p is not None and p.key == "scale" and "needs" in p.text and f"got scale {scale:.10g}" in p.text
 
 
 # -- the mapping in a configuration (in-process: what check and the daemon's startup call) ------------
@@ -388,3 +388,34 @@ def test_a_doubled_scale_is_refused_and_a_rounded_conversion_passes():
     assert units.check_mapping("temp_c", "degC", "M", "t", "K", 1.0, -273.0) is None
     wrong = units.check_mapping("temp_c", "degC", "M", "t", "degF", 0.5556, 0.0)
     assert wrong is not None and wrong.key == "offset"
+
+
+@pytest.mark.parametrize(
+    ("role", "scale", "ok"),
+    [
+        ("high_pressure_bar", 0.01, False),  # a bar signal scaled as if it were kPa: a false ratio_low
+        ("temp_c", 2.0, False),  # a degC signal's resolution applied twice
+        ("pump_disp_cc", 0.5, False),
+        ("high_pressure_bar", 1.1, True),  # a calibration trim
+        ("temp_c", -1.0, True),  # (a sign convention: the magnitude is judged)
+        ("pump_speed_rpm", 0.37, True),  # a gear ratio: the sensor on another shaft
+        ("motor_speed_rpm", 3.2, True),
+    ],
+)
+def test_check_refuses_a_scale_on_a_signal_already_in_the_roles_unit_except_a_speeds(tmp_path, role, scale, ok):
+    """Mapped signals whose DBC unit is the role's (bar, degC, cm3/rev) need no scale; a speed may
+    carry a gear ratio. The refusal names the field and says the DBC's scale already gives the unit."""
+
+    def edit(raw):
+        raw["signals"][role]["scale"] = scale
+        if role == "high_pressure_bar":  # high and low pressure must keep commensurate resolutions
+            raw["signals"]["low_pressure_bar"]["scale"] = scale
+
+    cfg = write_config(tmp_path, ROOT / "config" / "cmcan.yaml", ROOT / "dbc" / "cmcan.dbc", edit)
+    r = run_cli("check", "--config", str(cfg))
+    if ok:
+        assert r.returncode == 0, r.stderr
+        return
+    assert r.returncode == EX_CONFIG, r.stderr
+    assert f"signals.{role}.scale" in r.stderr and f"got scale {scale:g}" in r.stderr
+    assert "needs no scale" in r.stderr, r.stderr

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from typing import Any
 
 from cmcan import units
+from cmcan.assemble import check_against_dbc, check_output_ranges, dbc_for, dbc_warnings
 from cmcan.cli.common import Subparsers
 from cmcan.cli.errors import exit_code
 from cmcan.cli.jsonout import print_json
@@ -25,7 +27,11 @@ def add_subparser(sub: Subparsers) -> None:
         "(with --channel-check) the CAN channel fit together; otherwise print what is wrong and "
         "exit with a sysexits code.",
     )
-    p.add_argument("--config", help="configuration (default: the shipped config/cmcan.yaml)")
+    p.add_argument(
+        "--config",
+        help="configuration (default: the one shipped with cmcan, which cmcan run uses without --config; "
+        "the file checked is printed)",
+    )
     p.add_argument("--channel-check", action="store_true", help="also check the bus channel exists on this machine")
     p.add_argument(
         "--state",
@@ -37,25 +43,38 @@ def add_subparser(sub: Subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    passed: list[str] = []  # what was checked before a failure, said with it
     try:
         cfg = load_config(args.config)
+        passed.append(f"configuration {cfg.source}")
+        db = dbc_for(cfg)
+        passed.append(f"DBC {cfg.dbc_path}")
+        check_against_dbc(cfg, db)
+        check_output_ranges(cfg, db)
+        passed.append("signal mapping and output ranges")
         try:
             prep = prepare(cfg, need_state=args.state, read_only=True)
         except StateError as exc:
             raise StateError(f"{exc} (cmcan run would keep it aside and start with fresh totals)") from None
+        passed.append(f"model {prep.parts.model.path}")
         if args.channel_check:
             check_channel(cfg)
         check_uplink(cfg)
     except CmcanError as exc:
         if args.json:
-            print_json({"ok": False, "error": str(exc), "exit_code": exit_code(exc)})
+            print_json({"ok": False, "error": str(exc), "exit_code": exit_code(exc), "passed": passed})
             return exit_code(exc)
+        if passed:  # one line still: the error, then what passed before it
+            raise CmcanError(f"{exc} [passed before it: {'; '.join(passed)}]", exc.kind) from None
         raise
     m = prep.parts.model.meta
+    shipped = args.config is None
     result = {
         "ok": True,
         "config": cfg.source,
+        "config_is_shipped": shipped,
         "dbc": str(cfg.dbc_path),
+        "dbc_messages_ignored": dbc_warnings(cfg, prep.parts.db),
         "model": str(prep.parts.model.path),
         "model_version": m.model_version,
         "inputs": {r: f"{s.message}.{s.signal}" for r, s in cfg.signals.items()},
@@ -100,8 +119,21 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print_json(result)
     else:
-        print(f"ok: {cfg.source}")
-        print(f"  dbc    {result['dbc']}")
+        print(
+            f"ok: {cfg.source}"
+            + (" (the configuration shipped with cmcan: pass --config FILE for another)" if shipped else "")
+        )
+        local = Path("config", "cmcan.yaml")
+        if shipped and local.is_file() and local.resolve() != Path(cfg.source).resolve():
+            print(
+                f"  note   {local} is not the file checked (nor the one cmcan run uses without --config); "
+                f"to check it: --config {local}"
+            )
+        ignored = result["dbc_messages_ignored"]
+        note = (
+            f" ({len(ignored)} message(s) cmcan does not read fail cantools' strict check: ignored)" if ignored else ""
+        )
+        print(f"  dbc    {result['dbc']}{note}")
         machine = f"V_M {m.motor_disp_cc:g} cm3/rev" if m.motor_disp_cc is not None else "delivered flow"
         print(f"  model  {result['model']} ({m.model_version}, predicts {m.quantity_role}: {machine})")
         for r, s in result["inputs"].items():

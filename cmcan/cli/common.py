@@ -30,13 +30,18 @@ def load_config(path: str | None, check_dbc: bool = True) -> cfgmod.Config:
     return cfg
 
 
-def load_points(path: str, cfg: cfgmod.Config, envelope: dict[str, tuple[float, float]] | None = None) -> Any:
-    """Operating points of a run CSV or a CAN log, gated by the configuration's rules."""
+def load_points(
+    path: str, cfg: cfgmod.Config, envelope: dict[str, tuple[float, float]] | None = None, keep_truncated: bool = False
+) -> Any:
+    """Operating points of a run CSV or a CAN log, gated by the configuration's rules; a log cut short
+    is refused, or with ``keep_truncated`` read up to its last whole frame (a warning says where)."""
     from cmcan.model.features import load_operating_points
 
     db = dbc_for(cfg)
     match = frame_matcher(cfg, db)
-    op = load_operating_points(path, cfg.gate_limits, db, cfg.signals, cfg.rate_hz, cfg.drive.fixed, envelope, match)
+    op = load_operating_points(
+        path, cfg.gate_limits, db, cfg.signals, cfg.rate_hz, cfg.drive.fixed, envelope, match, keep_truncated
+    )
     note = match.merged_note(cfg)
     if note is not None:
         log.warning("%s: %s", path, note)
@@ -49,8 +54,19 @@ def load_model(cfg: cfgmod.Config, path: str | None = None) -> Any:
 
 # -- data options shared by train and score ------------------------------------------------------
 
+KEEP_TRUNCATED_HELP = (
+    "read a CAN log cut short (a logger stopped mid-write: its last line cut, a compressed file or a BLF "
+    "object ending early) up to its last whole frame, with a warning naming the cut; without it such a "
+    "log is refused (exit 65)"
+)
+
+
+def add_keep_truncated(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--keep-truncated", action="store_true", help=KEEP_TRUNCATED_HELP)
+
 
 def add_data_options(p: argparse.ArgumentParser) -> None:
+    add_keep_truncated(p)
     p.add_argument(
         "--points",
         action="store_true",
@@ -108,7 +124,7 @@ def load_data(
     if not args.points:
         if args.column or args.constant:
             raise CmcanError("--column and --constant need --points (an operating-point table)", Kind.USAGE)
-        op = load_points(args.data, cfg, envelope)
+        op = load_points(args.data, cfg, envelope, args.keep_truncated)
         return op, op.where(conds)
     from cmcan.io.points import PointsError, PointSpec, read_points
     from cmcan.model.features import is_log, table_points

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from cmcan.cli.common import Subparsers, load_config, load_model, load_points
+from cmcan.cli.common import Subparsers, add_keep_truncated, load_config, load_model, load_points
 from cmcan.cli.errors import ensure_writable, require_extra
 from cmcan.cli.jsonout import print_json
 from cmcan.errors import CmcanError, Kind
@@ -29,6 +29,7 @@ def add_subparser(sub: Subparsers) -> None:
     p.add_argument("--json", action="store_true", help="print the figures as JSON")
     p.add_argument("--plot", help="write predicted-minus-measured over time to this PNG")
     p.add_argument("--force", action="store_true", help="overwrite an existing plot")
+    add_keep_truncated(p)
     p.set_defaults(func=run)
 
 
@@ -40,9 +41,10 @@ def run(args: argparse.Namespace) -> int:
         require_extra("plot", "matplotlib")
     cfg = load_config(args.config)
     model = load_model(cfg, args.model)
-    train_op = load_points(args.train, cfg)
-    val_op = load_points(args.val, cfg) if args.val else None
-    healthy = {h: load_points(h, cfg) for h in args.healthy}
+    keep = args.keep_truncated
+    train_op = load_points(args.train, cfg, keep_truncated=keep)
+    val_op = load_points(args.val, cfg, keep_truncated=keep) if args.val else None
+    healthy = {h: load_points(h, cfg, keep_truncated=keep) for h in args.healthy}
     report, sets = protocol(model, train_op, args.t_trn_h, val_op, args.t_dam_h, healthy)
     report["model"] = str(model.path)
     if plot_path is not None:

@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from cmcan.assemble import assemble
-from cmcan.cli.common import Subparsers, load_config
+from cmcan.cli.common import Subparsers, add_keep_truncated, load_config
 from cmcan.cli.errors import ensure_writable, require_extra
 from cmcan.cli.jsonout import print_json
 from cmcan.errors import CmcanError, Kind
@@ -47,6 +47,7 @@ def add_subparser(sub: Subparsers) -> None:
     )
     p.add_argument("--json", action="store_true", help="print the summary (warnings, counters) as JSON")
     p.add_argument("--force", action="store_true", help="overwrite existing output files")
+    add_keep_truncated(p)
     p.set_defaults(func=run)
 
 
@@ -84,8 +85,17 @@ def run(args: argparse.Namespace) -> int:
     if plot is not None:
         sinks.append(plot)
     progress = _Progress(Path(args.log)) if sys.stdout.isatty() and not args.json else None
+    cuts: list = []  # where a log read with --keep-truncated was cut (cmcan.io.candump.Cut)
     try:
-        res = replay_file(args.log, mon, sinks, engine=args.engine, progress=progress)
+        res = replay_file(
+            args.log,
+            mon,
+            sinks,
+            engine=args.engine,
+            progress=progress,
+            keep_truncated=args.keep_truncated,
+            on_cut=cuts.append,
+        )
     except CmcanError:  # a log that cannot be read names itself (truncated, corrupt, a reader missing)
         raise
     except (ValueError, OSError) as exc:
@@ -118,6 +128,7 @@ def run(args: argparse.Namespace) -> int:
         "final": res.snapshot,
         "totals": res.totals,
         "frames_emitted": res.frames_emitted if args.emit else None,
+        "cut": cuts[0].to_dict() if cuts else None,
     }
     if args.json:
         print_json(summary)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import csv
 import logging
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -66,6 +67,18 @@ def _fmt(v: float, digits: int = 6) -> str:
     return "" if not np.isfinite(v) else f"{v:.{digits}g}"
 
 
+# Times in fixed decimals: epoch seconds to the microsecond (a log's own resolution) and operating
+# hours to 3.6 us; significant digits would round an epoch time to whole seconds.
+FIXED_DECIMALS = {"time_s": 6, "operating_h": 9}
+
+
+def _column_formatter(name: str) -> Callable[[float], str]:
+    decimals = FIXED_DECIMALS.get(name)
+    if decimals is None:
+        return lambda v: _fmt(v, 10)
+    return lambda v: "" if not np.isfinite(v) else f"{v:.{decimals}f}"
+
+
 def write_scores(path: Path, names: list[str], rows: list[list[str]]) -> None:
     tmp = path.with_name(path.name + ".tmp")
     with open(tmp, "w", newline="", encoding="utf-8") as f:
@@ -106,7 +119,8 @@ def run(args: argparse.Namespace) -> int:
     else:
         names = [*cols, *SCORE_COLUMNS]
         lead = np.column_stack([cols[c] for c in cols]).tolist()
-        lead = [[_fmt(v, 10) for v in row] for row in lead]
+        fmts = [_column_formatter(c) for c in cols]
+        lead = [[f(v) for f, v in zip(fmts, row, strict=True)] for row in lead]
     rows = [
         [*lead[i], _fmt(s.ratio_pct[i]), _fmt(s.predicted[i]), _fmt(s.extra_leak_lpm[i]), status[i]]
         for i in range(len(op))

@@ -1,4 +1,4 @@
-"""``candump -l`` logs read in large chunks straight into arrays (the columnar replay's reader).
+"""candump logs read in large chunks straight into arrays (the columnar replay's reader).
 
 A chunk of the file is one numpy byte buffer; its lines are grouped by length and, within a length,
 by the positions of ``)``, the second space and ``#``: every line of such a group has its fields in
@@ -27,10 +27,18 @@ from cmcan.frame import FrameColumns
 from cmcan.io import native
 from cmcan.io.candump import (
     CAN_ERR_FLAG,
+    CUT_LINE,
+    MAX_CHANNELS,
+    MAX_DATA_BYTES,
     MAX_LINE_BYTES,
+    Cut,
+    CutHandler,
     LogError,
     lines_before_failure,
     parse_candump_line,
+    report_cut,
+    too_many_channels,
+    truncated_error,
 )
 
 CHUNK_BYTES = 4 << 20
@@ -53,22 +61,37 @@ def iter_candump_columns(
     chunk_bytes: int = CHUNK_BYTES,
     progress: Callable[[int], None] | None = None,
     chunk_lines: int | None = None,
+    keep_truncated: bool = False,
+    on_cut: CutHandler | None = None,
 ) -> Iterator[FrameColumns]:
     """The frames of a candump log (``.log`` or ``.log.gz``) in chunks of about ``chunk_bytes``, or
     with ``chunk_lines``, of about that many lines (read as that many lines' worth of bytes at the
     first chunk's mean line length, within a quarter and twice ``chunk_bytes``): the replay's
     work goes by frames, so a log of longer lines (29-bit identifiers) comes in as many chunks.
-    ``progress`` is told the bytes of the file read so far."""
+    ``progress`` is told the bytes of the file read so far. A log cut short is refused or, with
+    ``keep_truncated``, read up to its last whole frame, as :func:`cmcan.io.candump.iter_candump` does."""
     p = Path(path)
     opener = gzip.open if p.suffix == ".gz" else open
     channels: dict[bytes, int] = {}
     line0 = 1
+    frames = 0
     with opener(p, "rb") as f:  # type: ignore[operator]
         raw = getattr(f, "fileobj", None) or f  # for .gz: the compressed file, as its size on disk counts
         rest = b""
         size, resized = chunk_bytes, False
         while True:
-            block = _read(f, size, p, line0)
+            try:
+                block = _read(f, size, p, line0, keep_truncated)
+            except _Failed as failed:  # a compressed log that ends early: its whole lines, then the cut
+                text = _whole_lines_after(p, line0 - 1)
+                if text:
+                    cols, n_lines = _parse(text, p, line0, channels)
+                    line0 += n_lines
+                    frames += len(cols)
+                    if len(cols):
+                        yield cols
+                report_cut(Cut(str(p), line0, frames, failed.reason), on_cut)
+                return
             if progress is not None:
                 progress(raw.tell())
             if not block:
@@ -76,8 +99,9 @@ def iter_candump_columns(
             data = rest + block
             cut = data.rfind(b"\n") + 1
             if cut:
-                cols, n_lines = parse_chunk(data, p, line0, channels, cut)
+                cols, n_lines = _parse(data, p, line0, channels, cut)
                 line0 += n_lines
+                frames += len(cols)
                 if len(cols):
                     yield cols
             rest = data[cut:]
@@ -86,20 +110,66 @@ def iter_candump_columns(
                 per_line = cut / max(line0 - 1, 1)
                 size = int(min(2 * size, max(size // 4, chunk_lines * per_line)))
             if len(rest) > MAX_LINE_BYTES:  # no newline in sight: not a text log (and memory stays bounded)
-                raise LogError(f"{p}: line {line0}: longer than {MAX_LINE_BYTES} bytes: not a candump -l log")
-        if rest.strip():
-            cols, _ = parse_chunk(rest + b"\n", p, line0, channels)
-            if len(cols):
-                yield cols
+                raise LogError(f"{p}: line {line0}: longer than {MAX_LINE_BYTES} bytes: not a candump log")
+        if rest.strip():  # the last line, without its line end: cut mid-line
+            if len(rest) > MAX_LINE_BYTES:
+                raise LogError(f"{p}: line {line0}: longer than {MAX_LINE_BYTES} bytes: not a candump log")
+            if not keep_truncated:
+                raise truncated_error(p, line0, CUT_LINE)
+            report_cut(Cut(str(p), line0, frames, CUT_LINE), on_cut)
 
 
-def _read(f: BinaryIO, n: int, path: Path, line: int) -> bytes:
+class _Failed(Exception):
+    def __init__(self, reason: str) -> None:
+        self.reason = reason
+
+
+def _read(f: BinaryIO, n: int, path: Path, line: int, keep_truncated: bool = False) -> bytes:
     try:
         return f.read(n)
     except (EOFError, OSError, zlib.error) as exc:  # a truncated or corrupt .gz (BadGzipFile is an OSError)
         # the chunk failed somewhere after ``line``: the line as the line reader names it
         line = lines_before_failure(path)
-        raise LogError(f"{path}: cannot read past line {line}: {exc} (truncated or corrupt compressed log)") from None
+        reason = f"cannot read past line {line}: {exc} (truncated or corrupt compressed log)"
+        if keep_truncated:
+            raise _Failed(reason) from None
+        raise LogError(f"{path}: {reason}; pass --keep-truncated to read it up to its last whole frame") from None
+
+
+def _whole_lines_after(path: Path, skip: int) -> bytes:
+    """The whole lines of a compressed log that ends early, after its first ``skip`` lines (as the
+    line reader reads them: up to the failure)."""
+    out: list[bytes] = []
+    n = 0
+    try:
+        with gzip.open(path, "rb") as f:
+            while line := f.readline(MAX_LINE_BYTES + 1):
+                n += 1
+                if not line.endswith(b"\n"):
+                    break
+                if n > skip:
+                    out.append(line)
+    except (EOFError, OSError, zlib.error):
+        pass
+    return b"".join(out)
+
+
+def _parse(
+    text: bytes, path: Path, line0: int, channels: dict[bytes, int], length: int | None = None
+) -> tuple[FrameColumns, int]:
+    """:func:`parse_chunk`, a log with too many channel names refused at the line the line reader names."""
+    before = set(channels)
+    try:
+        return parse_chunk(text, path, line0, channels, length)
+    except TooManyChannels:
+        seen = {k.decode("ascii", errors="replace") for k in before}
+        for i, line in enumerate(text[: length or len(text)].decode("ascii", errors="replace").splitlines(), line0):
+            f = parse_candump_line(line, path, i)
+            if f is not None and f.channel not in seen:
+                seen.add(f.channel)
+                if len(seen) > MAX_CHANNELS:
+                    raise too_many_channels(path, i) from None
+        raise too_many_channels(path, line0) from None
 
 
 def parse_chunk(
@@ -263,8 +333,14 @@ class _Out:
         )
 
 
+class TooManyChannels(ValueError):
+    """More distinct channel names than a CAN log has (``MAX_CHANNELS``): the codes are int16."""
+
+
 def _code(channels: dict[bytes, int], name: bytes) -> int:
     if name not in channels:
+        if len(channels) >= MAX_CHANNELS:
+            raise TooManyChannels(name)
         channels[name] = len(channels)
     return channels[name]
 
@@ -429,11 +505,11 @@ def _parse_shape(
             continue
         hexpart = tail[kind_mask, skip:]
         nib = _NIBBLE[hexpart]
-        ok = ((nib != 255).all(axis=1)) & (hexpart.shape[1] % 2 == 0)
+        ok = ((nib != 255).all(axis=1)) & (hexpart.shape[1] % 2 == 0) & (hexpart.shape[1] <= 2 * MAX_DATA_BYTES)
         nbytes = hexpart.shape[1] // 2
         sel = np.flatnonzero(kind_mask)
         good[sel[~ok]] = False
-        if hexpart.shape[1] % 2:
+        if hexpart.shape[1] % 2 or hexpart.shape[1] > 2 * MAX_DATA_BYTES:
             continue
         vals = (nib[:, 0::2].astype(np.uint8) << 4) | nib[:, 1::2]
         dlc[sel] = nbytes

@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 from cmcan import codec
 from cmcan.errors import CmcanError, Kind
 from cmcan.frame import Frame, FrameColumns
+from cmcan.io.candump import Cut
 from cmcan.io.points import Condition, Points, cell_value
 from cmcan.io.runcsv import read_run_csv
 from cmcan.monitor.gating import (
@@ -229,12 +230,15 @@ def series_from_log(
     quantity: str = MOTOR_SPEED,
     constants: Mapping[str, float] | None = None,
     match: Callable[[Frame], str | None] | None = None,
+    keep_truncated: bool = False,
+    on_cut: Callable[[Cut], None] | None = None,
 ) -> Series:
     """Decode a CAN log into per-role series (vectorized per message), in each role's unit; dp from
     high and low pressure is formed as the monitor forms it; a constant role is its value at the
     output's samples. ``match`` says which mapped message a frame is (the monitor's rules: channels,
     29-bit and J1939 identifiers; see :func:`cmcan.assemble.frame_matcher`); by default a standard
-    frame with the message's identifier."""
+    frame with the message's identifier. A log cut short is refused, or with ``keep_truncated`` read
+    up to its last whole frame (the cut handed to ``on_cut``)."""
     from cmcan.io.columns import column_chunks
 
     refs = as_refs(mapping)
@@ -244,7 +248,7 @@ def series_from_log(
     payloads: dict[str, list[NDArray[np.uint8]]] = {n: [] for n in by_name}
     try:
         # the replay's columnar reader: chunks of arrays, the frames of each message by one mask
-        for cols in column_chunks(path):
+        for cols in column_chunks(path, keep_truncated=keep_truncated, on_cut=on_cut):
             names, which = _messages_of(cols, match, by_id)
             usable = ~(cols.remote | cols.error)
             for k, name in enumerate(names):
@@ -253,7 +257,7 @@ def series_from_log(
                 sel = usable & (which == k) & (cols.dlc >= by_name[name].length)
                 if sel.any():
                     stamps[name].append(cols.timestamp_s[sel])
-                    payloads[name].append(cols.data[sel])
+                    payloads[name].append(_payloads(cols, sel, by_name[name].length))
     except FileNotFoundError as exc:
         raise DataError(str(exc), Kind.NO_INPUT) from None
     except (ValueError, OSError) as exc:
@@ -270,14 +274,17 @@ def series_from_log(
         raw = codec.decode_raw(m, data[order], [ref.signal])[ref.signal]
         raws[role] = (ts[order], raw)
         f = _affine(db, ref)
-        series[role] = (ts[order], raw * f.a + f.b)
+        series[role] = (ts[order], codec.as_float(raw) * f.a + f.b)
     if DP not in series and HIGH_PRESSURE in raws and LOW_PRESSURE in raws:
         hl = dp_affine(_affine(db, refs[HIGH_PRESSURE]), _affine(db, refs[LOW_PRESSURE]))
         if hl is None:
             raise DataError(f"{path}: high and low pressure resolutions are not commensurate; map dp_bar", Kind.CONFIG)
         f, p, q = hl
-        t, r = dp_raw(*raws[HIGH_PRESSURE], *raws[LOW_PRESSURE], p, q)
-        series[DP] = (t, r * f.a + f.b)
+        (t_h, r_h), (t_l, r_l) = raws[HIGH_PRESSURE], raws[LOW_PRESSURE]
+        if max(_magnitude(r_h) * p, _magnitude(r_l) * q) >= 1 << 62:  # p r_h - q r_l exact beyond int64 too
+            r_h, r_l = r_h.astype(object), r_l.astype(object)
+        t, r = dp_raw(t_h, r_h, t_l, r_l, p, q)
+        series[DP] = (t, codec.as_float(r) * f.a + f.b)
     constants = constants or {}
     missing = [r for r in gated_roles(quantity) if r not in series and r not in constants]
     if missing:
@@ -287,6 +294,24 @@ def series_from_log(
     for r, v in constants.items():
         series[r] = (t_out, np.full(len(t_out), float(v)))
     return series
+
+
+def _payloads(cols: FrameColumns, sel: NDArray[np.bool_], length: int) -> NDArray[np.uint8]:
+    """The selected frames' payloads, ``length`` bytes each: the columns' first 8 bytes, or for a
+    longer (CAN FD) message each whole payload."""
+    if length <= 8:
+        return cols.data[sel]
+    rows = np.flatnonzero(sel)
+    out = np.zeros((len(rows), length), dtype=np.uint8)
+    for i, r in enumerate(rows.tolist()):
+        d = cols.payload(r)[:length]
+        out[i, : len(d)] = np.frombuffer(d, dtype=np.uint8)
+    return out
+
+
+def _magnitude(raw: NDArray[Any]) -> int:
+    """The largest magnitude of raw values (exact for int64's minimum and for Python ints)."""
+    return max((abs(int(raw.min())), abs(int(raw.max()))), default=0) if len(raw) else 0
 
 
 def contiguous_spans(t: NDArray[np.float64], max_gap_s: float) -> list[tuple[float, float]]:
@@ -352,9 +377,12 @@ def load_operating_points(
     constants: Mapping[str, float] | None = None,
     envelope: dict[str, tuple[float, float]] | None = None,
     match: Callable[[Frame], str | None] | None = None,
+    keep_truncated: bool = False,
+    on_cut: Callable[[Cut], None] | None = None,
 ) -> OperatingPoints:
     """Operating points of a run CSV or a CAN log (chosen by the file's extension); ``envelope``
-    marks the points outside it ``EXTRAPOLATED``."""
+    marks the points outside it ``EXTRAPOLATED``. ``keep_truncated``, ``on_cut``: for a log cut
+    short, as :func:`series_from_log`."""
     p = Path(path)
     if not p.exists():
         raise DataError(f"{p}: file not found", Kind.NO_INPUT)
@@ -364,7 +392,7 @@ def load_operating_points(
             from cmcan.dbc import load_dbc
 
             db = load_dbc()
-        series = series_from_log(p, db, mapping, q, constants, match)
+        series = series_from_log(p, db, mapping, q, constants, match, keep_truncated, on_cut)
         return operating_points(series, limits, rate_hz, envelope, source=str(p))
     series, truth = series_from_csv(p, q, constants)
     return operating_points(series, limits, rate_hz, envelope, truth, source=str(p))

@@ -333,6 +333,8 @@ class Windows:
         hl = self.dp_from_high_low
         assert hl is not None
         hi_idx, hv = _in_order(high)
+        if max(magnitude(hv), magnitude(lv), abs(self.low or 0)) * max(hl.p, hl.q) >= 1 << 62:
+            hv, lv = hv.astype(object), lv.astype(object)  # 64-bit signals: Python's exact integers
         j = np.searchsorted(li, hi_idx, side="right") - 1
         low_val = np.where(j >= 0, lv[np.maximum(j, 0)], 0)
         has_low = j >= 0
@@ -340,6 +342,14 @@ class Windows:
             low_val = np.where(has_low, low_val, self.low)
             has_low = np.ones_like(has_low)
         return hi_idx[has_low], hl.p * hv[has_low] - hl.q * low_val[has_low]
+
+
+def magnitude(raw: NDArray[Any]) -> int:
+    """The largest |value| of integer samples (exact for int64's most negative value and for the
+    Python integers of 64-bit unsigned signals); 0 for none."""
+    if not len(raw):
+        return 0
+    return max(abs(int(raw.min())), abs(int(raw.max())))
 
 
 def _in_order(parts: list[tuple[NDArray[np.int64], NDArray[np.int64]]]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
@@ -395,9 +405,7 @@ class StretchSamples:
         old_r = list(win.rs)
         self.n_old = len(old_t)
         self.ts = np.concatenate([old_t, t[frame_idx]])
-        self.big = (max((abs(r) for r in old_r), default=0) >= _I64_SAFE) or (
-            len(raw) and int(np.abs(raw).max()) >= _I64_SAFE
-        )
+        self.big = max((abs(r) for r in old_r), default=0) >= _I64_SAFE or magnitude(raw) >= _I64_SAFE
         if self.big:
             self.raw = np.array(old_r + [int(x) for x in raw.tolist()], dtype=object)
         else:
