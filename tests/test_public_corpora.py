@@ -2,10 +2,11 @@
 engines, and every DBC of cantools' ``tests/files/dbc`` through ``cmcan check``'s DBC path and the
 bit extractor.
 
-The files are not in this repository: they come from the projects' own repositories (python-can:
-LGPL-3.0, cantools: MIT) and are looked for in ``$CMCAN_THIRD_PARTY`` (default ``../shared/
-third-party`` beside the checkout, where CI has its copy of shared/) as ``python-can/test/data`` and
-``cantools/tests/files/dbc``; the tests skip, saying so, where they are absent. The generated tests
+The files are not in this repository: they come from the projects' own source distributions
+(python-can: LGPL-3.0, cantools: MIT), which ``python -m tests.third_party`` fetches from the package
+index into ``tests/third_party`` (CI does so before the suite), and are looked for there (or in
+``$CMCAN_THIRD_PARTY``) as ``python-can/test/data`` and ``cantools/tests/files/dbc``; the tests skip,
+saying so, where they are absent. The generated tests
 of ``test_log_formats.py``, ``test_real_dbcs.py`` and ``test_codec_widths.py`` cover the same
 shapes everywhere."""
 
@@ -26,7 +27,7 @@ from cmcan.cli.errors import EX_SOFTWARE
 from cmcan.dbc import DbcError, load_dbc
 from tests.conftest import ROOT
 
-THIRD_PARTY = Path(os.environ.get("CMCAN_THIRD_PARTY", ROOT.parent / "shared" / "third-party"))
+THIRD_PARTY = Path(os.environ.get("CMCAN_THIRD_PARTY", ROOT / "tests" / "third_party"))
 PYTHON_CAN_DATA = THIRD_PARTY / "python-can" / "test" / "data"
 CANTOOLS_DBC = THIRD_PARTY / "cantools" / "tests" / "files" / "dbc"
 LOG_SUFFIXES = (".asc", ".blf", ".trc", ".csv", ".log", ".gz", ".mf4", ".db")
@@ -40,7 +41,7 @@ def _files(folder: Path, suffixes: tuple[str, ...]) -> list[Path]:
 
 def _absent(folder: Path, what: str):
     return pytest.mark.skipif(
-        not folder.is_dir(), reason=f"{what} not found at {folder} (set CMCAN_THIRD_PARTY to a copy)"
+        not folder.is_dir(), reason=f"{what} not found at {folder} (python -m tests.third_party fetches it)"
     )
 
 
