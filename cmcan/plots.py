@@ -146,52 +146,64 @@ def _save(fig: Any, path: Path) -> None:
     tmp.replace(path)
 
 
-def plot_gap(
-    out: Path, diag: Any, d: Any, arrays: Any, region_vars: tuple[str, ...], labels: dict[str, str]
-) -> list[str]:
-    """The gap diagnosis' figures in ``out``: the gap by operating region (a heat map over dp and
-    oil temperature) and against each input, before and after the fitted effects."""
-    plt = _pyplot()
+GAP_STYLE = {  # point kind of the gap figure -> colour, marker size, opacity, drawing order
+    "not_judged": ("0.6", 1.0, 0.25, 1),
+    "before_fit": ("tab:red", 1.0, 0.3, 2),
+    "before_withheld": ("tab:orange", 1.2, 0.4, 3),
+    "after_withheld": ("tab:blue", 1.2, 0.5, 4),
+}
+NO_DATA = {"facecolor": "0.88", "hatch": "////", "edgecolor": "0.6"}  # a cell without data: never "no gap"
 
-    unit = diag.unit
-    g0 = d.y - arrays.y_before
-    g1 = d.y - arrays.y_after
-    hold = arrays.holdout
+
+def plot_gap(out: Path, variables: Any, heatmap: Any | None, labels: dict[str, str], unit: str) -> list[str]:
+    """The gap diagnosis' figures in ``out`` from what ``cmcan.gap.figures`` computed: the gap against
+    each input (judged points before and after the fitted effects, the unjudged ones in grey behind)
+    and a heat map of the mean gap over delta pressure and oil temperature, empty cells hatched."""
+    plt = _pyplot()
+    from matplotlib.patches import Patch, Rectangle
+
     names = []
-    if np.ptp(d.x.dp_bar) > 0 and np.ptp(d.x.temp_c) > 0:
-        # Heat map: mean gap over delta pressure x oil temperature.
-        fig, ax = plt.subplots(figsize=(6.5, 4.8))
-        xe = np.unique(np.quantile(d.x.dp_bar, np.linspace(0, 1, 9)))
-        ye = np.unique(np.quantile(d.x.temp_c, np.linspace(0, 1, 9)))
-        sums, _, _ = np.histogram2d(d.x.dp_bar, d.x.temp_c, bins=[xe, ye], weights=g0)
-        counts, _, _ = np.histogram2d(d.x.dp_bar, d.x.temp_c, bins=[xe, ye])
-        with np.errstate(invalid="ignore"):
-            mean = sums / counts
-        lim = np.nanmax(np.abs(mean)) if np.isfinite(mean).any() else 1.0
-        im = ax.pcolormesh(xe, ye, mean.T, cmap="RdBu", vmin=-lim, vmax=lim, shading="flat")
+    if heatmap is not None:
+        fig, ax = plt.subplots(figsize=(6.8, 5.0))
+        xe, ye = heatmap.dp_edges, heatmap.temp_edges
+        ax.add_patch(
+            Rectangle((xe[0], ye[0]), xe[-1] - xe[0], ye[-1] - ye[0], zorder=0, lw=0, **NO_DATA)
+        )  # shows through the cells that have no judged point (NaN is not drawn)
+        mean = np.ma.masked_invalid(heatmap.mean.T)
+        lim = heatmap.lim
+        im = ax.pcolormesh(xe, ye, mean, cmap="RdBu", vmin=-lim, vmax=lim, shading="flat", zorder=1)
         fig.colorbar(im, ax=ax, label=f"mean gap, measured - simulated ({unit})")
+        ax.set_xlim(xe[0], xe[-1])
+        ax.set_ylim(ye[0], ye[-1])
         ax.set_xlabel(labels["dp_bar"])
         ax.set_ylabel(labels["temp_c"])
-        ax.set_title("gap by operating region")
+        ax.set_title(heatmap.title, fontsize=10)
+        if heatmap.empty_cells:
+            ax.legend(
+                handles=[Patch(label=f"no judged point ({heatmap.empty_cells} cells)", **NO_DATA)],
+                loc="upper center",
+                bbox_to_anchor=(0.5, -0.12),
+                fontsize=8,
+                frameon=False,
+            )
         fig.tight_layout()
         _save(fig, out / "gap_heatmap.png")
         plt.close(fig)
         names.append("gap_heatmap.png")
-    # Gap against each input, before and after, fit and withheld points apart.
-    fig, axes = plt.subplots(2, 2, figsize=(11, 7.5))
-    for ax, var in zip(axes.ravel(), region_vars, strict=True):
-        v = getattr(d.x, var)
-        ax.plot(v[~hold], g0[~hold], ".", ms=1, alpha=0.25, color="tab:red", label="before (fit part)")
-        ax.plot(v[hold], g0[hold], ".", ms=1, alpha=0.25, color="tab:orange", label="before (withheld)")
-        ax.plot(v[hold], g1[hold], ".", ms=1, alpha=0.4, color="tab:blue", label="after (withheld)")
+    fig, axes = plt.subplots(2, 2, figsize=(11, 8.0))
+    for ax, var in zip(axes.ravel(), variables.variables, strict=True):
+        v = variables.x[var]
+        for s in sorted(variables.sets, key=lambda s: GAP_STYLE[s.key][3]):
+            color, ms, alpha, z = GAP_STYLE[s.key]
+            ax.plot(v[s.mask], s.gap[s.mask], ".", ms=ms, alpha=alpha, color=color, label=s.label, zorder=z)
         ax.axhline(0, color="k", lw=0.5)
+        ax.set_ylim(*variables.ylim)
         ax.set_xlabel(labels[var])
         ax.set_ylabel(f"gap ({unit})")
-    axes[0, 0].legend(markerscale=8, fontsize=8)
-    fig.suptitle(
-        "measured minus simulated, before and after adding " + (", ".join(f.name for f in diag.fitted) or "nothing")
-    )
-    fig.tight_layout()
+    handles, texts = axes[0, 0].get_legend_handles_labels()
+    fig.legend(handles, texts, loc="lower center", ncol=2, markerscale=8, fontsize=8, frameon=False)
+    fig.suptitle(variables.title, fontsize=10)
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
     _save(fig, out / "gap_vs_variables.png")
     plt.close(fig)
     names.append("gap_vs_variables.png")
