@@ -45,7 +45,9 @@ def default_holdout(d: GapData, judged: NDArray[np.bool_], scale: Scale) -> str:
         spec = f"{var}:top25"
         hold, _ = holdout_mask(d, spec)
         r = holdout_reach(d, hold, judged, spec, scale)
-        if r is None or not r.degenerate:
+        if r is None:  # no judged point on one side of the cut: no use
+            continue
+        if not r.degenerate:
             return spec
         tried.append((r.reach / r.needed, spec))
     if tried:
