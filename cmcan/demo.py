@@ -47,7 +47,9 @@ HEALTHY_UNTIL_H = 200.0
 @dataclass
 class DemoResult:
     scenario: str
-    bus: str
+    bus: str  # the virtual bus it ran on
+    config: str  # the configuration file
+    frames: str  # the machine's frames: "11-bit identifiers", "J1939 (cmcan at source address 0x8C)", ...
     frames_sent: int
     frames_processed: int
     wall_s: float
@@ -66,6 +68,8 @@ class DemoResult:
         return {
             "scenario": self.scenario,
             "bus": self.bus,
+            "config": self.config,
+            "frames": self.frames,
             "frames_sent": self.frames_sent,
             "frames_processed": self.frames_processed,
             "wall_s": round(self.wall_s, 1),
@@ -294,6 +298,19 @@ def dm1_checks(
     return {"DM1 (J1939): the amber lamp and the drive's DTC follow every warning": ok}
 
 
+def frames_kind(cfg: cfgmod.Config) -> str:
+    """The machine's bus in a few words, for the figure's title and the JSON."""
+    fd = " on CAN FD" if cfg.frames.fd else ""
+    if cfg.j1939.enabled:
+        sa = cfg.j1939.source_address
+        return f"J1939{fd}" + (f", cmcan at source address 0x{sa:02X}" if sa is not None else "")
+    return ("29-bit" if cfg.frames.extended_ids else "11-bit") + f" identifiers{fd}"
+
+
+def title_of(res: DemoResult) -> str:
+    return f"cmcan demo: {res.scenario} at 480 bar through the daemon, {Path(res.config).name} ({res.frames})"
+
+
 def run_demo(
     out_dir: Path, burst_s: float = 5.0, every_min: float = 30.0, plot: bool = True, config_path: str | None = None
 ) -> DemoResult:
@@ -331,6 +348,8 @@ def run_demo(
     res = DemoResult(
         s.name,
         f"virtual:{channel}",
+        cfg.source,
+        frames_kind(cfg),
         sent,
         processed,
         time.monotonic() - t0,
@@ -345,5 +364,5 @@ def run_demo(
     if plot:
         from cmcan.plots import plot_demo
 
-        plot_demo(res, cfg.thresholds, out_dir / "demo.png")
+        plot_demo(res, cfg.thresholds, out_dir / "demo.png", title_of(res))
     return res

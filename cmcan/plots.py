@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -63,80 +64,241 @@ def plot_ratio(
     plt.close(fig)
 
 
-def plot_demo(res: Any, thresholds: Thresholds, path: str | Path) -> None:
-    """The demo's CM ratio as the bus carried it, thresholds, failures and lead times (paper Figure 9)."""
-    plt = _pyplot()
+@dataclass(frozen=True)
+class LeadLabel:
+    """A lead time drawn as an arrow from the first warning to the failure, its text beside it."""
 
-    fig, ax = plt.subplots(figsize=(11, 4.5))
-    ax.plot(res.ratio_h, res.ratio_pct, ".", ms=1.5, color="tab:blue", label="filtered CM ratio (from CM_RATIO)")
-    ax.axhline(thresholds.low_pct, color="tab:orange", ls="--", lw=1, label=f"low threshold {thresholds.low_pct:g} %")
-    ax.axhline(
-        thresholds.high_pct, color="tab:purple", ls="--", lw=1, label=f"high threshold {thresholds.high_pct:g} %"
-    )
+    warning_h: float
+    fail_h: float
+    y: float  # the arrow's height: above the ok band for a low warning, below it for a high one
+    text: str
+    level: str  # low or high
+    text_x: float  # where the text is anchored ...
+    ha: str  # ... and how: it ends at the warning line, on the side away from the failure line
+
+
+@dataclass(frozen=True)
+class DemoFigure:
+    """What the demo's figure shows, computed apart from drawing it (``demo_figure``)."""
+
+    ylim: tuple[float, float]  # covers every ratio sent, the thresholds and the lead arrows
+    band: tuple[float, float]  # the ok band between the thresholds, shaded
+    failures: tuple[tuple[float, str], ...]  # (operating h, label above the plot)
+    warnings: tuple[tuple[float, str], ...]  # (operating h of the first warning, level)
+    leads: tuple[LeadLabel, ...]
+    legend: tuple[str, ...]  # one entry per kind of line, in drawing order
+    title: str
+
+
+LEVEL_COLOR = {"low": "tab:orange", "high": "tab:purple"}
+
+
+def demo_figure(res: Any, thresholds: Thresholds, title: str) -> DemoFigure:
+    """The demo's figure: the whole range of the ratio the bus carried (a wear failure falls to about
+    40 %), the ok band, each failure and first warning, and each lead time as an arrow whose text sits
+    on the side of the band the ratio is not on (a low warning's ratio is below the band, so its arrow
+    goes above it) and left of the warning line, away from the failure line."""
+    lo_t, hi_t = thresholds.low_pct, thresholds.high_pct
+    y = np.asarray(res.ratio_pct, dtype=float) if len(res.ratio_pct) else np.array([100.0])
+    above, below = hi_t + 4.0, lo_t - 4.0  # the lead arrows' heights
+    lo = min(float(y.min()), below) - 3.0
+    hi = max(float(y.max()), above) + 3.0
+    failures, warnings, leads = [], [], []
     for f in res.failures:
-        ax.axvline(f["fail_h"], color="tab:red", lw=1.2)
+        failures.append((float(f["fail_h"]), f"{f['component']} {f['kind']}\n{f['fail_h']:g} h"))
+        if f["first_warning_h"] is None:
+            continue
+        level = f["level"]
+        warnings.append((float(f["first_warning_h"]), level))
+        leads.append(
+            LeadLabel(
+                float(f["first_warning_h"]),
+                float(f["fail_h"]),
+                above if level == "low" else below,
+                f"lead {f['lead_h']:.0f} h",
+                level,
+                float(f["first_warning_h"]),
+                "right",
+            )
+        )
+    legend = [
+        "filtered CM ratio (CM_RATIO frames)",
+        f"ok band {lo_t:g}-{hi_t:g} % between the thresholds",
+        f"low threshold {lo_t:g} % (wear, leakage)",
+        f"high threshold {hi_t:g} % (misposition)",
+        "scheduled failure (loss of function)",
+    ]
+    legend += [f"first {lv} warning (CM_WARNING)" for lv in ("low", "high") if any(w[1] == lv for w in warnings)]
+    if leads:
+        legend.append("lead time: first warning to failure")
+    return DemoFigure(
+        (max(lo, 0.0), hi), (lo_t, hi_t), tuple(failures), tuple(warnings), tuple(leads), tuple(legend), title
+    )
+
+
+def plot_demo(res: Any, thresholds: Thresholds, path: str | Path, title: str) -> DemoFigure:
+    """The demo's CM ratio as the bus carried it, thresholds, failures and lead times (the shape of the
+    run-to-failure figure of the gray-box paper the scenario follows); returns what it drew."""
+    plt = _pyplot()
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    spec = demo_figure(res, thresholds, title)
+    fig, ax = plt.subplots(figsize=(11, 5.2))
+    ax.axhspan(*spec.band, color="tab:green", alpha=0.12, lw=0, zorder=0)
+    ax.axhline(spec.band[0], color="tab:orange", ls="--", lw=1)
+    ax.axhline(spec.band[1], color="tab:purple", ls="--", lw=1)
+    ax.plot(res.ratio_h, res.ratio_pct, ".", ms=1.5, color="tab:blue", zorder=3)
+    for x, label in spec.failures:
+        ax.axvline(x, color="tab:red", lw=1.2, zorder=2)
         ax.annotate(
-            f"{f['component']} {f['kind']}",
-            (f["fail_h"], 1.0),
+            label,
+            (x, 1.0),
             xycoords=("data", "axes fraction"),
+            xytext=(0, 3),
+            textcoords="offset points",
             color="tab:red",
             fontsize=8,
-            rotation=90,
-            va="top",
-            ha="right",
+            ha="center",
+            va="bottom",
         )
-        if f["first_warning_h"] is not None:
-            ax.axvline(f["first_warning_h"], color="tab:orange" if f["level"] == "low" else "tab:purple", lw=1, ls=":")
-            ax.annotate(f"lead {f['lead_h']:.0f} h", (f["first_warning_h"], thresholds.low_pct - 4), fontsize=8)
-    y = np.asarray(res.ratio_pct) if res.ratio_pct else np.array([100.0])
-    ax.set_ylim(max(80.0, float(y.min()) - 1), min(115.0, float(y.max()) + 1))
+    for x, level in spec.warnings:
+        ax.axvline(x, color=LEVEL_COLOR[level], lw=1.2, ls=":", zorder=2)
+    for lead in spec.leads:
+        ax.annotate(
+            "",
+            (lead.fail_h, lead.y),
+            xytext=(lead.warning_h, lead.y),
+            arrowprops={"arrowstyle": "->", "color": "0.25", "lw": 1},
+        )
+        ax.annotate(
+            lead.text,
+            (lead.text_x, lead.y),
+            xytext=(-4 if lead.ha == "right" else 4, 0),
+            textcoords="offset points",
+            fontsize=8,
+            ha=lead.ha,
+            va="center",
+            color="0.15",
+        )
+    ax.set_ylim(*spec.ylim)
+    ax.set_xlim(left=min([0.0, *(res.ratio_h[:1] if len(res.ratio_h) else [])]))
     ax.set_xlabel("operating hours (h)")
     ax.set_ylabel("CM ratio (%)")
-    ax.set_title("cmcan demo: run to failure on the test rig at 480 bar (paper Figure 9)")
-    ax.legend(loc="lower left", fontsize=8)
-    fig.subplots_adjust(left=0.07, right=0.98, top=0.92, bottom=0.11)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
-def plot_residuals(sets: list[Any], report: dict[str, Any], path: str | Path) -> None:
-    """Predicted minus actual output (motor speed or flow) over time, training end and damage onset
-    marked (paper Figures 6 and 7): one panel for the training run, one for the validation run."""
-    plt = _pyplot()
-
-    by = {s.name: s for s in sets}
-    panels = [("training run", ["D_trn", "D_tst"], report.get("t_trn_h"), "end of training")]
-    if "D_val_healthy" in by:
-        panels.append(("validation run", ["D_val_healthy", "D_val_damaged"], report.get("t_dam_h"), "damage onset"))
-    extra = [s.name for s in sets if s.name not in ("D_trn", "D_tst", "D_val_healthy", "D_val_damaged")]
-    for name in extra:
-        panels.append((name, [name], None, ""))
-    fig, axes = plt.subplots(len(panels), 1, figsize=(10, 3.2 * len(panels)), squeeze=False)
-    colors = {"D_trn": "tab:blue", "D_tst": "tab:green", "D_val_healthy": "tab:green", "D_val_damaged": "tab:red"}
-    for ax, (title, names, mark, label) in zip(axes[:, 0], panels, strict=True):
-        for n in names:
-            s = by[n]
-            ax.plot(s.hours, s.pred - s.measured, ".", ms=1.5, color=colors.get(n, "tab:gray"), label=n)
-            ax.plot(
-                s.hours,
-                s.whitebox - s.measured,
-                ".",
-                ms=0.8,
-                alpha=0.25,
-                color="tab:orange",
-                label=f"{n} white-box" if n == names[0] else None,
-            )
-        if mark is not None:
-            ax.axvline(mark, color="k", ls="--", lw=1)
-            ax.text(mark, ax.get_ylim()[1], f" {label}", va="top", fontsize=8)
-        ax.axhline(0, color="k", lw=0.5)
-        ax.set_title(title)
-        ax.set_xlabel("time (h)")
-        ax.set_ylabel(f"predicted - measured ({by[names[0]].unit})")
-        ax.legend(loc="lower left", fontsize=7, markerscale=6)
+    ax.set_title(spec.title, fontsize=10, pad=30)
+    kinds = [
+        Line2D([], [], ls="", marker=".", color="tab:blue"),
+        Patch(color="tab:green", alpha=0.12),
+        Line2D([], [], color="tab:orange", ls="--", lw=1),
+        Line2D([], [], color="tab:purple", ls="--", lw=1),
+        Line2D([], [], color="tab:red", lw=1.2),
+    ]
+    kinds += [
+        Line2D([], [], color=LEVEL_COLOR[lv], ls=":", lw=1.2)
+        for lv in ("low", "high")
+        if any(w[1] == lv for w in spec.warnings)
+    ]
+    if spec.leads:
+        kinds.append(Line2D([], [], color="0.25", lw=1, marker=">", ms=5))
+    ax.legend(kinds, spec.legend, loc="lower left", fontsize=8, framealpha=0.9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+    return spec
+
+
+@dataclass(frozen=True)
+class ResidualSeries:
+    """One kind of point in a residual panel: a set's gray-box or white-box residuals."""
+
+    label: str
+    hours: Any
+    values: Any  # predicted - measured
+    color: str
+    whitebox: bool
+
+
+@dataclass(frozen=True)
+class ResidualPanel:
+    title: str
+    mark_h: float | None  # the end of training or the damage onset
+    mark_label: str
+    series: tuple[ResidualSeries, ...]
+    unit: str
+
+
+# What each set of the protocol is, in words: a point after the end of training is never "training".
+SET_ROLES = {
+    "D_trn": ("training", "tab:blue", "lightsteelblue"),
+    "D_tst": ("after the end of training", "tab:green", "darkseagreen"),
+    "D_val_healthy": ("before the damage onset", "tab:green", "darkseagreen"),
+    "D_val_damaged": ("after the damage onset", "tab:red", "lightsalmon"),
+}
+
+
+def residual_panels(sets: list[Any], report: dict[str, Any]) -> list[ResidualPanel]:
+    """The panels of ``cmcan evaluate --plot``: the training run (D_trn, D_tst), the validation run
+    (before and after the damage onset) and each further healthy run, every set's gray-box and
+    white-box residuals labelled and coloured by that set."""
+    by = {s.name: s for s in sets}
+    groups = [("training run", ["D_trn", "D_tst"], report.get("t_trn_h"), "end of training")]
+    if "D_val_healthy" in by:
+        groups.append(("validation run", ["D_val_healthy", "D_val_damaged"], report.get("t_dam_h"), "damage onset"))
+    for name in (s.name for s in sets if s.name not in SET_ROLES):
+        groups.append((f"healthy run {name}", [name], None, ""))
+    panels = []
+    for title, names, mark, mark_label in groups:
+        series = []
+        for n in names:
+            s = by[n]
+            role, color, light = SET_ROLES.get(n, ("healthy", "tab:gray", "0.75"))
+            series.append(ResidualSeries(f"{n}, {role}: gray-box", s.hours, s.pred - s.measured, color, False))
+            series.append(ResidualSeries(f"{n}, {role}: white-box", s.hours, s.whitebox - s.measured, light, True))
+        panels.append(ResidualPanel(title, mark, mark_label, tuple(series), by[names[0]].unit))
+    return panels
+
+
+def plot_residuals(sets: list[Any], report: dict[str, Any], path: str | Path) -> list[ResidualPanel]:
+    """Predicted minus actual output (motor speed or flow) over time, training end and damage onset
+    marked (the protocol's figures): one panel for the training run, one for the validation run, one
+    for each further healthy run. Returns what it drew."""
+    plt = _pyplot()
+
+    panels = residual_panels(sets, report)
+    fig, axes = plt.subplots(len(panels), 1, figsize=(13, 3.4 * len(panels)), squeeze=False)
+    for ax, panel in zip(axes[:, 0], panels, strict=True):
+        for sr in sorted(panel.series, key=lambda x: not x.whitebox):  # white-box behind
+            ax.plot(
+                sr.hours,
+                sr.values,
+                ".",
+                ms=0.8 if sr.whitebox else 1.5,
+                alpha=0.35 if sr.whitebox else 1.0,
+                color=sr.color,
+                label=sr.label,
+            )
+        if panel.mark_h is not None:
+            ax.axvline(panel.mark_h, color="k", ls="--", lw=1)
+            ax.annotate(
+                f" {panel.mark_label} ({panel.mark_h:g} h)",
+                (panel.mark_h, 1.0),
+                xycoords=("data", "axes fraction"),
+                xytext=(2, -2),
+                textcoords="offset points",
+                va="top",
+                fontsize=8,
+            )
+        ax.axhline(0, color="k", lw=0.5)
+        ax.set_title(panel.title)
+        ax.set_xlabel("time (h)")
+        ax.set_ylabel(f"predicted - measured ({panel.unit})")
+        legend = ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, markerscale=6, frameon=False)
+        for h in legend.legend_handles:  # the white-box points are faint in the panel, not in the legend
+            h.set_alpha(1.0)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return panels
 
 
 def _save(fig: Any, path: Path) -> None:
@@ -146,52 +308,64 @@ def _save(fig: Any, path: Path) -> None:
     tmp.replace(path)
 
 
-def plot_gap(
-    out: Path, diag: Any, d: Any, arrays: Any, region_vars: tuple[str, ...], labels: dict[str, str]
-) -> list[str]:
-    """The gap diagnosis' figures in ``out``: the gap by operating region (a heat map over dp and
-    oil temperature) and against each input, before and after the fitted effects."""
-    plt = _pyplot()
+GAP_STYLE = {  # point kind of the gap figure -> colour, marker size, opacity, drawing order
+    "not_judged": ("0.6", 1.0, 0.25, 1),
+    "before_fit": ("tab:red", 1.0, 0.3, 2),
+    "before_withheld": ("tab:orange", 1.2, 0.4, 3),
+    "after_withheld": ("tab:blue", 1.2, 0.5, 4),
+}
+NO_DATA = {"facecolor": "0.88", "hatch": "////", "edgecolor": "0.6"}  # a cell without data: never "no gap"
 
-    unit = diag.unit
-    g0 = d.y - arrays.y_before
-    g1 = d.y - arrays.y_after
-    hold = arrays.holdout
+
+def plot_gap(out: Path, variables: Any, heatmap: Any | None, labels: dict[str, str], unit: str) -> list[str]:
+    """The gap diagnosis' figures in ``out`` from what ``cmcan.gap.figures`` computed: the gap against
+    each input (judged points before and after the fitted effects, the unjudged ones in grey behind)
+    and a heat map of the mean gap over delta pressure and oil temperature, empty cells hatched."""
+    plt = _pyplot()
+    from matplotlib.patches import Patch, Rectangle
+
     names = []
-    if np.ptp(d.x.dp_bar) > 0 and np.ptp(d.x.temp_c) > 0:
-        # Heat map: mean gap over delta pressure x oil temperature.
-        fig, ax = plt.subplots(figsize=(6.5, 4.8))
-        xe = np.unique(np.quantile(d.x.dp_bar, np.linspace(0, 1, 9)))
-        ye = np.unique(np.quantile(d.x.temp_c, np.linspace(0, 1, 9)))
-        sums, _, _ = np.histogram2d(d.x.dp_bar, d.x.temp_c, bins=[xe, ye], weights=g0)
-        counts, _, _ = np.histogram2d(d.x.dp_bar, d.x.temp_c, bins=[xe, ye])
-        with np.errstate(invalid="ignore"):
-            mean = sums / counts
-        lim = np.nanmax(np.abs(mean)) if np.isfinite(mean).any() else 1.0
-        im = ax.pcolormesh(xe, ye, mean.T, cmap="RdBu", vmin=-lim, vmax=lim, shading="flat")
+    if heatmap is not None:
+        fig, ax = plt.subplots(figsize=(6.8, 5.0))
+        xe, ye = heatmap.dp_edges, heatmap.temp_edges
+        ax.add_patch(
+            Rectangle((xe[0], ye[0]), xe[-1] - xe[0], ye[-1] - ye[0], zorder=0, lw=0, **NO_DATA)
+        )  # shows through the cells that have no judged point (NaN is not drawn)
+        mean = np.ma.masked_invalid(heatmap.mean.T)
+        lim = heatmap.lim
+        im = ax.pcolormesh(xe, ye, mean, cmap="RdBu", vmin=-lim, vmax=lim, shading="flat", zorder=1)
         fig.colorbar(im, ax=ax, label=f"mean gap, measured - simulated ({unit})")
+        ax.set_xlim(xe[0], xe[-1])
+        ax.set_ylim(ye[0], ye[-1])
         ax.set_xlabel(labels["dp_bar"])
         ax.set_ylabel(labels["temp_c"])
-        ax.set_title("gap by operating region")
+        ax.set_title(heatmap.title, fontsize=10)
+        if heatmap.empty_cells:
+            ax.legend(
+                handles=[Patch(label=f"no judged point ({heatmap.empty_cells} cells)", **NO_DATA)],
+                loc="upper center",
+                bbox_to_anchor=(0.5, -0.12),
+                fontsize=8,
+                frameon=False,
+            )
         fig.tight_layout()
         _save(fig, out / "gap_heatmap.png")
         plt.close(fig)
         names.append("gap_heatmap.png")
-    # Gap against each input, before and after, fit and withheld points apart.
-    fig, axes = plt.subplots(2, 2, figsize=(11, 7.5))
-    for ax, var in zip(axes.ravel(), region_vars, strict=True):
-        v = getattr(d.x, var)
-        ax.plot(v[~hold], g0[~hold], ".", ms=1, alpha=0.25, color="tab:red", label="before (fit part)")
-        ax.plot(v[hold], g0[hold], ".", ms=1, alpha=0.25, color="tab:orange", label="before (withheld)")
-        ax.plot(v[hold], g1[hold], ".", ms=1, alpha=0.4, color="tab:blue", label="after (withheld)")
+    fig, axes = plt.subplots(2, 2, figsize=(11, 8.0))
+    for ax, var in zip(axes.ravel(), variables.variables, strict=True):
+        v = variables.x[var]
+        for s in sorted(variables.sets, key=lambda s: GAP_STYLE[s.key][3]):
+            color, ms, alpha, z = GAP_STYLE[s.key]
+            ax.plot(v[s.mask], s.gap[s.mask], ".", ms=ms, alpha=alpha, color=color, label=s.label, zorder=z)
         ax.axhline(0, color="k", lw=0.5)
+        ax.set_ylim(*variables.ylim)
         ax.set_xlabel(labels[var])
         ax.set_ylabel(f"gap ({unit})")
-    axes[0, 0].legend(markerscale=8, fontsize=8)
-    fig.suptitle(
-        "measured minus simulated, before and after adding " + (", ".join(f.name for f in diag.fitted) or "nothing")
-    )
-    fig.tight_layout()
+    handles, texts = axes[0, 0].get_legend_handles_labels()
+    fig.legend(handles, texts, loc="lower center", ncol=2, markerscale=8, fontsize=8, frameon=False)
+    fig.suptitle(variables.title, fontsize=10)
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
     _save(fig, out / "gap_vs_variables.png")
     plt.close(fig)
     names.append("gap_vs_variables.png")

@@ -2,6 +2,7 @@
 
 import json
 
+import numpy as np
 import pytest
 
 from cmcan.cli.errors import EX_CANTCREAT, EX_DATAERR, EX_NOINPUT
@@ -94,3 +95,34 @@ def test_evaluate_with_no_point_left_to_check_fails(data):
     rep = json.loads(res.stdout)
     assert rep["sets"]["D_tst"]["points"] == 0 and rep["passed"] is False
     assert list(rep["checks"].values()) == [False]
+
+
+def test_evaluate_plot_labels_every_point_by_its_part_of_the_protocol(data, tmp_path):
+    """Points after the end of training are the test set, never labelled as training; each set's
+    white-box residuals carry that set's name."""
+    from cmcan.cli.common import load_config, load_model, load_points
+    from cmcan.model.evaluate import protocol
+    from cmcan.plots import plot_residuals
+
+    cfg = load_config(None)
+    t_trn = 0.3
+    report, sets = protocol(
+        load_model(cfg, None),
+        load_points(str(data / "training_healthy.csv"), cfg),
+        t_trn,
+        load_points(str(data / "two_set_validation.csv"), cfg),
+        0.1,
+    )
+    panels = plot_residuals(sets, report, tmp_path / "e.png")
+    assert (tmp_path / "e.png").stat().st_size > 10_000
+    training, validation = panels
+    assert training.mark_h == t_trn and validation.mark_h == 0.1
+    for panel, after in ((training, "after the end of training"), (validation, "after the damage onset")):
+        assert {s.whitebox for s in panel.series} == {False, True}
+        for s in panel.series:
+            late = np.asarray(s.hours) >= panel.mark_h
+            assert len(late) and (late.all() if after in s.label else not late.any()), s.label
+            if not late.any() and panel is training:
+                assert "training" in s.label and "after" not in s.label
+    labels = [s.label for s in training.series]
+    assert len(set(labels)) == len(labels) == 4

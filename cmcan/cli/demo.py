@@ -3,11 +3,44 @@
 from __future__ import annotations
 
 import argparse
+import itertools
 from pathlib import Path
 
 from cmcan.cli.common import Subparsers
 from cmcan.cli.jsonout import print_json
 from cmcan.errors import CmcanError, Kind
+
+DEFAULT_OUT = "cmcan-demo"
+OUTPUTS = ("demo.png", "state")  # what a demo writes into its folder
+
+
+def earlier_output(out: Path) -> list[str]:
+    """What an earlier demo left in ``out`` (the plot, its state folder)."""
+    return [name for name in OUTPUTS if (out / name).exists()]
+
+
+def out_dir(arg: str | None, force: bool) -> Path:
+    """Where this demo writes. A folder given with --out-dir that holds an earlier demo's output is
+    refused without --force; without --out-dir the demo takes ./cmcan-demo, or where an earlier demo is
+    in it the first free ./cmcan-demo-2, -3, ... (so the README's one command runs again and again,
+    overwriting nothing)."""
+    if arg is not None or force:
+        out = Path(arg if arg is not None else DEFAULT_OUT)
+        if out.exists() and not out.is_dir():
+            raise CmcanError(f"{out}: exists and is not a folder", Kind.CANT_CREATE)
+        taken = earlier_output(out)
+        if taken and not force:
+            raise CmcanError(
+                f"{out}: holds an earlier demo's {' and '.join(taken)}; pass --force to overwrite them, or "
+                "another --out-dir",
+                Kind.CANT_CREATE,
+            )
+        return out
+    for i in itertools.count(1):
+        out = Path(DEFAULT_OUT if i == 1 else f"{DEFAULT_OUT}-{i}")
+        if not out.exists() or (out.is_dir() and not earlier_output(out)):
+            return out
+    raise AssertionError("unreachable")
 
 
 def add_subparser(sub: Subparsers) -> None:
@@ -19,8 +52,11 @@ def add_subparser(sub: Subparsers) -> None:
         "failures with its lead time. Exit 0 when every check passes.",
     )
     p.add_argument(
-        "--out-dir", default="cmcan-demo", help="folder for the plot and the demo's state (default ./cmcan-demo)"
+        "--out-dir",
+        help=f"folder for the plot and the demo's state; an earlier demo's output there is kept unless --force "
+        f"(default ./{DEFAULT_OUT}, or the first of ./{DEFAULT_OUT}-2, -3, ... without an earlier demo in it)",
     )
+    p.add_argument("--force", action="store_true", help="overwrite an earlier demo's output in --out-dir")
     p.add_argument("--burst-s", type=float, default=5.0, help="seconds of data per burst (default 5)")
     p.add_argument("--every-min", type=float, default=30.0, help="operating minutes between bursts (default 30)")
     p.add_argument("--config", help="configuration (default: the shipped config/cmcan.yaml)")
@@ -38,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
             require_extra("plot", "matplotlib")
         except CmcanError as exc:
             raise CmcanError(f"{exc}; or run it without the plot: cmcan demo --no-plot", exc.kind) from None
-    out = Path(args.out_dir)
+    out = out_dir(args.out_dir, args.force)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -46,11 +82,12 @@ def run(args: argparse.Namespace) -> int:
     if not args.json:
         print(
             f"cmcan demo: simulating run_to_failure and streaming it through the daemon "
-            f"({args.burst_s:g} s of data every {args.every_min:g} min of operation) ...",
+            f"({args.burst_s:g} s of data every {args.every_min:g} min of operation) into {out}/ ...",
             flush=True,
         )
     res = run_demo(out, args.burst_s, args.every_min, plot=not args.no_plot, config_path=args.config)
     d = res.to_dict()
+    d["out_dir"] = str(out)
     if not args.no_plot:
         d["plot"] = str(out / "demo.png")
     if args.json:

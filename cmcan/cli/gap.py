@@ -220,10 +220,17 @@ def run_diagnose(args: argparse.Namespace) -> int:
         print("  " + ", ".join(f"{f.name}.{q.name} = {q.value:.4g} ± {q.uncertainty:.2g} {q.unit}" for q in f.params))
     for flag in diag.flags:
         print(f"  flag: {flag.message}")
+    choice = rep.choice_text(diag)
+    if choice:
+        print(f"  {choice}")
+    print(f"  judged: {rep.coverage_text(diag)}")
     print(
-        f"  gap {gb.rmse:.3g} {u} ({gb.rmse_pct:.2f} %) -> {ga.rmse:.3g} {u}; withheld ({diag.holdout.spec}) "
-        f"{gb.heldout_rmse:.3g} -> {ga.heldout_rmse:.3g} ({100 * ga.heldout_reduction:.0f} % less)"
+        f"  gap {gb.rmse:.3g} {u} ({gb.rmse_pct:.2f} %) -> {ga.rmse:.3g} {u}; withheld ({diag.holdout.spec}, "
+        f"{diag.holdout.judged_points} judged) {gb.heldout_rmse:.3g} -> {ga.heldout_rmse:.3g} "
+        f"({100 * ga.heldout_reduction:.0f} % less)"
     )
+    if diag.holdout.degenerate:
+        print(f"  hold-out: {diag.holdout.degenerate}")
     dom = diag.where.dominant
     if dom is not None:
         print(f"  most of the gap at {dom.variable} {dom.lo:.4g}..{dom.hi:.4g}")
@@ -248,6 +255,8 @@ def run_bench(args: argparse.Namespace) -> int:
         out = asdict(s)
         for row, lv in zip(out["by_level"], s.by_level, strict=True):
             row["rate"] = lv.rate
+        for key in ("single_right", "single_high", "none_right", "two_found", "outside_unnamed", "region_located"):
+            out[key]["rate"] = getattr(s, key).rate
         print_json(out)
         return 0
     for line in bench_table(s, args):
@@ -260,26 +269,30 @@ def _pct(v: float | None) -> str:
 
 
 def bench_table(s: Any, args: argparse.Namespace) -> list[str]:
+    """The bench's summary as Markdown tables; every rate with the trials it counts (k/n)."""
+    singles = s.single_right.n
     lines = [
         f"cmcan gap bench --trials {args.trials} --seed {args.seed}: {s.trials} trials on the dynamic simulator",
         "",
-        "| figure | value |",
+        "| figure | trials (rate) |",
         "|---|---|",
-        f"| single effects named right | {_pct(s.single_right_rate)} |",
-        f"| single effects answered with high confidence | {_pct(s.single_high_share)} |",
-        f"| median withheld gap reduction (single effects) | {_pct(s.median_heldout_reduction_single)} |",
-        f"| ambiguous answers among single effects | {s.ambiguous_single} |",
-        f"| no effect: answered right | {_pct(s.none_right_rate)} |",
-        f"| two effects: both found | {_pct(s.two_found_rate)} |",
-        f"| outside the library: named with high confidence | {s.outside_named_high} |",
-        f"| outside the library: nothing named | {_pct(s.outside_unnamed_rate)} |",
-        f"| high-pressure leak located at high pressure | {_pct(s.region_located_rate)} |",
+        f"| single effects named right | {s.single_right} |",
+        f"| single effects answered with high confidence | {s.single_high} |",
+        f"| median withheld gap reduction (single effects) | {_pct(s.median_heldout_reduction_single)} "
+        f"(median of {singles}) |",
+        f"| ambiguous answers among single effects | {s.ambiguous_single}/{singles} |",
+        f"| no effect: answered right | {s.none_right} |",
+        f"| two effects: both found | {s.two_found} |",
+        f"| outside the library: named with high confidence | {s.outside_named_high}/{s.outside_unnamed.n} |",
+        f"| outside the library: nothing named | {s.outside_unnamed} |",
+        f"| high-pressure leak located at high pressure | {s.region_located} |",
         "",
         "| confidence | answers naming an effect | right | rate | of them single-effect cases |",
         "|---|---|---|---|---|",
     ]
     for row in s.by_level:
-        lines.append(f"| {row.level} | {row.answers} | {row.right} | {_pct(row.rate)} | {row.singles} |")
+        rate = f"{row.right}/{row.answers} ({_pct(row.rate)})" if row.answers else "0/0 (n/a)"
+        lines.append(f"| {row.level} | {row.answers} | {row.right} | {rate} | {row.singles} |")
     lines += ["", "| single effect | trials | named right |", "|---|---|---|"]
     for name, (n, right) in s.by_effect.items():
         lines.append(f"| {name} | {n} | {right} |")

@@ -290,8 +290,30 @@ class LevelRow:
 
 
 @dataclass(frozen=True)
+class Count:
+    """k of n trials; the rate is None where there were none to count."""
+
+    k: int
+    n: int
+
+    @property
+    def rate(self) -> float | None:
+        return self.k / self.n if self.n else None
+
+    def __str__(self) -> str:
+        return f"{self.k}/{self.n} ({100 * self.k / self.n:.1f} %)" if self.n else "0/0 (n/a)"
+
+
+@dataclass(frozen=True)
 class Summary:
     trials: int
+    # Each rate below with the counts it is made of (k of n trials).
+    single_right: Count
+    single_high: Count
+    none_right: Count
+    two_found: Count
+    outside_unnamed: Count
+    region_located: Count
     single_right_rate: float | None
     single_high_share: float | None  # share of single-effect cases answered with high confidence
     none_right_rate: float | None
@@ -306,9 +328,9 @@ class Summary:
     per_trial: tuple[Score, ...]
 
 
-def _rate(xs: Iterable[bool]) -> float | None:
+def _count(xs: Iterable[bool]) -> Count:
     v = list(xs)
-    return float(np.mean(v)) if v else None
+    return Count(int(sum(v)), len(v))
 
 
 def summarize(scores: list[Score]) -> Summary:
@@ -323,15 +345,24 @@ def summarize(scores: list[Score]) -> Summary:
     for s in singles:
         n, r = effects.get(s.truth[0], (0, 0))
         effects[s.truth[0]] = (n + 1, r + int(s.right))
+    counts = {
+        "single_right": _count(s.right for s in singles),
+        "single_high": _count(s.level == HIGH for s in singles),
+        "none_right": _count(s.right for s in by_case["none"]),
+        "two_found": _count(s.right for s in by_case["two"]),
+        "outside_unnamed": _count(not s.groups for s in outside),
+        "region_located": _count(s.located for s in by_case["region"]),
+    }
     return Summary(
         trials=len(scores),
-        single_right_rate=_rate(s.right for s in singles),
-        single_high_share=_rate(s.level == HIGH for s in singles),
-        none_right_rate=_rate(s.right for s in by_case["none"]),
-        two_found_rate=_rate(s.right for s in by_case["two"]),
+        **counts,
+        single_right_rate=counts["single_right"].rate,
+        single_high_share=counts["single_high"].rate,
+        none_right_rate=counts["none_right"].rate,
+        two_found_rate=counts["two_found"].rate,
         outside_named_high=sum(s.level == HIGH for s in outside),
-        outside_unnamed_rate=_rate(not s.groups for s in outside),
-        region_located_rate=_rate(s.located for s in by_case["region"]),
+        outside_unnamed_rate=counts["outside_unnamed"].rate,
+        region_located_rate=counts["region_located"].rate,
         median_heldout_reduction_single=float(np.median([s.heldout_reduction for s in singles])) if singles else None,
         ambiguous_single=sum(any(len(g) > 1 for g in s.groups) for s in singles),
         by_level=tuple(rows),

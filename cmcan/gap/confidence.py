@@ -74,7 +74,10 @@ def confidence(
     robust: dict[str, float],
     structure: dict[str, float],
     flags: tuple[Flag, ...],
+    degenerate_holdout: bool = False,
 ) -> Confidence:
+    """The level and why it is not higher. A degenerate hold-out (the withheld part hardly differs
+    from the fit part) tests no extrapolation, so its figures cannot make an answer high."""
     sigma = ctx.noise(final.with_time)
     h = ctx.hold & final.judged
     base_h = rmse((ctx.d.y - ctx.y0)[h])
@@ -99,6 +102,8 @@ def confidence(
         reasons.append("leaves a trend along an input")
     if not sep >= HIGH_SEPARATION:
         reasons.append("a rival outside the answer fits nearly as well")
+    if degenerate_holdout:
+        reasons.append("the withheld part hardly differs from the fit part (a degenerate hold-out)")
     if not reasons:
         return Confidence(HIGH, (), checks)
     if flags or checks["robust_min"] < MEDIUM_ROBUST or checks["heldout_reduction"] < MIN_REDUCTION:

@@ -11,7 +11,7 @@ from numpy.typing import NDArray
 from cmcan.errors import CmcanError, Kind
 from cmcan.gap.data import MIN_BLOCKS, MIN_POINTS, GapData
 from cmcan.gap.effects import LIBRARY, Effect, Scale, simulate
-from cmcan.roles import DP, PUMP_DISP, PUMP_SPEED, TEMP
+from cmcan.roles import DP, PUMP_DISP, PUMP_SPEED, TEMP, UNITS
 from cmcan.sim.physics import DriveParams
 
 REGION_VARS = (DP, TEMP, PUMP_SPEED, PUMP_DISP)
@@ -20,23 +20,46 @@ MIN_GAP_SHARE = 0.0025  # ... nor is one below this share of the output
 CHUNKS = 20  # stretches of the data over which a candidate's advantage over a rival must hold
 RELIEF_MARGIN = 0.9  # points whose pressure reaches this share of the relief setting are not judged
 MIN_STEADY = 200  # fewer steady points than this: judge static effects on every followable point
+# A withheld region tests an extrapolation only where it lies this far from the fit part along its
+# variable (median to median): 5 C of oil temperature (the oil's viscosity changes by 15-30 % over
+# 5 C), or a tenth of the highest delta pressure or pump speed in the data or of the pump's size.
+MIN_REACH_C = 5.0
+MIN_REACH_SHARE = 0.1
 
 
 def rmse(e: NDArray[np.float64]) -> float:
     return float(np.sqrt(np.mean(e**2))) if len(e) else float("nan")
 
 
-def holdout_mask(d: GapData, spec: str | None) -> tuple[NDArray[np.bool_], str]:
-    """Withheld points by operating region (default: the hottest quarter, or the highest-pressure
-    quarter where the oil temperature hardly varies) so an added effect must extrapolate. Where neither
-    varies: a time series's last quarter; a table's top quarter of the first input that varies, else a
-    random quarter (a table has no time order)."""
+def default_holdout(d: GapData, judged: NDArray[np.bool_], scale: Scale) -> str:
+    """The withheld part an added effect must extrapolate to: the hottest quarter, or where that lies
+    too close to the rest (a degenerate hold-out, :func:`holdout_reach`) the highest-pressure quarter;
+    where both are degenerate, the one reaching furthest for its variable. Where neither varies: a time
+    series's last quarter; a table's top quarter of the first input that varies, else a random quarter
+    (a table has no time order)."""
     x = d.x
-    if spec is None:
-        spec = f"{TEMP}:top25" if np.ptp(x.temp_c) >= 15.0 else f"{DP}:top25"
-        if np.ptp(getattr(x, spec.split(":")[0])) == 0.0:
-            moving = [v for v in REGION_VARS if np.ptp(getattr(x, v)) > 0.0]
-            spec = "time:last25" if d.has_time else f"{moving[0]}:top25" if moving else "random25"
+    tried = []
+    for var in (TEMP, DP):
+        if np.ptp(getattr(x, var)) == 0.0:
+            continue
+        spec = f"{var}:top25"
+        hold, _ = holdout_mask(d, spec)
+        r = holdout_reach(d, hold, judged, spec, scale)
+        if r is None:  # no judged point on one side of the cut: no use
+            continue
+        if not r.degenerate:
+            return spec
+        tried.append((r.reach / r.needed, spec))
+    if tried:
+        return max(tried)[1]
+    moving = [v for v in REGION_VARS if np.ptp(getattr(x, v)) > 0.0]
+    return "time:last25" if d.has_time else f"{moving[0]}:top25" if moving else "random25"
+
+
+def holdout_mask(d: GapData, spec: str) -> tuple[NDArray[np.bool_], str]:
+    """Withheld points by operating region, so an added effect must extrapolate (``VAR:topNN``,
+    ``VAR:bottomNN``), by time (``time:lastNN``, a time series only) or a random quarter."""
+    x = d.x
     if spec == "random25":  # a table is in its canonical order, so the same rows draw the same quarter
         return np.random.default_rng(0).random(len(d.y)) < 0.25, spec
     if spec.split(":")[0] == "time" and not d.has_time:
@@ -68,6 +91,49 @@ def holdout_mask(d: GapData, spec: str | None) -> tuple[NDArray[np.bool_], str]:
         mask = np.zeros(len(values), dtype=bool)
         mask[order[-k:] if end in ("top", "last") else order[:k]] = True
     return mask, spec
+
+
+@dataclass(frozen=True)
+class Reach:
+    """How far the withheld part lies from the fit part along the variable it was cut by."""
+
+    reach: float  # |median of the withheld part - median of the fit part|, in the variable's unit
+    needed: float  # the least reach that tests an extrapolation (MIN_REACH_C, MIN_REACH_SHARE)
+    message: str  # why the hold-out is degenerate; empty where it is not
+
+    @property
+    def degenerate(self) -> bool:
+        return bool(self.message)
+
+
+def holdout_reach(
+    d: GapData, hold: NDArray[np.bool_], judged: NDArray[np.bool_], spec: str, scale: Scale
+) -> Reach | None:
+    """Whether a hold-out by an operating region asks the effects to extrapolate at all: its judged
+    points' median along the variable against the fit part's. A variable that barely varies (oil at
+    34-36 C) withholds a region that is the fit part's own, and a reduction of the gap there says
+    nothing about extrapolation. None for withheld parts that are not a region of an input (time,
+    random25)."""
+    var = spec.split(":")[0]
+    if var not in REGION_VARS:
+        return None
+    v = getattr(d.x, var)
+    held, fit = v[hold & judged], v[~hold & judged]
+    if not len(held) or not len(fit):
+        return None
+    reach = float(abs(np.median(held) - np.median(fit)))
+    top = {DP: scale.dp_max_bar, PUMP_SPEED: scale.speed_max_rpm, PUMP_DISP: scale.pump_disp_max_cc}
+    needed = MIN_REACH_C if var == TEMP else MIN_REACH_SHARE * top[var]
+    if reach >= needed:
+        return Reach(reach, needed, "")
+    u = "C" if var == TEMP else UNITS.get(var, "")
+    msg = (
+        f"the withheld part ({spec}: {var} {held.min():.4g}..{held.max():.4g} {u}) lies only {reach:.3g} {u} "
+        f"from the fit part ({fit.min():.4g}..{fit.max():.4g} {u}), median to median, less than the "
+        f"{needed:.3g} {u} that tests an extrapolation: a degenerate hold-out; withhold by a variable that "
+        f"varies more"
+    )
+    return Reach(reach, needed, msg)
 
 
 def _mad_of_differences(d: NDArray[np.float64]) -> float:
@@ -149,7 +215,6 @@ class Context:
 def prepare(
     d: GapData, p: DriveParams, holdout: str | None = None, candidates: dict[str, Effect] | None = None
 ) -> Context:
-    hold, spec = holdout_mask(d, holdout)
     lib = candidates or LIBRARY
     cands = {
         k: e
@@ -159,6 +224,8 @@ def prepare(
     fol = followable(d, p)
     steady = d.steady & fol
     static_pts = steady if steady.sum() >= MIN_STEADY or not d.has_time else fol
+    scale = Scale.of(p, d.x, d.y)
+    hold, spec = holdout_mask(d, holdout if holdout is not None else default_holdout(d, static_pts, scale))
     _enough_judged(d, p, fol, hold, spec)
     y0 = simulate(p, d.x, [], d.quantity)
     if d.has_time:
@@ -172,7 +239,7 @@ def prepare(
     return Context(
         d,
         p,
-        Scale.of(p, d.x, d.y),
+        scale,
         cands,
         hold,
         spec,

@@ -51,11 +51,65 @@ class Round:
 
 
 @dataclass(frozen=True)
+class PairFit:
+    """Two effects fitted jointly by the pair search, each judged as if fitted last on top of the other."""
+
+    names: tuple[str, str]
+    members: tuple[CandidateFit, CandidateFit]
+    heldout_reduction: float  # share of the withheld gap the two remove together
+    eligible: bool  # both members may be named and neither sits on a bound
+
+
+@dataclass(frozen=True)
+class PairSearch:
+    """The pair search, run where no single effect leaves little but noise: the pairs fitted jointly
+    after the linearized screening, and whether one removed enough more than one effect alone."""
+
+    best_single: str | None  # the best single effect that qualified (None: none did)
+    single_reduction: float  # its share of the withheld gap (0 where none qualified)
+    needed: float  # a pair must remove at least this share of the withheld gap to be named
+    pairs: tuple[PairFit, ...]
+    chosen: tuple[str, str] | None  # the pair named (None: the single effects stand)
+
+
+@dataclass(frozen=True)
 class GapStats:
-    rmse: float
+    """The gap at the judged points (what the diagnosis judges), and for context at every point."""
+
+    rmse: float  # at the judged points
     rmse_pct: float
     mean: float
-    heldout_rmse: float
+    heldout_rmse: float  # at the judged points of the withheld part
+    all_rmse: float  # at every point, judged or not (the unjudged ones at the relief valve, ...)
+
+
+@dataclass(frozen=True)
+class Coverage:
+    """Which points the figures are over: the judged ones, and why the others are not judged."""
+
+    judged: int
+    total: int
+    on: str  # "steady points", "every point the simulator can follow", "every operating point"
+    near_relief: int  # not judged: the pressure within 10 % of the relief setting
+    no_pressure: int  # not judged: the delta pressure at or below zero (the loop's other side high)
+    transient: int  # not judged: followable but not steady, for an answer judged on steady points
+
+    @property
+    def unjudged(self) -> int:
+        return self.total - self.judged
+
+    def why(self) -> str:
+        """The unjudged points by reason, e.g. ``412 near the relief valve, 230 at or below 0 bar``."""
+        parts = [
+            f"{n} {what}"
+            for n, what in (
+                (self.near_relief, "near the relief valve"),
+                (self.no_pressure, "at or below 0 bar delta pressure"),
+                (self.transient, "transient"),
+            )
+            if n
+        ]
+        return ", ".join(parts)
 
 
 @dataclass(frozen=True)
@@ -113,15 +167,21 @@ class Holdout:
     judged_points: int
     judged_on: str
     regions_before: Regions
+    # Where the withheld part hardly differs from the fit part along its variable (docs/gap.md, "The
+    # withheld part"): why, in one sentence; empty where the hold-out asks for a real extrapolation.
+    degenerate: str = ""
+    reach: float | None = None  # how far the withheld part's median lies from the fit part's, along VAR
+    reach_needed: float | None = None  # ... and the least reach that tests an extrapolation
 
 
 @dataclass(frozen=True)
 class After:
-    rmse: float
+    rmse: float  # at the judged points, as GapStats
     rmse_pct: float
     heldout_rmse: float
     heldout_reduction: float
     regions_heldout: Regions
+    all_rmse: float  # at every point, judged or not
 
 
 @dataclass(frozen=True)
@@ -170,6 +230,8 @@ class Diagnosis:
     residual_structure: Mapping[str, float]  # RMS of residual decile means per input, in noise levels
     refused_points: int = 0  # points left out by the plausibility gate (not in ``points``)
     refused_why: str = ""  # ... which values, outside which plausible ranges
+    judged: Coverage | None = None  # the points the figures are over, and why the others are not judged
+    pair_search: PairSearch | None = None  # None: not run (one effect left little but noise)
 
     @property
     def selected(self) -> tuple[str, ...]:
@@ -200,6 +262,7 @@ class Arrays:
     y_before: NDArray[np.float64]
     y_after: NDArray[np.float64]
     holdout: NDArray[np.bool_]
+    judged: NDArray[np.bool_]  # the points the answer is judged on (the headline's and the figures')
 
 
 def _plain(v: Any) -> Any:

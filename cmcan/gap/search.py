@@ -24,6 +24,8 @@ from cmcan.gap.fit import (
 )
 from cmcan.gap.result import (
     CandidateFit,
+    PairFit,
+    PairSearch,
     Round,
 )
 
@@ -39,6 +41,7 @@ class Search:
     groups: tuple[tuple[str, ...], ...]
     final: SetFit | None
     separation: float  # the nearest rival's extra squared residual, in noise variances (inf: no rival)
+    pairs: PairSearch | None = None  # the pair search, where it ran
 
 
 class Fits:
@@ -85,6 +88,7 @@ def search(ctx: Context) -> Search:
     rounds: list[Round] = []
     names: list[str] = []
     base: SetFit | None = None
+    pairs: PairSearch | None = None
     while len(names) < MAX_EFFECTS:
         if no_gap(ctx, base.y if base else ctx.y0):
             break
@@ -92,7 +96,7 @@ def search(ctx: Context) -> Search:
         rounds.append(Round(base.names if base else (), tuple(cands)))
         best = _pick(cands)
         if base is None:
-            pair = _try_pairs(ctx, fits, best)
+            pair, pairs = _try_pairs(ctx, fits, best)
             if pair is not None:
                 base, names = pair, list(pair.names)
                 break
@@ -101,9 +105,9 @@ def search(ctx: Context) -> Search:
         names.append(best.name)
         base = fits.get(tuple(names))
     if base is None or not names:
-        return Search(tuple(rounds), (), None, np.nan)
+        return Search(tuple(rounds), (), None, np.nan, pairs)
     groups, sep = _regroup(ctx, fits, base)
-    return Search(tuple(rounds), groups, base, sep)
+    return Search(tuple(rounds), groups, base, sep, pairs)
 
 
 def _regroup(ctx: Context, fits: Fits, final: SetFit) -> tuple[tuple[tuple[str, ...], ...], float]:
@@ -142,17 +146,17 @@ def _sensitivities(ctx: Context, names: list[str]) -> NDArray[np.float64]:
     return np.column_stack(cols)
 
 
-def _try_pairs(ctx: Context, fits: Fits, best: CandidateFit | None) -> SetFit | None:
+def _try_pairs(ctx: Context, fits: Fits, best: CandidateFit | None) -> tuple[SetFit | None, PairSearch | None]:
     """Two effects can hide each other (one slows the motor, the other speeds it up): where no single
     effect leaves little but noise, every pair is screened on the linearized model and the most
-    promising few are fitted jointly."""
+    promising few are fitted jointly. The pair named (or None), and what the search tried."""
     if best is not None:
         b = fits.get((best.name,))
         if rmse((ctx.d.y - b.y)[ctx.hold & b.judged]) <= LEFT_FOR_PAIRS * max(ctx.sigma, 1e-12):
-            return None
+            return None, None
     names = [n for n, e in ctx.candidates.items() if not e.needs_time and len(e.params) == 1]
     if len(names) < 2:
-        return None
+        return None, None
     jac = _sensitivities(ctx, names)
     g = ctx.d.y - ctx.y0
     fm, hm = ~ctx.hold & ctx.static_pts, ctx.hold & ctx.static_pts
@@ -173,17 +177,26 @@ def _try_pairs(ctx: Context, fits: Fits, best: CandidateFit | None) -> SetFit | 
         screened.append((rss_h, names[a], names[b]))
     found = None
     base_h = max(rmse(g[hm]), 1e-12)
+    tried = []
     for _, a, b in sorted(screened)[:PAIR_REFINE]:
         s = fits.get((a, b))
         fb = judge_member(ctx, fits.get((a,)), s, 1)
         fa = judge_member(ctx, fits.get((b,)), s, 0)
         total = 1.0 - rmse((ctx.d.y - s.y)[ctx.hold & s.judged]) / base_h
-        if fa.eligible and fb.eligible and not (fa.at_bound or fb.at_bound) and (found is None or total > found[0]):
+        ok = fa.eligible and fb.eligible and not (fa.at_bound or fb.at_bound)
+        tried.append(PairFit((a, b), (fa, fb), total, ok))
+        if ok and (found is None or total > found[0]):
             found = (total, s)
-    if found is None:
-        return None
     single = 0.0
     if best is not None:
-        b = fits.get((best.name,))
-        single = 1.0 - rmse((ctx.d.y - b.y)[hm]) / base_h
-    return found[1] if found[0] >= single + PAIR_GAIN else None
+        b1 = fits.get((best.name,))
+        single = 1.0 - rmse((ctx.d.y - b1.y)[hm]) / base_h
+    chosen = found[1] if found is not None and found[0] >= single + PAIR_GAIN else None
+    report = PairSearch(
+        best.name if best is not None else None,
+        single,
+        single + PAIR_GAIN,
+        tuple(tried),
+        (chosen.names[0], chosen.names[1]) if chosen is not None else None,
+    )
+    return chosen, report

@@ -336,23 +336,21 @@ def test_kernel_filters_keep_the_load_flat_under_a_flood(daemon, work):
         stop(rec)
         after = daemon.fresh_status()
         stamps = np.array([t for t, i, _ in recorded(tmp / f"flood{flood}.log") if i == RATIO_ID])
-        runs[flood] = (
-            cpu,
-            after["accepted"] - before["accepted"],
-            after["frames_total"] - before["frames_total"],
-            stamps,
-            on_bus,
-        )
-    cpu_quiet, got_quiet, _, _, bus_quiet = runs[False]
-    cpu_flood, got_flood, total_flood, stamps, bus_flood = runs[True]
+        runs[flood] = (cpu, {k: after[k] - before[k] for k in after}, stamps, on_bus)
+    cpu_quiet, quiet, _, bus_quiet = runs[False]
+    cpu_flood, flooded, stamps, bus_flood = runs[True]
+    # The CPU is printed, not asserted: in an emulated guest sharing a busy host it says more about the
+    # host than about the filter. What the kernel filter guarantees is asserted instead.
     print(
-        f"frames on the bus {bus_quiet} quiet, {bus_flood} flooded; daemon CPU {cpu_quiet:.2f} s quiet, "
-        f"{cpu_flood:.2f} s flooded"
+        f"frames on the bus {bus_quiet} quiet, {bus_flood} flooded; daemon counters quiet {quiet}, "
+        f"flooded {flooded}; daemon CPU {cpu_quiet:.2f} s quiet, {cpu_flood:.2f} s flooded"
     )
     assert bus_flood > 3 * bus_quiet  # the flood really was there
-    assert got_quiet == got_flood == n_inputs  # no input frame lost
-    assert total_flood == n_inputs  # not one flood frame reached the daemon
-    assert cpu_flood < 1.5 * cpu_quiet + 0.3
+    assert quiet["accepted"] == flooded["accepted"] == n_inputs  # no input frame lost
+    # Not one flood frame reached the daemon: it counted the inputs and nothing else (the flood's
+    # identifier, 0x555, would count as an unknown identifier or a frame beyond the inputs).
+    assert flooded["frames_total"] == n_inputs and flooded["unknown_id"] == 0
+    assert flooded["bad_length"] == flooded["out_of_range"] == 0
     gaps = np.diff(stamps)
     assert np.median(gaps) == pytest.approx(0.1, abs=0.01) and gaps.max() < 0.35
 
