@@ -23,7 +23,7 @@ def test_the_first_log_starts_fresh_the_next_carries_the_state_of_the_one_before
     assert not first.carried and first.state_hash == "" and "first log" in first.note
     c = next_carry(END, 1000.0 + 1200.0)
     assert c.carried and c.state == STATE and c.from_log_hash == END.log_hash and c.inputs == END.inputs
-    assert "carried from a.log (0.33 h between them)" == c.note
+    assert c.note == "carried from a.log (0.33 h between them)"
     assert len(c.state_hash) == 16 and c.state_hash != Carry({**STATE, "warning_count": 2}).state_hash
 
 
@@ -62,7 +62,7 @@ def shifted(src: Path, dst: Path, by_s: float) -> Path:
     out = []
     for line in src.read_text().splitlines(keepends=True):
         m = re.match(r"\((\d+\.\d+)\)", line)
-        out.append(f"({float(m.group(1)) + by_s:.6f}){line[m.end():]}" if m else line)
+        out.append(f"({float(m.group(1)) + by_s:.6f}){line[m.end() :]}" if m else line)
     dst.write_text("".join(out))
     return dst
 
@@ -129,7 +129,7 @@ def test_the_carried_state_is_the_daemons_across_restarts(chain):
     )
     assert [r[0] for r in rows] == [p.name for p in chain["logs"]]
     assert [r[1] for r in rows] == ["fresh"] + ["carried"] * 5
-    for (name, _state_in, state_out, log_hash, n_low, final, low_h), want in zip(rows, daemon, strict=True):
+    for (name, _state_in, state_out, log_hash, n_low, final, _low_h), want in zip(rows, daemon, strict=True):
         got = json.loads(state_out)
         exact = {k: v for k, v in got.items() if k not in ("time_in_level_s", "evaluated_s")}
         assert exact == {k: v for k, v in want["state"].items() if k not in ("time_in_level_s", "evaluated_s")}, name
@@ -137,8 +137,8 @@ def test_the_carried_state_is_the_daemons_across_restarts(chain):
             assert got["time_in_level_s"][k] == pytest.approx(v, abs=1e-6), (name, k)
         assert got["evaluated_s"] == pytest.approx(want["state"]["evaluated_s"], abs=1e-6)
         _, ev = run_sql(
-            chain["ds"], f"SELECT time_s, from_level, to_level, reason FROM events WHERE log_hash = '{log_hash}' "
-            "ORDER BY time_s",
+            chain["ds"],
+            f"SELECT time_s, from_level, to_level, reason FROM events WHERE log_hash = '{log_hash}' ORDER BY time_s",
         )
         assert ev == [(e["t_s"], e["from"], e["to"], e["reason"]) for e in want["events"]], name
         assert final == want["summary"].snapshot["level"]
@@ -153,8 +153,8 @@ def test_the_carried_state_is_the_daemons_across_restarts(chain):
 @pytest.mark.slow
 def test_a_long_gap_starts_the_next_log_fresh_and_says_why(chain):
     _, rows = run_sql(
-        chain["ds"], "SELECT log_name, state_in, state_note, carried_from FROM logs WHERE machine = 'm002' "
-        "ORDER BY first_time_s",
+        chain["ds"],
+        "SELECT log_name, state_in, state_note, carried_from FROM logs WHERE machine = 'm002' ORDER BY first_time_s",
     )
     assert [(r[0], r[1]) for r in rows] == [("copy.log", "fresh"), ("late.log", "fresh")]
     assert "more than 168 h: not carried" in rows[1][2] and rows[1][3] is None

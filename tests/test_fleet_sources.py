@@ -39,7 +39,7 @@ def test_a_link_out_of_a_folder_is_refused_unless_asked(tmp_path, secret):
     why = {Path(r.path).name: (r.machine, r.reason) for r in found.refused}
     assert why["evil.log"][0] == "m001" and "symbolic link to outside" in why["evil.log"][1]
     assert "--follow-symlinks" in why["evil.log"][1] and "folder outside" in why["m003"][1]
-    with pytest.raises(CmcanError, match="refused .*(evil.log|m003)") as exc:
+    with pytest.raises(CmcanError, match=r"refused .*(evil.log|m003)") as exc:
         discover([str(fleet)])
     assert exc.value.kind == Kind.NO_PERMISSION
     assert ok.exists()
@@ -88,7 +88,7 @@ def test_fifos_and_devices_are_refused_before_anything_opens_them(tmp_path):
     d = tmp_path / "fleet"
     touch(d / "m001" / "a.log")
     os.mkfifo(d / "m001" / "pipe.log")
-    (d / "m.csv").write_text(f"machine,log\nm002,/dev/zero\nm003,pipe.log\n")
+    (d / "m.csv").write_text("machine,log\nm002,/dev/zero\nm003,pipe.log\n")
     os.mkfifo(d / "pipe.log")
     found = find_logs([str(d / "m001"), str(d / "m.csv")], manifest_root="/")
     reasons = {Path(r.path).name: r.reason for r in found.refused}

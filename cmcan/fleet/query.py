@@ -258,8 +258,9 @@ def tables_of(sql: str) -> set[str]:
 
 
 def connect(root: str | Path, verify: bool = True, tables: set[str] | None = None) -> Any:
-    """A locked, in-memory DuckDB connection with the data set's views. ``tables``: the tables whose
-    files are checked in full (default all); a damaged file raises :class:`cmcan.fleet.dataset.Damaged`."""
+    """A locked, in-memory DuckDB connection with the data set's views. ``tables``: the data tables
+    the statement reads (default all): only those are opened and their files checked in full; a
+    damaged file raises :class:`cmcan.fleet.dataset.Damaged`."""
     duckdb = require_duckdb()
     root = ds.open_dataset(Path(root), create=False)
     want = set(ds.TABLES) if tables is None else tables
@@ -279,8 +280,9 @@ def connect(root: str | Path, verify: bool = True, tables: set[str] | None = Non
     try:
         con.register(ds.SUMMARY_TABLE, _records_table(ds.SUMMARY_TABLE, logs))
         con.register(ds.QUARANTINE, _records_table(ds.QUARANTINE, quarantine))
-        for t in ds.DATA_TABLES:
-            con.register(t, _data_dataset(root, t, data[t]))
+        for t in ds.DATA_TABLES:  # a table the statement does not read is not opened (nor there)
+            if t in want:
+                con.register(t, _data_dataset(root, t, data[t]))
         _derived_views(con)
         con.execute("SET lock_configuration = true")
     except BaseException:

@@ -474,6 +474,7 @@ def _process_log(job: LogJob, opt: Options, carry: Carry, started: float) -> dic
             if other != job.machine:
                 ds.remove_log(root, other, log_hash[:16])
                 ds.remove_quarantine(root, other, [path_key(job.log)], log_hash[:16])
+        ds.remove_quarantine(root, job.machine, [path_key(job.log)], None)  # an earlier failure to read it
         return _result(job, "skipped", prov.key, started, end=_end_of(record, inp), log_hash=log_hash)
     q = ds.quarantine_row(root, job.machine, prov.key)
     if q is not None and not opt.retry_quarantined:
