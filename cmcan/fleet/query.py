@@ -247,13 +247,26 @@ def _data_dataset(root: Path, table: str, files: list[Path]) -> Any:
     )
 
 
-def tables_of(sql: str) -> set[str]:
-    """The data set's tables a statement reads (all of them when DuckDB cannot tell)."""
+def _locked(duckdb: Any) -> Any:
+    return duckdb.connect(":memory:", config=dict(LOCKDOWN))
+
+
+def plan_statement(sql: str) -> set[str]:
+    """Check the statement (:func:`check_statement`) and name the data set's tables it reads, on a
+    locked connection with nothing in it: DuckDB names the tables a statement needs that its catalog
+    lacks (all of the data set's when it cannot tell, as for a join ``USING`` columns it cannot see).
+    Nothing of the statement runs, and nothing is read yet."""
     duckdb = require_duckdb()
+    con = _locked(duckdb)
     try:
-        names = {n.lower() for n in duckdb.get_table_names(sql)}
-    except duckdb.Error:
-        return set(ds.TABLES)
+        con.execute("SET lock_configuration = true")
+        check_statement(con, sql)
+        try:
+            names = {n.lower() for n in con.get_table_names(sql)}
+        except duckdb.Error:
+            return set(ds.TABLES)
+    finally:
+        con.close()
     return {t for n in names for t in VIEW_TABLES.get(n, ())}
 
 
@@ -276,7 +289,7 @@ def connect(root: str | Path, verify: bool = True, tables: set[str] | None = Non
             problems += ds.check_files(root, rec["machine"], rec, want & set(ds.DATA_TABLES))
     if problems:
         raise ds.Damaged(problems)
-    con = duckdb.connect(":memory:", config=dict(LOCKDOWN))
+    con = _locked(duckdb)
     try:
         con.register(ds.SUMMARY_TABLE, _records_table(ds.SUMMARY_TABLE, logs))
         con.register(ds.QUARANTINE, _records_table(ds.QUARANTINE, quarantine))
@@ -345,9 +358,9 @@ def check_statement(con: Any, sql: str) -> None:
 
 def run_sql(root: str | Path, sql: str, verify: bool = True) -> tuple[list[str], list[tuple[Any, ...]]]:
     duckdb = require_duckdb()
-    con = connect(root, verify, tables_of(sql))
+    tables = plan_statement(sql)
+    con = connect(root, verify, tables)
     try:
-        check_statement(con, sql)
         try:
             rel = con.sql(sql)
             if rel is None:  # a statement without a result
