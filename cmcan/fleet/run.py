@@ -186,15 +186,20 @@ def run_fleet(
         client = make_client(scheduler, workers)  # an unreachable scheduler: nothing created yet
     report = RunReport(logs=len(jobs) + len(refused or []))
     started = time.monotonic()
+    failed = None
     try:
         _run(client, root, jobs, opt, report, progress, refused or [], started)
     except ds.DatasetError as exc:
-        raise ds.DatasetError(
+        failed = ds.DatasetError(
             f"{exc}; the logs committed so far stay, run the same command again when it is fixed", exc.kind
-        ) from None
+        )
     finally:
         if own:
             _close(client)
+    if failed is not None:
+        if (root / "_dataset.json").exists():
+            _clean(root)  # what the tasks were staging when the data set failed them (if it can)
+        raise failed
     return report
 
 
@@ -223,8 +228,12 @@ def _run(
         finally:
             report.seconds = time.monotonic() - started
             if report.interrupted:  # what the killed workers were staging
-                with contextlib.suppress(CmcanError):
-                    ds.remove_orphans(root)
+                _clean(root)
+
+
+def _clean(root: Path) -> None:
+    with contextlib.suppress(CmcanError):
+        ds.remove_orphans(root)
 
 
 def _record_refused(

@@ -261,6 +261,8 @@ def _probe(job: LogJob, opt: Options, first_frame: bool, started: float) -> dict
     finally:
         os.close(fd)
     job = dataclasses.replace(job, log_hash=log_hash, size=st.st_size, mtime_ns=st.st_mtime_ns)
+    # read now: an earlier row for its path (refused, unreadable, timed out) is history
+    ds.remove_quarantine(Path(opt.dataset), job.machine, [path_key(job.log)], None)
     if first_frame:
         row = ds.quarantine_row(Path(opt.dataset), job.machine, hash_key(log_hash))
         if row is not None and row.get("stage") == "read" and not opt.retry_quarantined:
