@@ -15,7 +15,8 @@ pytest.importorskip("duckdb")
 from cmcan.cli import main
 from cmcan.fleet import dataset as ds
 from cmcan.fleet.task import LogJob, Options, process_log
-from tests.conftest import run_cli
+from tests.chromium import chromium_path, open_page
+from tests.conftest import ROOT, run_cli
 from tests.helpers import sim_frames, write_log
 
 SECRET = "s3cr3t-token-4711"
@@ -125,6 +126,22 @@ def test_the_report_of_a_data_set_whose_every_log_was_quarantined(tmp_path):
     assert "Quarantine (1)" in text and "m9_bad.log" in text and "wrong DBC or configuration" in text
     r = run_cli("fleet", "query", str(root), "SELECT count(*), sum(count_frames_total) FROM logs", "--format", "csv")
     assert r.returncode == 0 and r.stdout.splitlines() == ["count_star(),sum(count_frames_total)", "0,"]
+    if chromium_path() is None:
+        pytest.skip("needs Debian's chromium package (.ci/run installs it) for the page itself")
+    shot = ROOT / "tests" / "artifacts" / "fleet-report-all-quarantined.png"
+    page = open_page(
+        out.as_uri(),
+        shot,
+        {
+            "quarantine": "document.getElementById('quarantine').innerText",
+            "rows": "Array.from(document.querySelectorAll('table')).pop().innerText",
+            "cards": "Array.from(document.querySelectorAll('.card')).map(c => c.innerText.replace('\\n', ' '))",
+        },
+        height=900,
+    )
+    assert page.errors == []
+    assert page.values["quarantine"] == "Quarantine (1)" and "m9_bad.log" in page.values["rows"]
+    assert "0 machines" in page.values["cards"] and "1 quarantined" in page.values["cards"]
 
 
 def test_an_empty_data_set_reports_and_queries(tmp_path):

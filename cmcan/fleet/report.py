@@ -293,6 +293,11 @@ def _build(con: Any, root: str | Path, trend_h: float, max_machines: int) -> str
             f"<td>{m.evaluated_h:.2f}</td><td class='l'>{m.first_day} &ndash; {m.last_day}</td></tr>"
         )
     parts.append("</table>")
+    if not ms:
+        parts.append(
+            "<p>No log is committed in this data set"
+            + (": every log that was tried is in the quarantine list below.</p>" if quarantine else ".</p>")
+        )
     parts.append("<h2 id='machines'>Machines</h2>")
     for m in ms[:max_machines]:
         h, raw, filt = ser.get(m.machine, ([], [], []))

@@ -33,7 +33,7 @@ from cmcan.errors import CmcanError, Kind
 from cmcan.fleet import dataset as ds
 from cmcan.fleet.chain import LogEnd, next_carry
 from cmcan.fleet.sources import Refused
-from cmcan.fleet.task import LogJob, Options, hash_key, path_key, probe_log, process_log
+from cmcan.fleet.task import LogJob, Options, hash_key, path_key, probe_log, process_log, safe_reason
 
 log = logging.getLogger("cmcan.fleet")
 IN_FLIGHT_PER_THREAD = 2
@@ -427,7 +427,7 @@ def _run_chains(
 
 def _worker_failure(opt: Options, job: LogJob, exc: BaseException) -> dict[str, Any]:
     key = hash_key(job.log_hash) if job.log_hash else path_key(job.log)
-    reason = f"{type(exc).__name__}: {str(exc).splitlines()[0][:200] if str(exc) else ''}"
+    reason = safe_reason(f"{type(exc).__name__}: {exc}", (job.log, job.config, job.model))
     ds.write_quarantine(
         Path(opt.dataset),
         job.machine,
