@@ -207,11 +207,11 @@ def test_machine_rule_for_folders_and_file_names(tmp_path):
 
 
 def test_manifest_paths_defaults_and_errors(tmp_path):
-    (tmp_path / "m.csv").write_text("machine,log,config\nexc-1,logs/a.log,cfg/x.yaml\nexc-2,/abs/b.log,\n")
+    (tmp_path / "m.csv").write_text(f"machine,log,config\nexc-1,logs/a.log,cfg/x.yaml\nexc-2,{tmp_path}/b.log,\n")
     jobs = discover([str(tmp_path / "m.csv")], config=str(tmp_path / "default.yaml"))
     want = LogJob("exc-1", str(tmp_path / "logs/a.log"), str(tmp_path / "cfg/x.yaml"), None)
     assert jobs[0] == dataclasses.replace(want, origin=f"{tmp_path / 'm.csv'} line 2")  # errors name the line
-    assert jobs[1].config == str(tmp_path / "default.yaml")
+    assert jobs[1].config == str(tmp_path / "default.yaml")  # an absolute path under the manifest's folder
     (tmp_path / "bad.csv").write_text("machine,file\nx,y\n")
     with pytest.raises(CmcanError, match=r"bad.csv: manifest lacks column\(s\) log"):
         discover([str(tmp_path / "bad.csv")])

@@ -196,7 +196,9 @@ def test_ctrl_c_keeps_whole_logs_and_a_rerun_finishes(fleet, tmp_path):
                 w.writerow([row[0], *(str(fleet["sim"] / p) for p in row[1:])])
     n_logs = 10  # 3 machines x 3 logs, and the corrupt one
     dataset = tmp_path / "ds"
+    root = ("--manifest-root", str(fleet["sim"]))  # the manifest here names the simulated fleet's files
     cmd = [sys.executable, "-m", "cmcan", "fleet", "replay", str(manifest), "--out", str(dataset), "--workers", "1"]
+    cmd += root
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 300
     while time.monotonic() < deadline and proc.poll() is None:
@@ -216,7 +218,7 @@ def test_ctrl_c_keeps_whole_logs_and_a_rerun_finishes(fleet, tmp_path):
             assert (p.parts[-3].split("=", 1)[1], p.stem) in committed, p
     assert not any((dataset / ds.STAGING).rglob("*"))
     assert not list(dataset.rglob("*.tmp"))
-    r = run_cli("fleet", "replay", str(manifest), "--out", str(dataset), "--workers", "1", "--json")
+    r = run_cli("fleet", "replay", str(manifest), "--out", str(dataset), "--workers", "1", "--json", *root)
     rep = json.loads(r.stdout)
     assert rep["skipped"] + rep["done"] + rep["quarantined"] == n_logs
     assert rep["done"] == 9 - len(committed)

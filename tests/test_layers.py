@@ -29,6 +29,7 @@ LAYERS: list[tuple[str, ...]] = [
         "cmcan.codec",
         "cmcan.checksums",
         "cmcan.j1939",
+        "cmcan.fitcheck",
     ),
     ("cmcan.monitor",),  # the pure core
     (

@@ -39,6 +39,22 @@ def add_subparser(sub: Subparsers) -> None:
     r.add_argument("--workers", type=int, help="worker processes of the embedded cluster (default: one per core)")
     r.add_argument("--timeout-s", type=float, default=3600.0, help="quarantine a log whose replay takes longer")
     r.add_argument("--retry-quarantined", action="store_true", help="try again the logs quarantined before")
+    r.add_argument(
+        "--follow-symlinks",
+        action="store_true",
+        help="read symbolic links in folders and manifests that point outside them (refused by default)",
+    )
+    r.add_argument(
+        "--manifest-root",
+        metavar="DIR",
+        help="the folder every path of a manifest must lie under (default: the manifest's own folder)",
+    )
+    r.add_argument(
+        "--keep-truncated",
+        action="store_true",
+        help="replay a log whose last line was cut (a logger killed) up to its last whole line, and record "
+        "the cut in the logs table (default: such a log is refused, naming the line)",
+    )
     r.add_argument("--engine", default="columnar", choices=("columnar", "streaming"), help="replay engine")
     r.add_argument("--json", action="store_true", help="print the run's summary as JSON")
     r.add_argument("-q", "--quiet", action="store_true", help="no progress lines on stderr")
@@ -61,7 +77,24 @@ def add_subparser(sub: Subparsers) -> None:
     q.add_argument("sql", help='the statement, e.g. "SELECT machine, sum(warnings_low) FROM logs GROUP BY 1"')
     q.add_argument("--format", choices=("table", "csv", "json"), default="table", help="output format")
     q.add_argument("--max-rows", type=int, default=100, help="rows shown in table format")
+    q.add_argument(
+        "--no-verify",
+        action="store_true",
+        help="do not hash the data files the statement reads against their commit records (faster on a large "
+        "data set; the records themselves are still checked)",
+    )
     q.set_defaults(func=run_query)
+
+    d = fsub.add_parser(
+        "drop",
+        help="remove every row of a machine from the data set",
+        description="Remove a machine's logs, timeline, events and quarantine rows (its summaries first, so its "
+        "logs leave the data set at once). The logs themselves are not touched; replaying them again adds them back.",
+    )
+    d.add_argument("dataset", help="data set folder")
+    d.add_argument("--machine", action="append", required=True, help="machine id (repeat for several)")
+    d.add_argument("--json", action="store_true", help="print what was removed as JSON")
+    d.set_defaults(func=run_drop)
 
 
 def _check_options(args: argparse.Namespace) -> None:
@@ -84,11 +117,17 @@ def run_replay(args: argparse.Namespace) -> int:
     require_extra("fleet", "pyarrow")
     _check_options(args)
     from cmcan.fleet.run import run_fleet
-    from cmcan.fleet.sources import discover
+    from cmcan.fleet.sources import find_logs
     from cmcan.fleet.task import Options
 
-    jobs = discover(args.sources, args.config, args.model)
-    if not jobs:
+    if args.manifest_root and not Path(args.manifest_root).is_dir():
+        raise CmcanError(f"--manifest-root {args.manifest_root}: no such folder", Kind.NO_INPUT)
+    found = find_logs(args.sources, args.config, args.model, args.follow_symlinks, args.manifest_root)
+    for note in found.notes:
+        print(f"cmcan fleet replay: {note}", file=sys.stderr)
+    for r in found.refused:
+        print(f"cmcan fleet replay: {r.line()}", file=sys.stderr)
+    if not found.jobs and not found.refused:
         raise CmcanError(f"no logs found in {', '.join(args.sources)}", Kind.NO_INPUT)
     opt = Options(
         dataset=args.out,
@@ -96,6 +135,7 @@ def run_replay(args: argparse.Namespace) -> int:
         timeout_s=args.timeout_s,
         retry_quarantined=args.retry_quarantined,
         engine=args.engine,
+        keep_truncated=args.keep_truncated,
     )
     last = [0.0]
 
@@ -105,6 +145,10 @@ def run_replay(args: argparse.Namespace) -> int:
         n = sum(rep.counts.values())
         if res["status"] == "quarantined":
             print(f"quarantined {res['machine']} {res['log']}: {res.get('reason')}", file=sys.stderr)
+        for m in res.get("moved_from") or ():
+            print(f"moved {res['log']} from machine {m} to {res['machine']}", file=sys.stderr)
+        if res.get("redone"):
+            print(f"replayed again {res['machine']} {res['log']}: its committed files were damaged", file=sys.stderr)
         now = time.monotonic()
         if now - last[0] >= 2.0 or n == rep.logs:
             last[0] = now
@@ -115,7 +159,9 @@ def run_replay(args: argparse.Namespace) -> int:
             )
 
     try:
-        rep = run_fleet(jobs, opt, scheduler=args.scheduler, workers=args.workers, progress=progress)
+        rep = run_fleet(
+            found.jobs, opt, scheduler=args.scheduler, workers=args.workers, progress=progress, refused=found.refused
+        )
     except KeyboardInterrupt:
         print(
             "cmcan fleet replay: interrupted; the logs committed so far stay in the data set, "
@@ -123,17 +169,29 @@ def run_replay(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         raise
+    for note in rep.notes:
+        print(f"cmcan fleet replay: {note}", file=sys.stderr)
     d = rep.to_dict()
     if args.json:
         print_json(d)
     else:
         rate = f", {d['frames_per_s'] / 1e3:.0f} k frames/s" if d["frames_per_s"] else ""
+        extra = "".join(
+            f", {n} {what}"
+            for n, what in (
+                (d["refused"], "refused (not read)"),
+                (len(d["moved"]), "moved to another machine"),
+                (len(d["redone"]), "replayed again (damaged)"),
+                (len(d["cut"]), "replayed up to a cut last line"),
+            )
+            if n
+        )
         print(
             f"{args.out}: {d['logs']} logs: {d['done']} replayed, {d['skipped']} skipped (already there), "
-            f"{d['quarantined']} quarantined; {d['frames'] / 1e6:.2f} M frames in {d['seconds']:.1f} s "
+            f"{d['quarantined']} quarantined{extra}; {d['frames'] / 1e6:.2f} M frames in {d['seconds']:.1f} s "
             f"on {d['workers']} workers{rate}"
         )
-    return EX_DATAERR if d["quarantined"] else 0
+    return EX_DATAERR if d["quarantined"] or d["refused"] else 0
 
 
 def run_report(args: argparse.Namespace) -> int:
@@ -151,6 +209,31 @@ def run_query(args: argparse.Namespace) -> int:
     require_extra("fleet", "duckdb")
     from cmcan.fleet.query import format_rows, run_sql
 
-    cols, rows = run_sql(args.dataset, args.sql)
+    cols, rows = run_sql(args.dataset, args.sql, verify=not args.no_verify)
     sys.stdout.write(format_rows(cols, rows, args.format, args.max_rows))
+    return 0
+
+
+def run_drop(args: argparse.Namespace) -> int:
+    from cmcan.fleet import dataset as ds
+
+    root = ds.open_dataset(Path(args.dataset), create=False)
+    for m in args.machine:
+        ds.check_machine(m, "--machine")
+    removed = {}
+    with ds.writer_lock(root):
+        have = {m for t in ds.TABLES for m in ds.machines_in(root, t)}
+        missing = [m for m in args.machine if m not in have]
+        if missing:
+            raise CmcanError(f"{root}: no rows of machine {', '.join(missing)}; nothing was removed", Kind.NO_INPUT)
+        for m in args.machine:
+            removed[m] = ds.drop_machine(root, m)
+    if args.json:
+        print_json({"dataset": str(root), "removed": removed})
+    else:
+        for m, n in removed.items():
+            print(
+                f"{root}: removed machine {m}: {n['logs']} logs ({n['timeline']} timeline, {n['events']} events "
+                f"files), {n['quarantine']} quarantine rows"
+            )
     return 0

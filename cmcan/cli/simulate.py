@@ -177,6 +177,7 @@ def run_fleet(args: argparse.Namespace) -> int:
     if args.force and out.is_dir():
         remove_outputs(out)
     summary = write_fleet(spec, out, force=args.force, progress=None if args.json else print)
+    summary["next"] = next_commands(out)
     if args.json:
         print_json(summary)
     else:
@@ -184,4 +185,21 @@ def run_fleet(args: argparse.Namespace) -> int:
             f"{out}: {summary['machines']} machines ({summary['degrading']} degrading), {summary['logs']} logs, "
             f"{summary['frames'] / 1e6:.1f} M frames; manifest.csv and truth.json beside them"
         )
+        print(
+            "next (the folder is read through its manifest.csv: each machine with its type's configuration and "
+            "model):\n" + "".join(f"  {c}\n" for c in summary["next"]),
+            end="",
+        )
     return 0
+
+
+def next_commands(out: Path) -> list[str]:
+    """What to run on a simulated fleet: replay it (through its manifest) and report on it."""
+    import shlex
+
+    name = str(out).rstrip("/") or "."
+    ds = f"{name}-ds"
+    return [
+        f"cmcan fleet replay {shlex.quote(name)} --out {shlex.quote(ds)}",
+        f"cmcan fleet report {shlex.quote(ds)} --out {shlex.quote(name + '-report.html')}",
+    ]

@@ -1,4 +1,4 @@
-"""The fleet data set on disk: tables, layout, provenance, and each log's atomic commit.
+"""The fleet data set on disk: tables, layout, provenance, each log's atomic commit and its check.
 
 Layout (hive partitioning, one Parquet file per log and partition; ``docs/fleet.md`` has the columns)::
 
@@ -9,22 +9,30 @@ Layout (hive partitioning, one Parquet file per log and partition; ``docs/fleet.
     DATASET/quarantine/machine=<m>/<key>.parquet             logs that failed, with the reason
 
 ``<key>`` is ``<first 16 hex of the log's SHA-256>-<12 hex of its provenance>`` (the hashes of the
-configuration, DBC and model it was replayed with), so a log replayed again with the same inputs
-maps to the same files and a changed model to new ones.
+configuration, DBC and model it was replayed with and of the monitor state it started from), so a
+log replayed again with the same inputs maps to the same files and a changed model to new ones.
 
 A log is written to ``DATASET/_staging/`` first, then committed: the old results of the same log
-(another provenance) are removed summary first, the new timeline and events files are renamed into
-place, and the summary last. A log is in the data set exactly when its summary file is; a crash or
-Ctrl-C part-way leaves at most files without a summary, which :func:`remove_orphans` deletes at the
-start of the next run and which :mod:`cmcan.fleet.query` never shows.
+(another provenance, or another machine: a log belongs to one machine) are removed summary first,
+the new timeline and events files are renamed into place, and the summary last. A log is in the
+data set exactly when its summary file is; a crash or Ctrl-C part-way leaves at most files without
+a summary, which :func:`remove_orphans` deletes at the start of the next run.
+
+**What is committed is checked.** Every file is written with Parquet page checksums; the summary
+(the commit record) lists each data file of the log with its size and SHA-256, and carries the
+SHA-256 of its own values (``record_sha256``). :func:`check_committed` reads a record back and
+checks every file it names: a damaged log is re-done by the next ``fleet replay`` and named by
+``query`` and ``report`` (:class:`Damaged`), never read silently wrong.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import fcntl
 import hashlib
 import json
+import math
 import os
 import re
 import shutil
@@ -39,13 +47,19 @@ import numpy as np
 from cmcan import __version__
 from cmcan.errors import CmcanError, Kind
 
-FORMAT = "cmcan-fleet/1"
+FORMAT = "cmcan-fleet/2"
+OLD_FORMATS = ("cmcan-fleet/1",)
 TABLES = ("timeline", "events", "logs", "quarantine")
 DATA_TABLES = ("timeline", "events")  # rows of a log, committed before its summary
 SUMMARY_TABLE = "logs"
+QUARANTINE = "quarantine"
 STAGING = "_staging"
-MACHINE_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$")
+# A partition name: no '/', no '=', nothing a shell or a glob reads specially, no trailing newline
+# (fullmatch: '$' would accept one).
+MACHINE_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,99}")
 HASH_CHUNK = 1 << 20
+RECORD_HASH = "record_sha256"
+FILES = "files"
 
 
 def sha256_file(path: str | Path) -> str:
@@ -56,19 +70,77 @@ def sha256_file(path: str | Path) -> str:
     return h.hexdigest()
 
 
+# -- errors of the data set's own files -------------------------------------------------------------
+
+# What the operating system said, as the command line's exit status: a full disk or an I/O error is
+# 74, no permission 77, a path that cannot exist 73 (``cmcan.cli.errors`` maps the kinds).
+_ERRNO_KINDS = {
+    errno.ENOSPC: Kind.IO_ERROR,
+    errno.EDQUOT: Kind.IO_ERROR,
+    errno.EFBIG: Kind.IO_ERROR,
+    errno.EIO: Kind.IO_ERROR,
+    errno.EACCES: Kind.NO_PERMISSION,
+    errno.EPERM: Kind.NO_PERMISSION,
+    errno.EROFS: Kind.CANT_CREATE,
+    errno.ENOENT: Kind.CANT_CREATE,
+    errno.ENOTDIR: Kind.CANT_CREATE,
+    errno.EISDIR: Kind.CANT_CREATE,
+    errno.ENAMETOOLONG: Kind.CANT_CREATE,
+    errno.EMFILE: Kind.TEMPFAIL,
+    errno.ENFILE: Kind.TEMPFAIL,
+    errno.ENOMEM: Kind.TEMPFAIL,
+}
+
+
+def kind_of_oserror(exc: OSError) -> Kind:
+    return _ERRNO_KINDS.get(exc.errno or 0, Kind.IO_ERROR)
+
+
+class DatasetError(CmcanError):
+    """Writing or reading the data set's own files failed (not a log's fault): the run stops."""
+
+
+def dataset_error(exc: OSError, doing: str, path: str | Path | None = None) -> DatasetError:
+    """An OSError of the data set as a message naming the file and what the system said."""
+    where = path or exc.filename or "the data set"
+    name = errno.errorcode.get(exc.errno or 0, "")
+    why = exc.strerror or str(exc)
+    hint = {
+        Kind.IO_ERROR: " (is the disk full?)" if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG) else "",
+        Kind.NO_PERMISSION: " (this user may not write there)",
+    }.get(kind_of_oserror(exc), "")
+    return DatasetError(f"{where}: cannot {doing}: {why}{f' ({name})' if name else ''}{hint}", kind_of_oserror(exc))
+
+
+@contextlib.contextmanager
+def writing(doing: str, path: str | Path | None = None) -> Iterator[None]:
+    """OSErrors inside become a :class:`DatasetError` (kind by errno) naming the file."""
+    try:
+        yield
+    except DatasetError:
+        raise
+    except OSError as exc:
+        raise dataset_error(exc, doing, path) from None
+
+
 @dataclass(frozen=True)
 class Provenance:
-    """What a row was computed from: the log's content and the inputs it was replayed with."""
+    """What a row was computed from: the log's content, the inputs it was replayed with, and the
+    monitor state it started from (``state_hash``: empty for a fresh start)."""
 
     log_hash: str
     config_hash: str
     dbc_hash: str
     model_hash: str
     cmcan_version: str = __version__
+    state_hash: str = ""
+    options: str = ""  # replay options that change the results of some logs (keep_truncated)
 
     @property
     def inputs_hash(self) -> str:
-        return hashlib.sha256(f"{self.config_hash}:{self.dbc_hash}:{self.model_hash}".encode()).hexdigest()[:12]
+        extra = f":{self.state_hash}:{self.options}" if self.state_hash or self.options else ""
+        text = f"{self.config_hash}:{self.dbc_hash}:{self.model_hash}{extra}"
+        return hashlib.sha256(text.encode()).hexdigest()[:12]
 
     @property
     def key(self) -> str:
@@ -85,7 +157,7 @@ class Provenance:
 
 
 def check_machine(machine: str, where: str) -> str:
-    if not MACHINE_RE.match(machine):
+    if not isinstance(machine, str) or not MACHINE_RE.fullmatch(machine):
         raise CmcanError(
             f"{where}: machine id {machine!r} is not usable as a partition name "
             "(letters, digits, '.', '_', '-'; at most 100, starting with a letter or digit)",
@@ -107,6 +179,19 @@ def partition(root: Path, table: str, machine: str, day: str | None = None) -> P
     return p / f"day={day}" if day is not None else p
 
 
+def machines_in(root: Path, table: str) -> list[str]:
+    """Machines with a partition folder in a table (valid names only)."""
+    base = root / table
+    if not base.is_dir():
+        return []
+    out = []
+    for d in base.iterdir():
+        name = d.name[len("machine=") :] if d.name.startswith("machine=") else ""
+        if d.is_dir() and not d.is_symlink() and MACHINE_RE.fullmatch(name):
+            out.append(name)
+    return sorted(out)
+
+
 # -- the data set as a whole ------------------------------------------------------------------------
 
 
@@ -119,25 +204,34 @@ def open_dataset(root: Path, create: bool) -> Path:
             meta = json.loads(marker.read_text(encoding="utf-8"))
         except (OSError, ValueError) as exc:
             raise CmcanError(f"{marker}: not readable as JSON: {exc}", Kind.DATA) from None
-        if meta.get("format") != FORMAT:
-            raise CmcanError(f"{marker}: format {meta.get('format')!r}, expected {FORMAT!r}", Kind.DATA)
+        fmt = meta.get("format") if isinstance(meta, dict) else None
+        if fmt in OLD_FORMATS:
+            raise CmcanError(
+                f"{marker}: format {fmt!r} was written by an older cmcan, without the integrity records this "
+                f"version checks ({FORMAT!r}); replay the logs into a new data set",
+                Kind.DATA,
+            )
+        if fmt != FORMAT:
+            raise CmcanError(f"{marker}: format {fmt!r}, expected {FORMAT!r}", Kind.DATA)
         return root
     if not create:
         raise CmcanError(f"{root}: not a cmcan fleet data set (no _dataset.json)", Kind.NO_INPUT)
+    if root.exists() and not root.is_dir():
+        raise CmcanError(f"{root}: exists and is not a folder", Kind.CANT_CREATE)
     if root.exists() and any(root.iterdir()):
         raise CmcanError(f"{root}: folder exists, is not empty and is not a cmcan fleet data set", Kind.CANT_CREATE)
-    try:
+    with writing("create the data set folder", root):
         root.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise CmcanError(f"{root}: cannot create the data set folder: {exc}", Kind.CANT_CREATE) from None
-    _atomic_text(marker, json.dumps({"format": FORMAT, "created_by": f"cmcan {__version__}"}, indent=2) + "\n")
+        _atomic_text(marker, json.dumps({"format": FORMAT, "created_by": f"cmcan {__version__}"}, indent=2) + "\n")
     return root
 
 
 @contextlib.contextmanager
 def writer_lock(root: Path) -> Iterator[None]:
-    """One ``fleet replay`` writes a data set at a time."""
-    with open(root / "_lock", "a+") as f:
+    """One ``fleet replay`` (or ``fleet drop``) writes a data set at a time."""
+    with writing("open the data set's lock file", root / "_lock"):
+        f = open(root / "_lock", "a+")  # noqa: SIM115 - held for the whole block
+    with f:
         try:
             fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -151,15 +245,10 @@ def writer_lock(root: Path) -> Iterator[None]:
 def _keys(root: Path, table: str) -> dict[tuple[str, str], list[Path]]:
     """(machine, key) -> files of a table."""
     out: dict[tuple[str, str], list[Path]] = {}
-    base = root / table
-    if not base.is_dir():
-        return out
-    for mdir in base.iterdir():
-        if not mdir.name.startswith("machine="):
-            continue
-        machine = mdir.name[len("machine=") :]
-        for f in mdir.rglob("*.parquet"):
-            out.setdefault((machine, f.stem), []).append(f)
+    for machine in machines_in(root, table):
+        for f in partition(root, table, machine).rglob("*.parquet"):
+            if not f.name.startswith("."):
+                out.setdefault((machine, f.stem), []).append(f)
     return out
 
 
@@ -168,31 +257,166 @@ def committed(root: Path) -> set[tuple[str, str]]:
     return set(_keys(root, SUMMARY_TABLE))
 
 
+def log_index(root: Path) -> dict[str, set[str]]:
+    """The first 16 hex of each log hash with results or a quarantine row -> its machines."""
+    out: dict[str, set[str]] = {}
+    for table in (SUMMARY_TABLE, QUARANTINE):
+        for machine, key in _keys(root, table):
+            out.setdefault(key.split("-", 1)[0], set()).add(machine)
+    return out
+
+
 def remove_orphans(root: Path) -> int:
     """Delete the staging area, temporaries of interrupted writes and data files of logs without a
     summary (an interrupted commit)."""
-    shutil.rmtree(root / STAGING, ignore_errors=True)
+    with writing("clean the data set's staging area", root / STAGING):
+        shutil.rmtree(root / STAGING, ignore_errors=True)
+        n = 0
+        for table in TABLES:
+            for tmp in (root / table).rglob(".*.tmp"):
+                tmp.unlink(missing_ok=True)
+                n += 1
+        done = committed(root)
+        for table in DATA_TABLES:
+            for mk, files in _keys(root, table).items():
+                if mk not in done:
+                    for f in files:
+                        f.unlink(missing_ok=True)
+                        n += 1
+    return n
+
+
+def summary_path(root: Path, machine: str, key: str) -> Path | None:
+    return next(iter(sorted(partition(root, SUMMARY_TABLE, machine).glob(f"day=*/{key}.parquet"))), None)
+
+
+def is_committed(root: Path, machine: str, key: str) -> bool:
+    return summary_path(root, machine, key) is not None
+
+
+# -- records and their check ------------------------------------------------------------------------
+
+
+class Damaged(CmcanError):
+    """A committed file is not what its commit record says (cut short, overwritten, missing)."""
+
+    def __init__(self, problems: list[str]) -> None:
+        shown = "; ".join(problems[:5]) + (f"; and {len(problems) - 5} more" if len(problems) > 5 else "")
+        super().__init__(
+            f"damaged data set files: {shown}. Run `cmcan fleet replay` with the same sources to re-do the "
+            "logs they belong to",
+            Kind.DATA,
+        )
+        self.problems = problems
+
+
+def _canonical(v: Any) -> Any:
+    if isinstance(v, float) and math.isnan(v):
+        return "NaN"
+    if isinstance(v, (np.floating, np.integer, np.bool_)):
+        return _canonical(v.item())
+    return v
+
+
+def record_hash(row: dict[str, Any]) -> str:
+    """SHA-256 of a one-row record's values (as Parquet gives them back), without the hash itself."""
+    body = {k: _canonical(v) for k, v in sorted(row.items()) if k != RECORD_HASH}
+    return hashlib.sha256(json.dumps(body, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def read_record(path: Path) -> dict[str, Any]:
+    """A one-row record (summary or quarantine row), its page checksums and its own hash checked;
+    :class:`Damaged` names the file otherwise."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    try:
+        t = pq.read_table(path, page_checksum_verification=True)
+        rows = t.to_pylist()
+    except (OSError, pa.ArrowException, ValueError) as exc:
+        raise Damaged([f"{path}: not readable ({type(exc).__name__}: {str(exc).splitlines()[0][:120]})"]) from None
+    if len(rows) != 1 or RECORD_HASH not in rows[0]:
+        raise Damaged([f"{path}: not a one-row record with its {RECORD_HASH}"])
+    row = rows[0]
+    if row[RECORD_HASH] != record_hash(row):
+        raise Damaged([f"{path}: its values do not match its {RECORD_HASH}"])
+    return row
+
+
+def check_files(root: Path, machine: str, record: dict[str, Any], tables: Any = DATA_TABLES) -> list[str]:
+    """What is wrong with the data files of ``tables`` a commit record names (empty: all there, whole)."""
+    try:
+        files = json.loads(record.get(FILES) or "[]")
+    except ValueError:
+        return [f"the commit record of {machine} {record.get('log_name')} lists its files unreadably"]
+    problems = []
+    for f in files:
+        if f["table"] not in tables:
+            continue
+        p = partition(root, f["table"], machine, f["day"]) / f["name"]
+        try:
+            size = p.stat().st_size
+        except OSError:
+            problems.append(f"{p}: missing")
+            continue
+        if size != f["bytes"]:
+            problems.append(f"{p}: {size} bytes, its commit record says {f['bytes']}")
+        elif sha256_file(p) != f["sha256"]:
+            problems.append(f"{p}: content differs from its commit record (SHA-256)")
+    return problems
+
+
+def data_files(root: Path, machine: str, record: dict[str, Any], table: str) -> list[Path]:
+    files = json.loads(record.get(FILES) or "[]")
+    return [partition(root, table, machine, f["day"]) / f["name"] for f in files if f["table"] == table]
+
+
+def check_committed(root: Path, machine: str, key: str) -> dict[str, Any] | None:
+    """The commit record of a log if it is in the data set and whole; None if it is not there;
+    :class:`Damaged` if it is there and damaged."""
+    path = summary_path(root, machine, key)
+    if path is None:
+        return None
+    record = read_record(path)
+    problems = check_files(root, machine, record)
+    if problems:
+        raise Damaged(problems)
+    return record
+
+
+def remove_log(root: Path, machine: str, log_hash16: str, keep_key: str | None = None) -> int:
+    """A log's files in a machine's partitions (the summary first), except those of ``keep_key``."""
     n = 0
-    for table in TABLES:
-        for tmp in (root / table).rglob(".*.tmp"):
-            tmp.unlink(missing_ok=True)
-            n += 1
-    done = committed(root)
-    for table in DATA_TABLES:
-        for mk, files in _keys(root, table).items():
-            if mk not in done:
-                for f in files:
+    with writing("remove old results", partition(root, SUMMARY_TABLE, machine)):
+        for table in (SUMMARY_TABLE, *DATA_TABLES):
+            for f in partition(root, table, machine).glob(f"day=*/{log_hash16}-*.parquet"):
+                if f.stem != keep_key:
                     f.unlink(missing_ok=True)
                     n += 1
     return n
 
 
-def is_committed(root: Path, machine: str, key: str) -> bool:
-    return any(partition(root, SUMMARY_TABLE, machine).glob(f"day=*/{key}.parquet"))
+def remove_quarantine(root: Path, machine: str, keys: list[str], log_hash16: str | None) -> None:
+    """Quarantine rows of a log in a machine's partition: by path key and by its content hash."""
+    base = partition(root, QUARANTINE, machine)
+    with writing("remove a quarantine row", base):
+        for k in keys:
+            (base / f"{k}.parquet").unlink(missing_ok=True)
+        if log_hash16:
+            for q in base.glob(f"{log_hash16}-*.parquet"):
+                q.unlink(missing_ok=True)
 
 
-def is_quarantined(root: Path, machine: str, key: str) -> bool:
-    return (partition(root, "quarantine", machine) / f"{key}.parquet").exists()
+def drop_machine(root: Path, machine: str) -> dict[str, int]:
+    """Every row of a machine, summaries first (its logs leave the data set at once), then its data
+    files and quarantine rows. Returns the files removed per table."""
+    out = {}
+    with writing(f"remove machine {machine}", root):
+        for table in (SUMMARY_TABLE, *DATA_TABLES, QUARANTINE):
+            d = partition(root, table, machine)
+            out[table] = sum(1 for _ in d.rglob("*.parquet")) if d.is_dir() else 0
+            shutil.rmtree(d, ignore_errors=True)
+    return out
 
 
 # -- writing one log ----------------------------------------------------------------------------------
@@ -213,26 +437,54 @@ def _table(columns: dict[str, Any]) -> Any:
         if isinstance(v, str):  # a constant (provenance): dictionary-encoded on disk by Parquet anyway
             arrays[k] = pa.array([v] * n, pa.string())
         elif isinstance(v, list) and all(x is None for x in v):
-            arrays[k] = pa.array(v, pa.string())
+            arrays[k] = pa.array(v, pa.type_for_alias(NULLABLE_TYPES.get(k, "string")))
         else:
             arrays[k] = pa.array(v)
     return pa.table(arrays)
 
 
+def _write_table(table: Any, path: Path) -> None:
+    import pyarrow.parquet as pq
+
+    pq.write_table(table, path, compression="zstd", write_page_checksum=True)
+
+
 def write_parquet(path: Path, columns: dict[str, Any] | Any) -> None:
     """One Parquet file, written under a hidden temporary name and renamed."""
     import pyarrow as pa
-    import pyarrow.parquet as pq
 
     table = columns if isinstance(columns, pa.Table) else _table(columns)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
-    pq.write_table(table, tmp, compression="zstd")
-    os.replace(tmp, path)
+    with writing("write", path):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
+        try:
+            _write_table(table, tmp)
+            os.replace(tmp, path)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+
+
+def write_record(path: Path, row: dict[str, Any]) -> None:
+    """A one-row record with the hash of its own values (as they read back)."""
+    t = _table({k: [v] for k, v in row.items()})
+    values = t.to_pylist()[0]
+    write_parquet(path, {**{k: [v] for k, v in values.items()}, RECORD_HASH: [record_hash(values)]})
+
+
+# Types of the summary's columns that can be NULL in a log's row (a NULL alone has no type).
+NULLABLE_TYPES = {
+    "cut_line": "int64",
+    "carried_from": "string",
+    "fit": "string",
+    "fit_median_pct": "double",
+    "fit_points": "int64",
+}
 
 
 class LogWriter:
-    """A log's rows, staged file by file, then committed at once (see the module's notes)."""
+    """A log's rows, staged file by file, then committed at once (see the module's notes). Every
+    OSError of the data set becomes a :class:`DatasetError` naming the file."""
 
     ROW_GROUP = 65536
 
@@ -241,7 +493,8 @@ class LogWriter:
         self.machine = machine
         self.prov = prov
         self.stage = root / STAGING / f"{prov.key}.{uuid.uuid4().hex[:8]}"
-        self.stage.mkdir(parents=True)
+        with writing("create a staging folder", self.stage):
+            self.stage.mkdir(parents=True)
         self._writers: dict[tuple[str, str], Any] = {}
         self._buffers: dict[tuple[str, str], list[Any]] = {}
         self._buffered: dict[tuple[str, str], int] = {}
@@ -274,43 +527,60 @@ class LogWriter:
         if not parts:
             return
         t = pa.concat_tables(parts, promote_options="permissive")
-        w = self._writers.get(key)
-        if w is None:
-            path = self._staged(*key)
-            path.parent.mkdir(parents=True, exist_ok=True)
-            w = pq.ParquetWriter(path, t.schema, compression="zstd")
-            self._writers[key] = w
-        w.write_table(t.cast(w.schema))
+        path = self._staged(*key)
+        with writing("write", path):
+            w = self._writers.get(key)
+            if w is None:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                w = pq.ParquetWriter(path, t.schema, compression="zstd", write_page_checksum=True)
+                self._writers[key] = w
+            w.write_table(t.cast(w.schema))
 
-    def commit(self, summary: dict[str, Any], day: str) -> None:
-        """Old results of this log out (summary first), new data files in, the new summary last."""
+    def commit(
+        self, summary: dict[str, Any], day: str, move_from: tuple[str, ...] = (), path_keys: tuple[str, ...] = ()
+    ) -> None:
+        """Old results of this log out (summary first; on this machine and the ``move_from`` ones),
+        new data files in, the new summary (the commit record, listing each file's size and hash)
+        last; then the log's quarantine rows go (``path_keys``: those written before its hash was
+        known)."""
         for key in list(self._buffers):
             self._flush(key)
-        for w in self._writers.values():
-            w.close()
+        with writing("write", self.stage):
+            for w in self._writers.values():
+                w.close()
         self._writers.clear()
-        row = {k: [v] for k, v in summary.items()}
-        write_parquet(
-            self.stage / SUMMARY_TABLE / f"day={day}" / f"{self.prov.key}.parquet", {**row, **self.prov.columns()}
+        staged = sorted(self.stage.rglob("*.parquet"))
+        files = []
+        with writing("check a staged file", self.stage):
+            for f in staged:
+                files.append(
+                    {
+                        "table": f.parts[-3],
+                        "day": f.parts[-2].split("=", 1)[1],
+                        "name": f.name,
+                        "bytes": f.stat().st_size,
+                        "sha256": sha256_file(f),
+                    }
+                )
+        write_record(
+            self.stage / SUMMARY_TABLE / f"day={day}" / f"{self.prov.key}.parquet",
+            {**summary, FILES: json.dumps(files), **self.prov.columns()},
         )
-        self._remove_previous()
-        staged = sorted(self.stage.rglob("*.parquet"), key=lambda p: p.parts[-3] == SUMMARY_TABLE)
-        for f in staged:  # the summary sorts last
-            table, dpart = f.parts[-3], f.parts[-2]
-            dest = partition(self.root, table, self.machine) / dpart / f.name
-            dest.parent.mkdir(parents=True, exist_ok=True)
-            os.replace(f, dest)
-        for q in partition(self.root, "quarantine", self.machine).glob(f"{self.prov.log_hash[:16]}-*.parquet"):
-            q.unlink(missing_ok=True)
+        hash16 = self.prov.log_hash[:16]
+        for other in move_from:
+            if other != self.machine:
+                remove_log(self.root, other, hash16)
+        remove_log(self.root, self.machine, hash16, keep_key=self.prov.key)
+        with writing("commit", partition(self.root, SUMMARY_TABLE, self.machine)):
+            staged = sorted(self.stage.rglob("*.parquet"), key=lambda p: p.parts[-3] == SUMMARY_TABLE)
+            for f in staged:  # the summary sorts last
+                table, dpart = f.parts[-3], f.parts[-2]
+                dest = partition(self.root, table, self.machine) / dpart / f.name
+                dest.parent.mkdir(parents=True, exist_ok=True)
+                os.replace(f, dest)
+        for m in {self.machine, *move_from}:
+            remove_quarantine(self.root, m, list(path_keys), hash16)
         shutil.rmtree(self.stage, ignore_errors=True)
-
-    def _remove_previous(self) -> None:
-        """The same log's files from an earlier replay with other inputs (its summary goes first)."""
-        prefix = self.prov.log_hash[:16]
-        for table in (SUMMARY_TABLE, *DATA_TABLES):
-            for f in partition(self.root, table, self.machine).glob(f"day=*/{prefix}-*.parquet"):
-                if f.stem != self.prov.key:
-                    f.unlink(missing_ok=True)
 
     def abort(self) -> None:
         for w in self._writers.values():
@@ -321,4 +591,18 @@ class LogWriter:
 
 
 def write_quarantine(root: Path, machine: str, key: str, row: dict[str, Any]) -> None:
-    write_parquet(partition(root, "quarantine", machine) / f"{key}.parquet", {k: [v] for k, v in row.items()})
+    write_record(partition(root, QUARANTINE, machine) / f"{key}.parquet", row)
+
+
+def quarantine_row(root: Path, machine: str, key: str) -> dict[str, Any] | None:
+    """A log's quarantine row, if it is there and whole (a damaged one is removed: the log is tried
+    again)."""
+    p = partition(root, QUARANTINE, machine) / f"{key}.parquet"
+    if not p.exists():
+        return None
+    try:
+        return read_record(p)
+    except Damaged:
+        with writing("remove a damaged quarantine row", p):
+            p.unlink(missing_ok=True)
+        return None

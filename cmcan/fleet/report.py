@@ -1,11 +1,13 @@
 """``cmcan fleet report``: one self-contained HTML page over the data set (no script, no link out).
 
-The fleet overview ranks the machines: those with a warning active at the end of their last log
-first, then those that had warnings, then faults, each group by the size of its CM ratio trend over
-its last ``trend_h`` operating hours. Each machine then gets its CM ratio over its operating hours
-with the thresholds and its warnings (the figures are PNG inlined as base64), and the quarantine
-list closes the page. A machine's operating hours are its logged hours: its logs in time order,
-each one's duration added (``machine_logs.offset_h``).
+The fleet overview ranks the machines: those whose configuration or model does not fit
+(:mod:`cmcan.fitcheck`: their ratio says nothing about wear, they are not ranked as worn drives)
+first, then those with a warning active at the end of their last log, then those that had warnings,
+then faults, each group by the size of its CM ratio trend over its last ``trend_h`` operating hours.
+Each machine then gets its CM ratio over its operating hours with the thresholds and its warnings
+(the figures are PNG inlined as base64), and the quarantine list closes the page; a data set whose
+every log was quarantined still gets its page, with that list. A machine's operating hours are its
+logged hours: its logs in time order, each one's duration added (``machine_logs.offset_h``).
 """
 
 from __future__ import annotations
@@ -21,9 +23,11 @@ from typing import Any
 
 from cmcan import __version__
 from cmcan.errors import CmcanError, Kind
+from cmcan.fitcheck import DOES_NOT_FIT, FIT_BAND_PCT
+from cmcan.fleet.dataset import writing
 from cmcan.fleet.query import connect, require_duckdb
 
-ATTENTION = {3: "warning now", 2: "had warnings", 1: "faults", 0: "ok"}
+ATTENTION = {4: "configuration or model does not fit", 3: "warning now", 2: "had warnings", 1: "faults", 0: "ok"}
 MAX_POINTS_PER_MACHINE = 1500
 
 
@@ -44,9 +48,18 @@ class MachineRow:
     first_warning_h: float | None
     low_pct: float
     high_pct: float
+    fit: str = "unknown"
+    fit_median_pct: float | None = None
+    fit_log: str | None = None
+
+    @property
+    def misfit(self) -> bool:
+        return self.fit == DOES_NOT_FIT
 
     @property
     def attention(self) -> int:
+        if self.misfit:
+            return 4
         if self.level_now in ("low", "high"):
             return 3
         if self.warnings_low + self.warnings_high > 0:
@@ -57,6 +70,8 @@ class MachineRow:
 
     @property
     def state(self) -> str:
+        if self.misfit:
+            return "misfit"
         if self.level_now in ("low", "high", "fault"):
             return self.level_now
         if self.warnings_low + self.warnings_high > 0:
@@ -98,8 +113,8 @@ def machines(con: Any, trend_h: float) -> list[MachineRow]:
                    max(threshold_low_pct) AS low_pct, min(threshold_high_pct) AS high_pct
             FROM machine_logs GROUP BY machine)
         SELECT agg.machine, logs, hours, evaluated_h, wl, wh, faults, first_day, last_day, level_now,
-               trend.recent, trend.trend, warn.first_h, low_pct, high_pct
-        FROM agg LEFT JOIN trend USING (machine) LEFT JOIN warn USING (machine)
+               trend.recent, trend.trend, warn.first_h, low_pct, high_pct, mf.fit, mf.fit_median_pct, mf.fit_log
+        FROM agg LEFT JOIN trend USING (machine) LEFT JOIN warn USING (machine) LEFT JOIN machines mf USING (machine)
         """,
         [trend_h],
     ).fetchall()
@@ -120,6 +135,9 @@ def machines(con: Any, trend_h: float) -> list[MachineRow]:
             _f(r[12]),
             float(r[13]),
             float(r[14]),
+            r[15] or "unknown",
+            _f(r[16]),
+            r[17],
         )
         for r in rows
     ]
@@ -167,12 +185,26 @@ th,td{border-bottom:1px solid #eee;padding:4px 8px;text-align:right} th{backgrou
 td.l,th.l{text-align:left} tr.a3 td{background:#fff1e0} tr.a2 td{background:#fffbe8} tr.a1 td{background:#fdeeee}
 .tag{border-radius:3px;padding:1px 6px;font-size:12px;color:#fff}
 .t-ok{background:#4a9a4a}.t-low{background:#e08a00}.t-high{background:#8a4fbf}.t-fault{background:#c83a3a}
+.t-misfit{background:#555} tr.a4 td{background:#eeeeee}
+p.misfit{background:#f3f3f3;border-left:4px solid #555;padding:6px 10px}
 img{max-width:100%;height:auto;border:1px solid #eee}
 """
 
 
 def _tag(level: str) -> str:
-    return f'<span class="tag t-{html.escape(level)}">{html.escape(level)}</span>'
+    text = "does not fit" if level == "misfit" else level
+    return f'<span class="tag t-{html.escape(level)}">{html.escape(text)}</span>'
+
+
+def _misfit_note(m: MachineRow) -> str:
+    lo, hi = FIT_BAND_PCT
+    return (
+        f"<p class='misfit'><b>Configuration or model does not fit this machine.</b> Its CM ratio sat at a median of "
+        f"{_num(m.fit_median_pct, '{:.1f}')} % from its first hour ({html.escape(m.fit_log or '')}), outside "
+        f"{lo:g}-{hi:g} %: a drive of another size (V_M), another model, or a drive already worn when monitoring "
+        "began. Its warnings say nothing about wear until the configuration and model are right; it is not ranked "
+        "with the worn drives.</p>"
+    )
 
 
 def _num(x: float | None, fmt: str = "{:.2f}") -> str:
@@ -185,9 +217,16 @@ def _img(png: bytes, alt: str) -> str:
 
 def build(root: str | Path, trend_h: float = 50.0, max_machines: int = 50) -> str:
     """The report's HTML."""
-    from cmcan.plots import plot_fleet_machine, plot_fleet_overview
-
     con = connect(root)
+    try:
+        return _build(con, root, trend_h, max_machines)
+    finally:
+        con.close()
+
+
+def _build(con: Any, root: str | Path, trend_h: float, max_machines: int) -> str:
+    from cmcan.fleet.figures import plot_machine, plot_overview
+
     ms = machines(con, trend_h)
     total_h = max((m.hours for m in ms), default=1.0)
     ser = series(con, max(total_h / MAX_POINTS_PER_MACHINE, 1.0 / 3600.0))
@@ -222,9 +261,11 @@ def build(root: str | Path, trend_h: float = 50.0, max_machines: int = 50) -> st
         "<div class='cards'>",
     ]
     need = sum(1 for m in ms if m.attention >= 2)
+    misfits = sum(1 for m in ms if m.misfit)
     for value, label in (
         (len(ms), "machines"),
         (need, "need a look"),
+        (misfits, "do not fit"),
         (tot[0], "logs"),
         (f"{tot[1]:.0f} h", "logged"),
         (f"{tot[2]:.1f} h", "evaluated"),
@@ -235,7 +276,7 @@ def build(root: str | Path, trend_h: float = 50.0, max_machines: int = 50) -> st
     parts.append("</div><h2 id='overview'>Fleet overview</h2>")
     lines = [(m.machine, *ser.get(m.machine, ([], [], []))[::2], m.state) for m in ms]
     if ms:
-        parts.append(_img(plot_fleet_overview(lines, low, high), "filtered CM ratio of every machine"))
+        parts.append(_img(plot_overview(lines, low, high), "filtered CM ratio of every machine"))
     parts.append(
         "<table id='ranking'><tr><th>#</th><th class='l'>machine</th><th class='l'>state</th><th class='l'>now</th>"
         f"<th>trend (%/100 h, last {trend_h:g} h)</th><th>filtered ratio now (%)</th><th>low</th><th>high</th>"
@@ -252,6 +293,11 @@ def build(root: str | Path, trend_h: float = 50.0, max_machines: int = 50) -> st
             f"<td>{m.evaluated_h:.2f}</td><td class='l'>{m.first_day} &ndash; {m.last_day}</td></tr>"
         )
     parts.append("</table>")
+    if not ms:
+        parts.append(
+            "<p>No log is committed in this data set"
+            + (": every log that was tried is in the quarantine list below.</p>" if quarantine else ".</p>")
+        )
     parts.append("<h2 id='machines'>Machines</h2>")
     for m in ms[:max_machines]:
         h, raw, filt = ser.get(m.machine, ([], [], []))
@@ -260,9 +306,11 @@ def build(root: str | Path, trend_h: float = 50.0, max_machines: int = 50) -> st
             f"{m.faults} faults)"
         )
         parts.append(f"<h3 id='m-{html.escape(m.machine)}'>{html.escape(m.machine)} {_tag(m.state)}</h3>")
+        if m.misfit:
+            parts.append(_misfit_note(m))
         parts.append(
             _img(
-                plot_fleet_machine(
+                plot_machine(
                     h, raw, filt, m.low_pct, m.high_pct, evs.get(m.machine, []), starts.get(m.machine, []), title
                 ),
                 title,
@@ -292,6 +340,10 @@ def write_report(root: str | Path, out: Path, trend_h: float = 50.0, max_machine
     except duckdb.Error as exc:  # a data set file that DuckDB cannot read (corrupt, cut short)
         raise CmcanError(f"{root}: cannot read the data set: {str(exc).splitlines()[0]}", Kind.DATA) from None
     tmp = out.with_name(f".{out.name}.tmp")
-    tmp.write_text(text, encoding="utf-8")
-    os.replace(tmp, out)
+    with writing("write the report", out):
+        try:
+            tmp.write_text(text, encoding="utf-8")
+            os.replace(tmp, out)
+        finally:
+            tmp.unlink(missing_ok=True)
     return len(text)

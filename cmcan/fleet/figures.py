@@ -1,0 +1,153 @@
+"""The fleet report's figures (matplotlib, PNG bytes): every machine's ratio over its life, one chart
+per machine. Axis limits come from the data (a ratio at 43 % or 139 % is shown, not clipped), and the
+overview's machine names sit in a column beside the plot, spread so that none overlaps another, each
+joined to the end of its line.
+"""
+
+from __future__ import annotations
+
+import io
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+LEVEL_COLORS = {"low": "tab:orange", "high": "tab:purple", "fault": "tab:red", "ok": "tab:green", "misfit": "0.35"}
+PAD_FRACTION = 0.06  # of the data's range, above and below
+
+
+def _pyplot() -> Any:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _png(fig: Any) -> bytes:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90)
+    return buf.getvalue()
+
+
+def y_limits(values: Sequence[Any], low_pct: float, high_pct: float) -> tuple[float, float]:
+    """Limits that hold every finite value and both thresholds, with a margin."""
+    parts = [np.asarray(v, dtype=float).ravel() for v in values]
+    finite = np.concatenate([p[np.isfinite(p)] for p in parts] + [np.array([low_pct, high_pct])])
+    lo, hi = float(finite.min()), float(finite.max())
+    pad = max((hi - lo) * PAD_FRACTION, 0.5)
+    return lo - pad, hi + pad
+
+
+def spread(y: Sequence[float], min_gap: float, lo: float, hi: float) -> list[float]:
+    """Label positions near ``y`` (any order) at least ``min_gap`` apart, inside [lo, hi] where they
+    fit: sorted, pushed up where too close, then the whole column moved back down from ``hi``."""
+    order = np.argsort(np.asarray(y, dtype=float), kind="stable")
+    pos = np.asarray(y, dtype=float)[order].copy()
+    for i in range(1, len(pos)):
+        pos[i] = max(pos[i], pos[i - 1] + min_gap)
+    over = pos[-1] - hi if len(pos) else 0.0
+    if over > 0:
+        pos[-1] -= over
+        for i in range(len(pos) - 2, -1, -1):
+            pos[i] = min(pos[i], pos[i + 1] - min_gap)
+    if len(pos) and pos[0] < lo:  # more labels than fit: spread them evenly instead
+        pos = np.linspace(lo, hi, len(pos))
+    out = np.empty_like(pos)
+    out[order] = pos
+    return out.tolist()
+
+
+def plot_overview(lines: list[tuple[str, Any, Any, str]], low_pct: float, high_pct: float) -> bytes:
+    """Every machine's filtered CM ratio over its operating hours, coloured by its state (``lines``:
+    machine, hours, ratio, state in ok/low/high/fault/misfit); every machine named at the right."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(10, 4.0))
+    ends = []
+    drawn = []
+    for name, h, r, state in sorted(lines, key=lambda x: x[3] != "ok"):  # machines needing a look on top
+        h, r = np.asarray(h, dtype=float), np.asarray(r, dtype=float)
+        ok = np.isfinite(r) & np.isfinite(h)
+        if not ok.any():
+            continue
+        color = LEVEL_COLORS.get(state, "tab:gray") if state != "ok" else "0.6"
+        ls = "--" if state == "misfit" else "-"
+        ax.plot(h[ok], r[ok], ls, lw=1.0 if state == "ok" else 1.6, color=color, alpha=0.85)
+        ends.append((name, float(h[ok][-1]), float(r[ok][-1]), color))
+        drawn.append(r[ok])
+    ax.axhline(low_pct, color="tab:orange", ls="--", lw=1)
+    ax.axhline(high_pct, color="tab:purple", ls="--", lw=1)
+    lo, hi = y_limits(drawn, low_pct, high_pct)
+    ax.set_ylim(lo, hi)
+    ax.set_xlabel("operating hours (h)")
+    ax.set_ylabel("filtered CM ratio (%)")
+    ax.set_title(
+        "Fleet: filtered CM ratio of every machine (grey: ok; coloured: warning or fault; dashed: does not fit)",
+        fontsize=10,
+    )
+    fig.tight_layout(rect=(0, 0, 0.88, 1))
+    if ends:
+        # names in a column right of the axes, one text line apart at least (in data units)
+        fig.canvas.draw()
+        px_per_unit = ax.get_window_extent().height / (hi - lo)
+        gap = 10.0 / px_per_unit  # 10 px between label centres (7 pt text at 90 dpi is about 9 px high)
+        ys = spread([e[2] for e in ends], gap, lo + gap / 2, hi - gap / 2)
+        x_right = ax.get_xlim()[1]
+        for (name, x, y, color), y_label in zip(ends, ys, strict=True):
+            ax.annotate(
+                name,
+                xy=(x, y),
+                xytext=(1.02, (y_label - lo) / (hi - lo)),
+                textcoords="axes fraction",
+                fontsize=7,
+                color=color,
+                va="center",
+                annotation_clip=False,
+                arrowprops={"arrowstyle": "-", "color": color, "lw": 0.5, "alpha": 0.6, "shrinkA": 0, "shrinkB": 1},
+            )
+        ax.set_xlim(right=x_right)
+    out = _png(fig)
+    plt.close(fig)
+    return out
+
+
+def plot_machine(
+    hours: Any,
+    raw_pct: Any,
+    filt_pct: Any,
+    low_pct: float,
+    high_pct: float,
+    events: list[tuple[float, str]],
+    log_starts_h: list[float],
+    title: str,
+) -> bytes:
+    """One machine: the CM ratio over its operating hours (means of the timeline), the thresholds,
+    each warning where it was raised and the start of each log; limits from the data; PNG bytes."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(10, 3.4))
+    h, raw, filt = (np.asarray(x, dtype=float) for x in (hours, raw_pct, filt_pct))
+    for i, x in enumerate(log_starts_h):
+        ax.axvline(x, color="0.85", lw=0.6, zorder=0, label="start of a log" if i == 0 else None)
+    ok = np.isfinite(raw)
+    if ok.any():
+        ax.plot(h[ok], raw[ok], ".", ms=1.5, alpha=0.4, color="tab:gray", label="raw (mean)")
+    okf = np.isfinite(filt)
+    if okf.any():
+        ax.plot(h[okf], filt[okf], "-", lw=1.2, color="tab:blue", label="filtered")
+    ax.axhline(low_pct, color="tab:orange", ls="--", lw=1, label=f"low threshold {low_pct:g} %")
+    ax.axhline(high_pct, color="tab:purple", ls="--", lw=1, label=f"high threshold {high_pct:g} %")
+    seen = set()
+    for x, level in events:
+        label = None if level in seen else f"{level} raised" if level != "fault" else "fault"
+        ax.axvline(x, color=LEVEL_COLORS.get(level, "k"), lw=1.2, ls=":", label=label)
+        seen.add(level)
+    ax.set_ylim(*y_limits([raw[ok], filt[okf]], low_pct, high_pct))
+    ax.set_xlabel("operating hours (h, logged time of this machine)")
+    ax.set_ylabel("CM ratio (%)")
+    ax.set_title(title, fontsize=10)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, markerscale=4, frameon=False)
+    fig.tight_layout()
+    out = _png(fig)
+    plt.close(fig)
+    return out
