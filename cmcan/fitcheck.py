@@ -23,7 +23,12 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
+
+from cmcan.monitor.gating import EVALUATED
+from cmcan.monitor.tick import TickColumns
+
+_EVALUATED = np.array(sorted(int(g) for g in EVALUATED), dtype=np.int8)
 
 FIT_BAND_PCT = (95.0, 105.0)
 FIT_WINDOW_H = 1.0  # the machine's first operating hour...
@@ -94,3 +99,52 @@ def check_fit(
         return FitVerdict(UNKNOWN, median, n, span, band_pct)
     lo, hi = band_pct
     return FitVerdict(FITS if lo <= median <= hi else DOES_NOT_FIT, median, n, max(span, window_h), band_pct)
+
+
+class FitWindow:
+    """The evaluated raw ratios of a log's first operating hours, as :func:`cmcan.fitcheck.check_fit`
+    judges them; stops collecting once past both its window and its minimum of points."""
+
+    def __init__(self, t0: float = 0.0) -> None:
+        self.t0 = t0
+        self._h: list[NDArray[np.float64]] = []
+        self._r: list[NDArray[np.float64]] = []
+        self._n = 0
+        self.full = False
+
+    def add(self, c: TickColumns) -> None:
+        if self.full:
+            return
+        ev = np.isin(c.gate, _EVALUATED)
+        if not ev.any():
+            return
+        h = (c.t_run_s[ev] - self.t0) / 3600.0
+        self._h.append(h)
+        self._r.append(c.ratio_raw_pct[ev].astype(np.float64))
+        self._n += len(h)
+        if self._n >= FIT_MIN_POINTS and h[-1] > FIT_WINDOW_H:
+            self.full = True
+
+    # as a replay's sink (ticks only)
+    wants_ticks = True
+    wants_frames = False
+
+    def start(self, t0: float) -> None:
+        self.t0 = t0
+
+    def ticks(self, chunk: TickColumns) -> None:
+        self.add(chunk)
+
+    def frames(self, frames: object) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+    def abort(self) -> None:
+        pass
+
+    def verdict(self) -> FitVerdict:
+        h = np.concatenate(self._h) if self._h else np.zeros(0)
+        r = np.concatenate(self._r) if self._r else np.zeros(0)
+        return check_fit(h, r)

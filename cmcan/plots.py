@@ -22,6 +22,16 @@ def _pyplot() -> Any:
     return plt
 
 
+def ratio_limits(filtered_pct: Any, low_pct: float, high_pct: float) -> tuple[float, float]:
+    """A ratio axis that shows every filtered ratio (a failure falls to about 40 %) and the thresholds
+    with room around them, within the span a CM frame carries (0-200 %)."""
+    lo, hi = low_pct - 3.0, high_pct + 3.0
+    if len(filtered_pct):
+        lo = min(lo, float(np.min(filtered_pct)) - 2.0)
+        hi = max(hi, float(np.max(filtered_pct)) + 2.0)
+    return max(lo, 0.0), min(hi, 200.0)
+
+
 def plot_ratio(
     tl: Any,
     t0: float,
@@ -53,10 +63,7 @@ def plot_ratio(
         ax.axvline(f, color="tab:red", lw=1, alpha=0.6)
     ax.set_xlabel("operating hours (h)")
     ax.set_ylabel("CM ratio (%)")
-    filt_all = tl.ratio_filt_pct[fv]
-    lo = min(low_pct - 3, float(filt_all.min())) if fv.any() else low_pct - 3
-    hi = max(high_pct + 3, float(filt_all.max())) if fv.any() else high_pct + 3
-    ax.set_ylim(max(lo, 50), min(hi, 150))
+    ax.set_ylim(*ratio_limits(tl.ratio_filt_pct[fv], low_pct, high_pct))
     ax.set_title(title)
     ax.legend(loc="lower left", fontsize=7, ncol=3, markerscale=3)
     fig.tight_layout()

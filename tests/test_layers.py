@@ -29,7 +29,6 @@ LAYERS: list[tuple[str, ...]] = [
         "cmcan.codec",
         "cmcan.checksums",
         "cmcan.j1939",
-        "cmcan.fitcheck",
     ),
     ("cmcan.monitor",),  # the pure core
     (
@@ -41,6 +40,7 @@ LAYERS: list[tuple[str, ...]] = [
         "cmcan.sdnotify",
         "cmcan.ratelog",
         "cmcan.plots",
+        "cmcan.fitcheck",  # does the configuration fit the machine: a verdict from its first hour's ticks
         # the uplink's settings, records and outbox file, used by the configuration and the daemon
         "cmcan.uplink.config",
         "cmcan.uplink.records",

@@ -115,3 +115,35 @@ def test_operating_hours_go_on_through_a_step_back_of_the_wall_clock(logs, tmp_p
     with open(tmp_path / "columnar.csv") as f:
         hours = np.array([float(r["operating_h"]) for r in csv.DictReader(f)])
     assert hours[0] >= 0 and (np.diff(hours) > 0).all() and hours[-1] == pytest.approx(plain["duration_h"], abs=1e-3)
+
+
+def test_replay_says_when_the_configuration_does_not_fit_the_machine(logs, tmp_path):
+    """A healthy drive read through a mapping 20 % off (a speed's gear ratio written wrong) sits far
+    from 100 % from its first hour: replay says the configuration or model does not fit (a warning,
+    and ``fit`` in --json) instead of leaving it to read as a worn drive; the right mapping fits."""
+    import yaml
+
+    from tests.conftest import ROOT
+
+    _d, log, _run = logs
+    good = json.loads(run_cli("replay", str(log), "--json").stdout)
+    assert good["fit"]["verdict"] == "fits" and 99.0 < good["fit"]["median_pct"] < 101.0
+    raw = yaml.safe_load((ROOT / "config" / "cmcan.yaml").read_text())
+    raw["dbc"] = str(ROOT / "dbc" / "cmcan.dbc")
+    raw["signals"]["motor_speed_rpm"]["scale"] = 0.8
+    cfg = tmp_path / "m.yaml"
+    cfg.write_text(yaml.safe_dump(raw))
+    r = run_cli("replay", str(log), "--config", str(cfg), "--json")
+    assert r.returncode == 0, r.stderr
+    fit = json.loads(r.stdout)["fit"]
+    assert fit["verdict"] == "does_not_fit" and 78.0 < fit["median_pct"] < 82.0 and fit["points"] >= 300
+    assert "configuration or model does not fit" in r.stderr
+
+
+def test_the_ratio_plots_axis_shows_a_failure_and_the_thresholds():
+    from cmcan.plots import ratio_limits
+
+    assert ratio_limits(np.array([99.5, 100.4]), 98.0, 102.0) == (95.0, 105.0)
+    lo, hi = ratio_limits(np.array([100.0, 43.0]), 98.0, 102.0)  # the fall at a failure stays in view
+    assert lo <= 43.0 and hi >= 105.0
+    assert ratio_limits(np.array([-10.0, 500.0]), 98.0, 102.0) == (0.0, 200.0)  # what a CM frame can carry

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -12,7 +13,9 @@ from cmcan.cli.common import Subparsers, add_keep_truncated, load_config
 from cmcan.cli.errors import ensure_writable, require_extra
 from cmcan.cli.jsonout import print_json
 from cmcan.errors import CmcanError, Kind
-from cmcan.replay import ENGINES, EmitWriter, TimelineCollector, TimelineWriter, replay_file
+from cmcan.fitcheck import DOES_NOT_FIT, FitVerdict, FitWindow
+from cmcan.io.candump import Cut
+from cmcan.replay import ENGINES, EmitWriter, ReplaySummary, TimelineCollector, TimelineWriter, replay_file
 
 
 def add_subparser(sub: Subparsers) -> None:
@@ -76,16 +79,43 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config, check_dbc=False)
     aliases = channel_map(args.channel_map, cfg)
     mon = assemble(cfg, args.model, log_aliases=aliases).monitor
-    sinks: list = []
-    if "out" in outs:
-        sinks.append(TimelineWriter(outs["out"], cfg.quantity))
-    if "emit" in outs:
-        sinks.append(EmitWriter(outs["emit"]))
-    plot = TimelineCollector() if "plot" in outs else None
-    if plot is not None:
-        sinks.append(plot)
+    sinks = _Sinks(outs, cfg.quantity)
+    res, cut = _replay(args, mon, sinks.all)
+    assert res.first_t is not None  # a log without frames raised NoFrames, leaving no output behind
+    if sinks.plot is not None:
+        from cmcan.plots import plot_ratio
+
+        th = cfg.thresholds
+        plot_ratio(
+            sinks.plot.timeline, res.first_t, th.low_pct, th.high_pct, outs["plot"], title=f"CM ratio: {args.log}"
+        )
+    summary = _summary(args, cfg, mon, res, sinks.fit.verdict(), cut, merged_alone=not aliases)
+    if args.json:
+        print_json(summary)
+    else:
+        _print(args.log, res, summary)
+    return 0
+
+
+class _Sinks:
+    """What the replay writes (timeline, emitted frames, the plot's ticks) and the fit check."""
+
+    def __init__(self, outs: dict[str, Path], quantity: str) -> None:
+        self.all: list[Any] = []
+        if "out" in outs:
+            self.all.append(TimelineWriter(outs["out"], quantity))
+        if "emit" in outs:
+            self.all.append(EmitWriter(outs["emit"]))
+        self.plot = TimelineCollector() if "plot" in outs else None
+        if self.plot is not None:
+            self.all.append(self.plot)
+        self.fit = FitWindow()  # does the configuration fit this machine at all (its first operating hour)
+        self.all.append(self.fit)
+
+
+def _replay(args: argparse.Namespace, mon: Any, sinks: list[Any]) -> tuple[ReplaySummary, Cut | None]:
     progress = _Progress(Path(args.log)) if sys.stdout.isatty() and not args.json else None
-    cuts: list = []  # where a log read with --keep-truncated was cut (cmcan.io.candump.Cut)
+    cuts: list[Cut] = []  # where a log read with --keep-truncated was cut
     try:
         res = replay_file(
             args.log,
@@ -103,47 +133,63 @@ def run(args: argparse.Namespace) -> int:
     finally:
         if progress is not None:
             progress.done()
-    assert res.first_t is not None  # a log without frames raised NoFrames, leaving no output behind
-    t0 = res.first_t
-    if plot is not None:
-        from cmcan.plots import plot_ratio
+    return res, (cuts[0] if cuts else None)
 
-        th = cfg.thresholds
-        plot_ratio(plot.timeline, t0, th.low_pct, th.high_pct, outs["plot"], title=f"CM ratio: {args.log}")
+
+def _summary(
+    args: argparse.Namespace,
+    cfg: Any,
+    mon: Any,
+    res: ReplaySummary,
+    fit: FitVerdict,
+    cut: Cut | None,
+    merged_alone: bool,
+) -> dict[str, Any]:
+    """What ``--json`` prints; notes on stderr for what the user should know."""
     seen = mon.channels_seen()
-    merged = sorted(k for k, v in seen.items() if v is not None and k != v)
-    if len(seen) > 1 and len(cfg.channel_list) == 1 and not aliases and not cfg.channels.from_log:
+    if len(seen) > 1 and len(cfg.channel_list) == 1 and merged_alone and not cfg.channels.from_log:
         print(
             f"cmcan replay: note: the log's channels {', '.join(sorted(seen))} were all read as "
             f"{cfg.bus.channel}; give --channel-map LOG={cfg.bus.channel} to read one of them only",
             file=sys.stderr,
         )
-    summary = {
+    if fit.verdict == DOES_NOT_FIT:
+        print(f"cmcan replay: warning: {fit.describe()}", file=sys.stderr)
+    return {
         "log": str(args.log),
         "channels": {k: v for k, v in sorted(seen.items())},
-        "channels_renamed": merged,
-        "first_timestamp_s": t0,
+        "channels_renamed": sorted(k for k, v in seen.items() if v is not None and k != v),
+        "first_timestamp_s": res.first_t,
         "duration_h": res.duration_h,
         "warnings": res.warnings,
         "final": res.snapshot,
         "totals": res.totals,
         "frames_emitted": res.frames_emitted if args.emit else None,
-        "cut": cuts[0].to_dict() if cuts else None,
+        "fit": {
+            "verdict": fit.verdict,
+            "median_pct": _finite(fit.median_pct),
+            "points": fit.points,
+            "window_h": fit.window_h,
+        },
+        "cut": cut.to_dict() if cut is not None else None,
     }
-    if args.json:
-        print_json(summary)
-    else:
-        c = res.counters
-        print(
-            f"{args.log}: {c['frames_total']} frames ({c['accepted']} inputs), {summary['duration_h']:.2f} h, "
-            f"{c['evaluated']} of {c['ticks']} ticks evaluated"
-        )
-        for w in summary["warnings"]:
-            ratio = f", filtered ratio {w['ratio_filt_pct']:.2f} %" if w["ratio_filt_pct"] is not None else ""
-            print(f"  {w['operating_h']:9.3f} h  {w['from']:>5} -> {w['to']:<5} ({w['reason']}{ratio})")
-        if not summary["warnings"]:
-            print("  no warnings")
-    return 0
+
+
+def _finite(x: float) -> float | None:
+    return x if math.isfinite(x) else None
+
+
+def _print(log: str, res: ReplaySummary, summary: dict[str, Any]) -> None:
+    c = res.counters
+    print(
+        f"{log}: {c['frames_total']} frames ({c['accepted']} inputs), {summary['duration_h']:.2f} h, "
+        f"{c['evaluated']} of {c['ticks']} ticks evaluated"
+    )
+    for w in summary["warnings"]:
+        ratio = f", filtered ratio {w['ratio_filt_pct']:.2f} %" if w["ratio_filt_pct"] is not None else ""
+        print(f"  {w['operating_h']:9.3f} h  {w['from']:>5} -> {w['to']:<5} ({w['reason']}{ratio})")
+    if not summary["warnings"]:
+        print("  no warnings")
 
 
 class _Progress:

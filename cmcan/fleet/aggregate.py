@@ -23,7 +23,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from cmcan.fitcheck import FIT_MIN_POINTS, FIT_WINDOW_H, FitVerdict, check_fit
 from cmcan.monitor.gating import EVALUATED
 from cmcan.monitor.tick import TickColumns
 
@@ -247,33 +246,3 @@ class LogStats:
             extra_leak_trend_lpm_per_h=self.leak_fit.slope,
         )
         return out
-
-
-class FitWindow:
-    """The evaluated raw ratios of a log's first operating hours, as :func:`cmcan.fitcheck.check_fit`
-    judges them; stops collecting once past both its window and its minimum of points."""
-
-    def __init__(self, t0: float = 0.0) -> None:
-        self.t0 = t0
-        self._h: list[NDArray[np.float64]] = []
-        self._r: list[NDArray[np.float64]] = []
-        self._n = 0
-        self.full = False
-
-    def add(self, c: TickColumns) -> None:
-        if self.full:
-            return
-        ev = np.isin(c.gate, _EVALUATED)
-        if not ev.any():
-            return
-        h = (c.t_run_s[ev] - self.t0) / 3600.0
-        self._h.append(h)
-        self._r.append(c.ratio_raw_pct[ev].astype(np.float64))
-        self._n += len(h)
-        if self._n >= FIT_MIN_POINTS and h[-1] > FIT_WINDOW_H:
-            self.full = True
-
-    def verdict(self) -> FitVerdict:
-        h = np.concatenate(self._h) if self._h else np.zeros(0)
-        r = np.concatenate(self._r) if self._r else np.zeros(0)
-        return check_fit(h, r)
