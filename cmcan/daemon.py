@@ -83,6 +83,7 @@ class _LoopState:
     next_wd: float
     next_status: float
     last_save: float
+    started: float = 0.0
     saved_ticks: int = -1
     last_rx_wall: float | None = None  # when the last frame arrived
     last_frame_t: float = math.nan  # and its timestamp
@@ -203,6 +204,7 @@ class Daemon:
         uplink: UplinkFeed | None = None,
         boot_clock: Callable[[], float] | None = None,
         sleep: Callable[[float], object] | None = None,
+        wall_clock: Callable[[], float] = time.time,
     ) -> None:
         """``sleep(seconds)`` is how the loop waits when it has nothing to read (every link down): at
         most that long, less when :meth:`stop` or :meth:`request_reload` wake it (the default); tests
@@ -225,6 +227,7 @@ class Daemon:
         # Frame time against a clock that neither steps nor stops in suspend: a jump of their
         # difference is the wall clock stepping (the kernel stamps frames with the wall clock).
         self.boot_clock = boot_clock or _boot_time
+        self.wall_clock = wall_clock  # what a kernel bus stamps frames with (the idle bus before any frame)
         self._wall_minus_boot: float | None = None
         self._last_stamp: float | None = None
         # Transport packets wait until the configured gap after the packet before has gone out.
@@ -281,7 +284,7 @@ class Daemon:
 
     def _start(self) -> None:
         now = self.clock()
-        self.loop = _LoopState(next_wd=now, next_status=now, last_save=now)
+        self.loop = _LoopState(next_wd=now, next_status=now, last_save=now, started=now)
         self._wake_r, self._wake_w = socket.socketpair()
         self._wake_w.setblocking(False)
         self.notifier.ready(self._status_text())
@@ -401,9 +404,13 @@ class Daemon:
         st = self.loop
         now = self.clock()
         out: list[Frame] = []
-        if st.last_rx_wall is not None and now - st.last_rx_wall >= self.opt.idle_after_s:
+        if now - (st.last_rx_wall if st.last_rx_wall is not None else st.started) >= self.opt.idle_after_s:
+            if st.last_rx_wall is not None:  # frame time goes on from the last frame's
+                t = st.last_frame_t + (now - st.last_rx_wall)
+            else:  # no frame yet: the time the bus would stamp a frame with (where that is the wall clock)
+                t = self.wall_clock() if self.opt.stamps_on_wall_clock else math.nan
             try:
-                out = self.monitor.advance(st.last_frame_t + (now - st.last_rx_wall))
+                out = self.monitor.advance(t)
                 out += self.monitor.due(math.inf)
             except Exception:
                 self._internal_error()

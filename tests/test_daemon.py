@@ -507,3 +507,48 @@ def test_an_extra_channel_absent_at_the_start_is_a_link_down_until_it_appears(fr
     down = [s for s in statuses if "can0 up, can1 down (cannot open: [Errno 19] No such device)" in s]
     assert down and any("can0 up, can1 up" in s for s in statuses[statuses.index(down[-1]) :])
     assert d.stats["bus_opens"] == 2 and d.stats["bus_errors"] >= 1
+
+
+class LateBus(ScriptedBus):
+    """A kernel-like bus: silent for ``silent_s`` after it opens, then serves its frames stamped with
+    the wall clock as they are received."""
+
+    def __init__(self, source, silent_s: float):
+        super().__init__(source)
+        self.opened = time.monotonic()
+        self.silent_s = silent_s
+        self.first_served_t: float | None = None  # the first input's time
+
+    def _recv_internal(self, timeout):
+        if time.monotonic() - self.opened < self.silent_s:
+            time.sleep(min(timeout or 0, 0.01))
+            return None, False
+        msg, filtered = super()._recv_internal(timeout)
+        if msg is not None:
+            msg.timestamp = time.time()
+            if self.first_served_t is None:
+                self.first_served_t = msg.timestamp
+        return msg, filtered
+
+
+def test_a_silent_bus_gets_the_warning_frame_every_second_from_the_start(frames, db):
+    """Before any input frame the daemon still says what it knows on the bus: its CM frames with the
+    gate no_input and the warning frame every second (nothing to warn about); the first inputs,
+    stamped by the bus's wall clock, are then used as usual, not taken for late."""
+    source = messages(frames)[:3000]
+    bus = LateBus(list(source), silent_s=2.6)
+    mon = monitor()
+    d = Daemon(cfgmod.load(), mon, None, lambda: bus, options=DaemonOptions(idle_after_s=0.2))
+    run_daemon_until(d, lambda: mon.counters["accepted"] >= 2000, timeout=60)
+    warn = db.get_message_by_name("CM_WARNING")
+    ratio = db.get_message_by_name("CM_RATIO")
+    sent = [(m.timestamp, m.arbitration_id, m.data) for m in bus.sent]
+    inputs_from = bus.first_served_t
+    silent = [(t, i, d) for t, i, d in sent if t < inputs_from]
+    warnings = [(t, warn.decode(d, decode_choices=False)) for t, i, d in silent if i == warn.frame_id]
+    assert len(warnings) >= 2 and all(w["warning_level"] == 0 for _, w in warnings)
+    # the first at the first tick, then one at every whole second of ticks
+    assert np.allclose(np.diff([t for t, _ in warnings[1:]]), 1.0, atol=1e-6)
+    gates = {ratio.decode(d, decode_choices=False)["cm_gate"] for _, i, d in silent if i == ratio.frame_id}
+    assert gates == {1}  # no_input while the bus is silent
+    assert mon.counters["late"] == 0 and mon.counters["accepted"] >= 2000

@@ -13,7 +13,7 @@ from cmcan.model.features import operating_points, series_from_log
 from cmcan.monitor.gating import EVALUATED, Gate
 from cmcan.monitor.totals import Totals
 from cmcan.monitor.warnings import Level
-from tests.helpers import feed_all, frame, monitor, sim_frames, timeline, write_log
+from tests.helpers import as_frames, feed_all, frame, monitor, sim_frames, timeline, write_log
 
 PUMP, PRESS, MOTOR, OIL = 0x100, 0x101, 0x102, 0x103
 
@@ -215,3 +215,25 @@ def test_leakage_raises_the_low_warning_and_estimates_the_flow():
     truth = run["true_extra_leak_lpm"][np.minimum(idx, len(run) - 1)]
     assert np.mean(est) == pytest.approx(np.mean(truth), rel=0.1)
     assert 3.0 < np.mean(truth) < 7.0
+
+
+def test_a_silent_start_ticks_on_the_idle_clock_and_a_clock_step_before_the_first_frame_is_one():
+    """Advanced before any frame (the daemon's idle timer on a silent bus), the monitor ticks with no
+    input and sends its frames; frames that then come 5 s earlier than that time (the wall clock set
+    back by NTP before the first frame) are a step of the clock, not late frames."""
+    _, frames = sim_frames("two_set_validation", duration_h=0.01)
+    fs = as_frames(frames)
+    t0 = fs[0].timestamp_s
+    mon = monitor()
+    out = mon.advance(t0 + 5.0)
+    for k in range(1, 31):
+        out += mon.advance(t0 + 5.0 + 0.1 * k)
+    ticks = timeline(mon)
+    n_silent = len(ticks)
+    assert n_silent in (29, 30) and {tk.gate for tk in ticks} == {Gate.NO_INPUT}  # 3 s at 10 Hz
+    assert any(f.arbitration_id == 0x3A2 for f in out)  # the warning frame goes out on a silent bus
+    for f in fs:
+        mon.feed(f)
+    c = mon.counters
+    assert c["late"] == 0 and c["clock_steps"] == 1 and c["accepted"] == c["frames_total"]
+    assert any(tk.gate in EVALUATED for tk in ticks[n_silent:])

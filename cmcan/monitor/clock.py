@@ -114,10 +114,19 @@ class TickClock:
         self._set_next(self.next_k + ticks)
 
     def advance(self, t: float) -> list[int]:
-        """Time passes without frames (the daemon's idle timer): the ticks up to ``t``."""
-        if self.next_k is None or not math.isfinite(t):
+        """Time passes without frames (the daemon's idle timer): the ticks up to ``t``, which counts as
+        the newest time seen (frames after it that are earlier by more than ``STEP_BACK_S`` are a step
+        of the clock back). Before the first frame, time starts at ``t`` (the daemon's wall clock: the
+        time its bus stamps frames with), so a silent bus still gets its ticks."""
+        if not math.isfinite(t):
             return []
-        return self._ticks_before(t, idle=True)
+        if self.next_k is None:
+            self._set_next(math.floor(t / self.period) + 1)
+            self.last_frame_t = t
+            return []
+        ks = self._ticks_before(t, idle=True)
+        self.last_frame_t = max(self.last_frame_t, t)  # the newest time seen: a step back is measured from it
+        return ks
 
     def flush(self) -> list[int]:
         """The ticks up to the last frame (the end of a replayed log)."""
@@ -136,9 +145,9 @@ class TickClock:
         if t - self.last_frame_t > self.max_gap_s:
             ks = self.flush()  # finish the span that ended with the last frame
             k_last = math.ceil(t / self.period) - 1  # the last tick strictly before t
-            if idle:
-                if k_last >= self.next_k:  # keep broadcasting while the bus is silent: the newest tick
-                    ks.append(k_last)
+            if idle:  # keep broadcasting while the bus is silent: the ticks of the last second at most
+                if k_last >= self.next_k:
+                    ks.extend(range(max(self.next_k, k_last - round(1.0 / self.period) + 1), k_last + 1))
                     self._set_next(k_last + 1)
             else:
                 self._set_next(math.floor(t / self.period) + 1)
