@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
@@ -27,7 +27,7 @@ from cmcan.io import textcols as tc
 from cmcan.io.candump import Cut, candump_lines, iter_frames
 from cmcan.io.columns import column_chunks
 from cmcan.monitor.core import Monitor
-from cmcan.monitor.gating import Gate
+from cmcan.monitor.gating import EVALUATED, Gate
 from cmcan.monitor.tick import LEVEL_NAMES, TickBuffer, TickColumns
 from cmcan.monitor.warnings import Level, Reason
 from cmcan.roles import MOTOR_SPEED, QUANTITY_SIGNALS
@@ -114,9 +114,12 @@ class TimelineWriter(_FileSink):
         self.decimals = 2 if quantity == MOTOR_SPEED else 4  # 0.01 rpm; flows of small machines need more
 
     def ticks(self, c: TickColumns) -> None:
-        # The columns formatted with arrays, byte for byte what f"{x:.3f}" and friends write.
+        # The columns formatted with arrays, byte for byte what f"{x:.3f}" and friends write; what a
+        # tick does not have (a prediction and raw ratio where it was not evaluated, the filtered ratio
+        # and leakage where the filter is not yet valid) an empty cell
         if not len(c):
             return
+        c = _absent_as_nan(c)
         if native.LIB is not None and (text := self._native_rows(c)) is not None:
             self.f.write(text.decode("ascii"))
             return
@@ -180,6 +183,22 @@ class TimelineWriter(_FileSink):
         cols.append(native.TextColumn(N, named[0], b",", names=named[1]))
         cols.append(native.TextColumn(F, c.time_below_s, b",", 1))
         return native.format_rows(len(c), cols, b"\r\n")
+
+
+_EVALUATED = np.array(sorted(int(g) for g in EVALUATED), dtype=np.int8)
+
+
+def _absent_as_nan(c: TickColumns) -> TickColumns:
+    evaluated = np.isin(c.gate, _EVALUATED)
+    valid = c.filt_valid
+    return replace(
+        c,
+        predicted=np.where(evaluated, c.predicted, np.nan),
+        whitebox=np.where(evaluated, c.whitebox, np.nan),
+        ratio_raw_pct=np.where(evaluated, c.ratio_raw_pct, np.nan),
+        ratio_filt_pct=np.where(valid, c.ratio_filt_pct, np.nan),
+        extra_leak_lpm=np.where(valid, c.extra_leak_lpm, np.nan),
+    )
 
 
 class EmitWriter(_FileSink):

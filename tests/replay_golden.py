@@ -66,7 +66,11 @@ def main(argv: list[str]) -> int:
         return 0
     want = json.loads(GOLDEN.read_text())
     bad = [n for n in CASES if got[n] != want.get(n)]
-    print("differ: " + ", ".join(bad) if bad else "all equal")
+    for n in bad:
+        fields = [k for k in got[n] if got[n][k] != (want.get(n) or {}).get(k)]
+        print(f"differ: {n} ({', '.join(fields)})")
+    if not bad:
+        print("all equal")
     return 1 if bad else 0
 
 

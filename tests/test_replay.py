@@ -147,3 +147,26 @@ def test_the_ratio_plots_axis_shows_a_failure_and_the_thresholds():
     lo, hi = ratio_limits(np.array([100.0, 43.0]), 98.0, 102.0)  # the fall at a failure stays in view
     assert lo <= 43.0 and hi >= 105.0
     assert ratio_limits(np.array([-10.0, 500.0]), 98.0, 102.0) == (0.0, 200.0)  # what a CM frame can carry
+
+
+def test_the_timeline_leaves_empty_what_a_tick_does_not_have(logs, tmp_path):
+    """No 0.000 for the prediction and ratio of a tick that was not evaluated, nor for the filtered
+    ratio before the filter is valid: empty cells, so an average over a column is over real values."""
+    d, _log, _run = logs
+    out = tmp_path / "tl.csv"
+    assert run_cli("replay", str(d / "short.log"), "--out", str(out)).returncode == 0
+    with open(out) as f:
+        rows = list(csv.DictReader(f))
+    evaluated = [r for r in rows if r["gate"] in ("evaluating", "extrapolated")]
+    others = [r for r in rows if r["gate"] not in ("evaluating", "extrapolated")]
+    assert evaluated and others
+    for r in others:
+        assert r["motor_speed_pred_rpm"] == r["motor_speed_whitebox_rpm"] == r["cm_ratio_raw_pct"] == ""
+        assert r["motor_speed_meas_rpm"] != ""
+    assert all(r["cm_ratio_raw_pct"] and float(r["motor_speed_pred_rpm"]) > 0 for r in evaluated)
+    valid = [r["cm_filt_valid"] == "1" for r in rows]
+    assert any(valid) and not all(valid)
+    for r, v in zip(rows, valid, strict=True):
+        assert (r["cm_ratio_filt_pct"] != "") == v and (r["extra_leak_lpm"] != "") == v
+    mean = np.mean([float(r["cm_ratio_raw_pct"]) for r in evaluated])
+    assert 99.0 < mean < 101.0

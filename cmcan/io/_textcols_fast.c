@@ -6,8 +6,8 @@
  * Fixed-point numbers are written to the byte as Python's f"{x:.{d}f}": the exact binary value
  * rounded half to even. As cmcan/io/textcols.py does with arrays, the fraction is scaled by 10^d in
  * floating point, and a value within a few ulps of a rounding boundary (and anything at or beyond
- * 2^52) is written by snprintf, which rounds the exact value (glibc), as Python does. NaN is "nan"
- * whatever its sign, as Python writes it. */
+ * 2^52) is written by snprintf, which rounds the exact value (glibc), as Python does. NaN is an
+ * empty cell: a value that is not there (a tick not evaluated has no prediction). */
 #include <math.h>
 #include <stdint.h>
 #include <stdio.h>
@@ -33,11 +33,7 @@ static char *put_uint(char *o, uint64_t v, int min_digits) {
 
 /* NULL when the text would not fit before end */
 static char *put_fixed(char *o, char *end, double x, int d) {
-    if (isnan(x)) {
-        if (end - o < 3) return NULL;
-        memcpy(o, "nan", 3);
-        return o + 3;
-    }
+    if (isnan(x)) return o; /* a value that is not there: an empty cell */
     double ax = fabs(x);
     if (ax < 4503599627370496.0) { /* 2^52 */
         double whole = floor(ax);

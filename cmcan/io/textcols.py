@@ -6,8 +6,9 @@ the rest of the columnar engine. Here a column of numbers becomes a matrix of AS
 
 Exactness: ``f"{x:.{d}f}"`` rounds the exact binary value of ``x`` to ``d`` decimals, half to even.
 The array path scales by 10^d in floating point, which can move a value across a rounding boundary
-only when it lies within a few ulps of one; such values (and NaN, infinities, numbers beyond 2^52)
-are formatted by Python itself. Tests hold the two equal over random and adversarial values.
+only when it lies within a few ulps of one; such values (and infinities, numbers beyond 2^52) are
+formatted by Python itself. Tests hold the two equal over random and adversarial values. NaN is an
+empty cell: a value that is not there (a tick not evaluated has no prediction, as the fleet's NaN).
 """
 
 from __future__ import annotations
@@ -83,7 +84,7 @@ def _uint_digits(v: NDArray[np.int64], min_digits: int) -> tuple[NDArray[np.uint
 
 
 def fixed(x: NDArray[np.float64], decimals: int) -> Column:
-    """``f"{v:.{decimals}f}"`` for every value of ``x``."""
+    """``f"{v:.{decimals}f}"`` for every value of ``x``; an empty cell for NaN."""
     x = np.asarray(x, dtype=np.float64)
     n = len(x)
     scale = 10**decimals
@@ -131,7 +132,7 @@ def fixed(x: NDArray[np.float64], decimals: int) -> Column:
     col_ = Column(out, lengths.astype(np.int64))
     if slow.any():
         idx = np.flatnonzero(slow)
-        col_ = _patch(col_, idx, [f"{v:.{decimals}f}" for v in x[idx].tolist()])
+        col_ = _patch(col_, idx, ["" if v != v else f"{v:.{decimals}f}" for v in x[idx].tolist()])
     return col_
 
 
