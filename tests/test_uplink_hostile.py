@@ -5,6 +5,7 @@ broker session (real processes, a real mosquitto)."""
 
 from __future__ import annotations
 
+import json
 import shutil
 import sqlite3
 import subprocess
@@ -209,3 +210,10 @@ def test_a_second_uplink_on_one_outbox_exits_75_and_the_first_keeps_its_session(
         broker.kill()
     assert first.returncode == 0
     OutboxLock(state / "outbox.sqlite").acquire().release()  # the lock went with its holder
+
+
+def test_status_is_a_query_that_creates_nothing(tmp_path, state):
+    cfg = uplink_config(tmp_path / "c.yaml", state, 1883)
+    r = run_cli("uplink", "--status", "--config", str(cfg))
+    assert r.returncode == EX_OK, r.stderr
+    assert json.loads(r.stdout)["entries"] == 0 and list(state.iterdir()) == []

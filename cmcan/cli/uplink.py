@@ -45,7 +45,7 @@ def add_subparser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from cmcan.uplink.outbox import describe
+    from cmcan.uplink.outbox import Usage, describe
     from cmcan.uplink.setup import OutboxLock, open_for_uplink, read_password, require_folder, tls_context
 
     if args.verbose == 0:
@@ -56,7 +56,13 @@ def run(args: argparse.Namespace) -> int:
         raise CmcanError(f"--timeout: expected a positive number of seconds, got {args.timeout}", Kind.USAGE)
     cfg = load_config(args.config, state_dir=args.state_dir)
     settings = cfg.uplink
-    if args.status:  # a query: a corrupt outbox is reported, not moved; no lock (it publishes nothing)
+    if args.status:  # a query: it creates nothing, a corrupt outbox is reported, not moved; no lock
+        require_folder(settings.outbox.path, cfg.source)
+        if not settings.outbox.path.exists():  # the daemon has not written one yet
+            print_json(
+                {"outbox": str(settings.outbox.path), "stream_id": None, **describe(Usage(0, 0, None, None), None)}
+            )
+            return 0
         box = open_for_uplink(settings.outbox.path, keep_aside=False, source=cfg.source)
         out = {"outbox": str(box.path), "stream_id": box.stream_id, **describe(box.usage(), box.clock())}
         box.close()

@@ -244,7 +244,7 @@ class Outbox:
 
     def clock(self) -> Clock:
         """The outbox clock now, read without writing (see the module's docstring)."""
-        return self._read_clock(self._con(), self.boot_clock())[0]
+        return self._read_clock(self._con())[0]
 
     def tick(self) -> Clock:
         """Move the clock's anchor to now (a restart of the gateway is recorded): in a transaction."""
@@ -259,19 +259,35 @@ class Outbox:
                 con.execute("ROLLBACK")
             raise
 
-    def _read_clock(self, con: sqlite3.Connection, boot_s: float) -> tuple[Clock, bool]:
+    def note_restart(self) -> bool:
+        """Record a restart of the gateway now if there was one since the anchor (a write only then):
+        at a process's start, so an early restart is seen before the boot clock passes the anchor."""
+        con = self._con()
+        meta = dict(con.execute("SELECT key, value FROM meta WHERE key = 'clock_boot_s'").fetchall())
+        try:
+            restarted = self.boot_clock() < float(meta["clock_boot_s"])
+        except (KeyError, ValueError):
+            restarted = True
+        if restarted:
+            self.tick()
+        return restarted
+
+    def _read_clock(self, con: sqlite3.Connection) -> tuple[Clock, float]:
+        """(the clock, the boot clock it was read at). The anchor is read first and the boot clock
+        after it: an anchor the other process wrote meanwhile is never ahead of this reading."""
         meta = dict(con.execute("SELECT key, value FROM meta WHERE key LIKE 'clock_%'").fetchall())
+        boot_s = self.boot_clock()
         try:
             at_s, at_boot_s, epoch = float(meta["clock_s"]), float(meta["clock_boot_s"]), int(meta["clock_epoch"])
         except (KeyError, ValueError):  # an anchor lost or mangled: the clock begins again, nothing is old
-            return Clock(0.0, 1), True
+            return Clock(0.0, 1), boot_s
         if boot_s >= at_boot_s:
-            return Clock(at_s + (boot_s - at_boot_s), epoch), False
-        return Clock(at_s, epoch + 1), True  # the boot clock went back: the gateway restarted
+            return Clock(at_s + (boot_s - at_boot_s), epoch), boot_s
+        return Clock(at_s, epoch + 1), boot_s  # the boot clock went back: the gateway restarted
 
     def _tick(self, con: sqlite3.Connection) -> Clock:
-        boot_s = self.boot_clock()
-        c, _ = self._read_clock(con, boot_s)
+        """In a write transaction: the clock now, and the anchor moved to it."""
+        c, boot_s = self._read_clock(con)
         self._set_anchor(con, c, boot_s)
         return c
 
@@ -498,10 +514,10 @@ def record_corrupt(box: Outbox, aside: Path, t_s: float, now_s: float) -> None:
     box.append([(DROPPED, t_s, now_s, d.to_json())])
 
 
-def describe(usage: Usage, clock: Clock) -> dict[str, Any]:
+def describe(usage: Usage, clock: Clock | None) -> dict[str, Any]:
     """The outbox's fill level as a JSON-ready mapping (for health messages and ``--status``); the
     oldest entry's age on the outbox clock."""
-    age = None if usage.oldest_queued_s is None else round(clock.age_s(usage.oldest_queued_s), 1)
+    age = None if usage.oldest_queued_s is None or clock is None else round(clock.age_s(usage.oldest_queued_s), 1)
     return {
         "entries": usage.entries,
         "bytes": usage.bytes,

@@ -169,7 +169,14 @@ def open_for_uplink(path: Path, keep_aside: bool = True, source: str = "the conf
     ``keep_aside`` (``--status``, a query) a corrupt file is reported and left as it is."""
     require_folder(path, source)
     try:
-        return open_outbox(path, durable=False, keep_aside=False)
+        box = open_outbox(path, durable=False, keep_aside=False)
+        if keep_aside:  # the uplink proper (not a query): a restart of the gateway is recorded at once
+            box.note_restart()
+        return box
+    except (sqlite3.Error, OSError) as exc:  # recording the restart: the outbox could be read, not written
+        raise SetupError(
+            f"{path}: cannot write the outbox: {exc}", _OUTBOX_PROBLEMS.get(problem_kind(exc), "ioerr")
+        ) from None
     except OutboxError as exc:
         if exc.kind == "corrupt" and not keep_aside:
             raise SetupError(f"{exc}; left as it is (cmcan uplink keeps it aside when it runs)", "data") from None

@@ -192,7 +192,7 @@ class OutboxWriter:
             self._box = None
         if self._box is None:
             self._box = open_outbox(self.path, durable=True, clock=self.clock)
-            self._box.tick()  # a restart of the gateway is recorded now, not at the first entry
+            self._box.note_restart()  # a restart of the gateway is recorded now, not at the first entry
             self.stats.reopened += 1
             if self._box.kept_aside is not None:
                 self._note_corrupt(self._box.kept_aside)
