@@ -32,6 +32,7 @@ Cases are drawn from ``--seed`` and their number alone, so a failure is reproduc
 from __future__ import annotations
 
 import argparse
+import contextlib
 import gzip
 import hashlib
 import json
@@ -760,7 +761,8 @@ def run_case(case: Case, outside: Path | None = None) -> Outcome:
     t0 = time.monotonic()
     problems: list[str] = []
     with open(err_path, "w") as err, open(out_path, "w") as out:
-        proc = subprocess.Popen(cmd, cwd=case.dir, env=env, stdout=out, stderr=err)
+        # a session of its own: a case that hangs is killed with what it started (Dask's workers)
+        proc = subprocess.Popen(cmd, cwd=case.dir, env=env, stdout=out, stderr=err, start_new_session=True)
         code = _wait(proc, case, err_path, problems)
     seconds = time.monotonic() - t0
     stderr = err_path.read_text(errors="replace")
@@ -813,8 +815,7 @@ def _wait(proc: subprocess.Popen, case: Case, err_path: Path, problems: list[str
                 try:
                     code = proc.wait(15)
                 except subprocess.TimeoutExpired:
-                    proc.kill()
-                    proc.wait()
+                    _kill(proc)
                     problems.append("did not stop within 15 s of SIGTERM")
                     return None
                 if code != 0:
@@ -824,13 +825,19 @@ def _wait(proc: subprocess.Popen, case: Case, err_path: Path, problems: list[str
     try:
         code = proc.wait(max(0.0, deadline - time.monotonic()))
     except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait()
+        _kill(proc)
         problems.append(f"still running after {case.target.timeout_s:.0f} s")
         return None
     if code < 0:
         problems.append(f"killed by signal {-code}")
     return code
+
+
+def _kill(proc: subprocess.Popen) -> None:
+    """SIGKILL to the case's process group (the command and every process it started), then reap it."""
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
 
 
 # -- the run ----------------------------------------------------------------------------------------
