@@ -30,7 +30,7 @@ def test_the_harness_sees_a_message_that_does_not_name_the_file(tmp_path):
     (d / "run.log").write_bytes(corpus.path("log").read_bytes()[:1000])
     t = Target("bogus", ("log",), ("log",), ("replay", "run.log", "--engine", "warp"))
     o = run_case(Case(0, t, "log", "truncate", dir=d, argv=list(t.argv)))
-    assert o.code == 64 and o.problems == ["the message does not name run.log"]
+    assert o.code == 64 and o.problems == ["the message does not name 'run.log'"]
 
 
 def test_the_harness_sees_a_spoiled_model_that_was_used(tmp_path):
