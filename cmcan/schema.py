@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import difflib
 import math
+import reprlib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import yaml
-
+from cmcan import yamlsafe
 from cmcan.errors import CmcanError, Kind
 
 
@@ -53,11 +53,11 @@ class Num:
         if value is None and self.default is None:  # an optional field left unset
             return None
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise SchemaError(src, path, f"expected {self.describe()}, got {value!r}")
+            raise SchemaError(src, path, f"expected {self.describe()}, got {show(value)}")
         if self.integer and not float(value).is_integer():
-            raise SchemaError(src, path, f"expected {self.describe()}, got {value!r}")
+            raise SchemaError(src, path, f"expected {self.describe()}, got {show(value)}")
         if not math.isfinite(value) or not (self.lo <= value <= self.hi):
-            raise SchemaError(src, path, f"expected {self.describe()}, got {value!r}")
+            raise SchemaError(src, path, f"expected {self.describe()}, got {show(value)}")
         return int(value) if self.integer else float(value)
 
 
@@ -70,7 +70,7 @@ class Bool:
 
     def check(self, value: Any, src: str, path: str) -> bool:
         if not isinstance(value, bool):
-            raise SchemaError(src, path, f"expected true or false, got {value!r}")
+            raise SchemaError(src, path, f"expected true or false, got {show(value)}")
         return value
 
 
@@ -88,7 +88,9 @@ class Str:
         if value is None and self.default is None:  # an optional field left unset
             return None
         if not isinstance(value, str) or (self.choices and value not in self.choices):
-            raise SchemaError(src, path, f"expected {self.describe()}, got {value!r}")
+            raise SchemaError(src, path, f"expected {self.describe()}, got {show(value)}")
+        if "\x00" in value:  # no name, path or identifier holds one; the OS and MQTT refuse it
+            raise SchemaError(src, path, f"contains a NUL character: {show(value)}")
         return value
 
 
@@ -104,7 +106,7 @@ class Seq:
 
     def check(self, value: Any, src: str, path: str) -> list[Any]:
         if not isinstance(value, list):
-            raise SchemaError(src, path, f"expected {self.describe()}, got {value!r}")
+            raise SchemaError(src, path, f"expected {self.describe()}, got {show(value)}")
         if not (self.min_len <= len(value) <= self.max_len):
             raise SchemaError(src, path, f"expected between {self.min_len} and {self.max_len} items, got {len(value)}")
         return [self.item.check(v, src, f"{path}[{i}]") for i, v in enumerate(value)]
@@ -125,7 +127,7 @@ class Obj:
         if value is None and all(_has_default(s) for s in self.fields.values()):
             value = {}
         if not isinstance(value, dict):
-            raise SchemaError(src, path, f"expected a mapping, got {value!r}")
+            raise SchemaError(src, path, f"expected a mapping, got {show(value)}")
         out: dict[str, Any] = {}
         for key, raw in value.items():
             sub = _join(path, str(key))
@@ -164,13 +166,13 @@ class OneOf:
 
     def check(self, value: Any, src: str, path: str) -> dict[str, Any]:
         if not isinstance(value, dict):
-            raise SchemaError(src, path, f"expected {self.describe()}, got {value!r}")
+            raise SchemaError(src, path, f"expected {self.describe()}, got {show(value)}")
         kind = value.get(self.tag)
         if kind not in self.variants:
             raise SchemaError(
                 src,
                 _join(path, self.tag),
-                "expected one of " + ", ".join(repr(k) for k in self.variants) + f", got {kind!r}",
+                "expected one of " + ", ".join(repr(k) for k in self.variants) + f", got {show(kind)}",
             )
         spec = self.variants[kind]
         fields = {self.tag: Str(choices=(kind,)), **spec.fields}
@@ -193,7 +195,7 @@ class Either:
                 return o.check(value, src, path)
             except SchemaError:
                 continue
-        raise SchemaError(src, path, f"expected {self.describe()}, got {value!r}")
+        raise SchemaError(src, path, f"expected {self.describe()}, got {show(value)}")
 
 
 @dataclass(frozen=True)
@@ -205,6 +207,16 @@ class Any_:
 
     def check(self, value: Any, src: str, path: str) -> Any:
         return value
+
+
+_SHOW = reprlib.Repr()
+_SHOW.maxstring = _SHOW.maxother = 80
+_SHOW.maxlevel, _SHOW.maxlist, _SHOW.maxdict = 3, 6, 6
+
+
+def show(value: Any) -> str:
+    """A value as an error message quotes it: its repr, cut short (a file's value may be huge)."""
+    return _SHOW.repr(value)
 
 
 def _has_default(spec: Any) -> bool:
@@ -228,34 +240,13 @@ def _fmt(x: float) -> str:
     return str(int(x)) if float(x).is_integer() else f"{x:g}"
 
 
-# Configurations, scenarios, drive files and column maps are a few kB; YAML's parser takes seconds per
-# MB, so a file far larger is refused at once instead of keeping a start (or a reload) busy.
-MAX_YAML_BYTES = 1 << 20
-
-
 def load_yaml(path: str | Path, kind: Kind = Kind.CONFIG) -> Any:
-    """Read a YAML file; a missing file or a syntax error names the file (and line)."""
-    p = Path(path)
+    """Read a YAML file within cmcan's bounds (:mod:`cmcan.yamlsafe`: size, nesting, alias expansion);
+    a missing file, a syntax error or a bound passed names the file (and line)."""
     try:
-        if p.is_file() and p.stat().st_size > MAX_YAML_BYTES:
-            size = p.stat().st_size
-            raise SchemaError(str(p), "", f"{size} bytes, more than any YAML file cmcan reads ({MAX_YAML_BYTES})", kind)
-        text = p.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise SchemaError(str(p), "", "file not found", Kind.NO_INPUT) from None
-    except IsADirectoryError:
-        raise SchemaError(str(p), "", "is a folder, expected a YAML file", Kind.NO_INPUT) from None
-    except UnicodeDecodeError as exc:
-        raise SchemaError(str(p), "", f"not UTF-8 text (byte {exc.start}): expected a YAML file", kind) from None
-    except OSError as exc:
-        raise SchemaError(str(p), "", f"cannot read: {exc.strerror}", Kind.NO_INPUT) from None
-    try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
-        problem = getattr(exc, "problem", None) or str(exc)
-        raise SchemaError(str(p), "", f"invalid YAML: {where}{problem}", kind) from None
+        return yamlsafe.load_file(path, kind)
+    except yamlsafe.YamlError as exc:
+        raise SchemaError(exc.source, "", exc.detail, exc.kind) from None
 
 
-__all__ = ["Any_", "Bool", "Either", "Num", "Obj", "OneOf", "SchemaError", "Seq", "Str", "load_yaml"]
+__all__ = ["Any_", "Bool", "Either", "Num", "Obj", "OneOf", "SchemaError", "Seq", "Str", "load_yaml", "show"]

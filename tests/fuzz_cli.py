@@ -5,16 +5,22 @@
 
 Each case copies a consistent set of inputs for one command into a folder of its own (logs of every
 format, configurations, DBCs, models, state files and outboxes, run CSVs, operating-point tables, column
-maps, scenarios, drive files, fleet manifests and data sets), spoils one of them (cut short,
-bit-flipped, bytes overwritten, replaced by a file of another kind, made huge, emptied, not UTF-8,
-a folder in its place, missing) and runs the command as a process. It asserts what the project
-promises for any input:
+maps, scenarios, drive files, fleet manifests, log folders and data sets), spoils one of them (cut
+short, bit-flipped, bytes overwritten, replaced by a file of another kind, made huge, emptied, not
+UTF-8, a folder in its place, missing) or makes it hostile (see ``HOSTILE``: YAML alias bombs, deep
+nesting and recursive aliases; uplink identifiers MQTT cannot carry; candump frames of more than 64
+data bytes; fleet sources that are symlinks out of their folder, FIFOs, ``/dev/zero``, ``/etc/passwd``,
+manifests naming them, machine folders with a newline in their name) and runs the command as a process.
+It asserts what the project promises for any input:
 
-- the exit code is 0 or one of the documented sysexits codes (64, 65, 66, 69, 73, 75, 78): never 70
-  "internal error", never a signal, never a hang (a time limit per case);
+- the exit code is 0 or one of the documented sysexits codes (64, 65, 66, 69, 73, 74, 75, 77, 78):
+  never 70 "internal error", never a signal, never a hang (a time limit per case);
 - no traceback, on either stream;
 - on failure, one message that names the spoiled file, and nothing written: no output, no temporary
   file, every input byte for byte as it was (the folder is compared before and after);
+- on success, nothing written but the outputs the command line names (``--out``, ``--emit``, ...);
+- nothing written outside the case's folder (the folder the hostile symlinks point into is compared
+  too), and no byte of a file outside it quoted in a message or an output (a canary secret);
 - a model file whose bytes changed is refused (its digest, ``cmcan.content_sha256``), never used;
 - ``cmcan run`` either refuses to start (as above) or starts and stops cleanly on SIGTERM (exit 0).
 
@@ -26,12 +32,14 @@ Cases are drawn from ``--seed`` and their number alone, so a failure is reproduc
 from __future__ import annotations
 
 import argparse
+import contextlib
 import gzip
 import hashlib
 import json
 import os
 import shutil
 import signal
+import stat
 import subprocess
 import sys
 import tempfile
@@ -47,9 +55,13 @@ from typing import ClassVar
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-ALLOWED = {0, 64, 65, 66, 69, 73, 75, 78}
+ALLOWED = {0, 64, 65, 66, 69, 73, 74, 75, 77, 78}
 HUGE_BYTES = 24 << 20
 CASE_TIMEOUT_S = 300.0
+# A secret outside every case's folder: hostile sources point at it; no message or output may quote it.
+CANARY = "CANARY-7f3a9e"
+SECRET_TEXT = f"root:{CANARY}:20228:0:99999:7:::\n"
+OUTSIDE = "_outside"  # the folder in the corpus holding the secret (compared before and after each case)
 
 
 # -- the corpus: one consistent set of valid inputs --------------------------------------------------
@@ -92,6 +104,7 @@ class Corpus:
         "outbox": ("state/outbox.sqlite", "sqlite"),
         "manifest": ("manifest.csv", "csv"),
         "flog": ("a.log", "candump"),
+        "fleetdir": ("logs", "dir"),
         "dataset": ("ds", "dir"),
     }
 
@@ -170,7 +183,9 @@ class Corpus:
         self._yaml_config(p, {})
 
     def _make_uplinkcfg(self, p: Path) -> None:
-        self._yaml_config(p, {"uplink": {"enabled": True, "machine_id": "fuzz-1", "mqtt": {"host": "127.0.0.1"}}})
+        # port 1: nothing listens, so --check is refused at once (69) once the configuration passed
+        mqtt = {"host": "127.0.0.1", "port": 1, "connect_timeout_s": 2}
+        self._yaml_config(p, {"uplink": {"enabled": True, "machine_id": "fuzz-1", "mqtt": mqtt}})
 
     def _yaml_config(self, p: Path, extra: dict) -> None:
         import yaml
@@ -244,6 +259,21 @@ class Corpus:
     def _make_manifest(self, p: Path) -> None:
         p.write_text("machine,log\nwl-1,a.log\n")
 
+    def _make_fleetdir(self, p: Path) -> None:
+        (p / "wl-1").mkdir(parents=True)
+        shutil.copyfile(self.path("log"), p / "wl-1" / "a.log")
+
+    def secret(self) -> Path:
+        """A file outside every case's folder, as a credentials file would be."""
+        with self._lock:
+            d = self.base / OUTSIDE
+            d.mkdir(exist_ok=True)
+            p = d / "secret.log"
+            if not p.exists():
+                p.write_text(SECRET_TEXT)
+                p.chmod(0o600)
+            return p
+
     def _make_dataset(self, p: Path) -> None:
         work = self.base / "_fleet"
         work.mkdir(exist_ok=True)
@@ -275,12 +305,31 @@ class Target:
     # fleet replay: a log that fails is quarantined in the data set, which is the command's output
     # (exit 65 and the log named say so); nothing else may write on failure.
     writes_on_failure: bool = False
+    # exit codes of a command that ran as it should whatever the spoiling (uplink --check: 69, no broker)
+    ok_codes: tuple[int, ...] = (0,)
+    # what the command may write besides the outputs its command line names (the uplink's state folder)
+    may_write: tuple[str, ...] = ()
+    timeout_s: float = CASE_TIMEOUT_S
+
+    def outputs(self) -> tuple[str, ...]:
+        """What the command line names as outputs (``--out``, ``--emit``, ``--candump``), and may_write."""
+        out = [a for flag, a in zip(self.argv, self.argv[1:], strict=False) if flag in OUTPUT_FLAGS]
+        return (*out, *self.may_write)
 
 
+OUTPUT_FLAGS = ("--out", "--emit", "--candump")
 DAEMON_FILES = ("cfg", "dbc", "model", "state")
 TARGETS = [
     Target("check", DAEMON_FILES, DAEMON_FILES, ("check", "--config", "cmcan.yaml", "--state"), weight=2),
-    Target("run", DAEMON_FILES, DAEMON_FILES, ("run", "--config", "cmcan.yaml"), daemon=True, weight=2),
+    Target(
+        "run",
+        DAEMON_FILES,
+        DAEMON_FILES,
+        ("run", "--config", "cmcan.yaml"),
+        daemon=True,
+        weight=2,
+        may_write=("state/",),
+    ),
     *[
         Target(
             f"replay.{item}",
@@ -341,6 +390,14 @@ TARGETS = [
         ("uplink", "--status", "--config", "uplink.yaml"),
     ),
     Target(
+        "uplink.check",
+        ("uplinkcfg",),
+        ("uplinkcfg",),
+        ("uplink", "--check", "--config", "uplink.yaml"),
+        ok_codes=(0, 69),
+        may_write=("state/",),
+    ),
+    Target(
         "fleet.replay",
         ("manifest", "flog"),
         ("manifest", "flog"),
@@ -348,6 +405,17 @@ TARGETS = [
         weight=0.5,
         needs="dask",
         writes_on_failure=True,
+        timeout_s=120.0,
+    ),
+    Target(
+        "fleet.replay.dir",
+        ("fleetdir",),
+        ("fleetdir",),
+        ("fleet", "replay", "logs", "--out", "fleet-ds", "--workers", "1"),
+        weight=0.5,
+        needs="dask",
+        writes_on_failure=True,
+        timeout_s=120.0,
     ),
     Target(
         "fleet.query",
@@ -447,6 +515,118 @@ def mutate(path: Path, kind: str, how: str, rng: np.random.Generator, corpus: Co
     raise ValueError(how)
 
 
+# -- hostile inputs: made to attack, not damaged --------------------------------------------------------
+
+# name -> (weight, the corpus items it applies to: an item name, or "kind:<kind>" for every item of a kind)
+HOSTILE: dict[str, tuple[float, tuple[str, ...]]] = {
+    "aliasbomb": (1.0, ("kind:yaml",)),
+    "deepnest": (0.7, ("kind:yaml",)),
+    "recursive": (0.3, ("kind:yaml",)),
+    "mqttstring": (3.0, ("uplinkcfg",)),
+    "bigframe": (1.5, ("log", "flog")),
+    "symlinkout": (1.0, ("fleetdir", "manifest")),
+    "special": (1.0, ("fleetdir", "manifest")),
+    "machinenl": (0.5, ("fleetdir", "manifest")),
+}
+HOSTILE_SHARE = 0.5  # of the cases whose spoiled item has hostile mutations
+MQTT_FIELDS = (("machine_id",), ("mqtt", "client_id"), ("mqtt", "username"), ("mqtt", "topic_prefix"), ("mqtt", "host"))
+MQTT_VALUES = (
+    "fuzz\x00x", "fuzz-1\n", "site/+/x", "site/#", "$SYS", "x" * 70_000, "ü" * 40_000, "a\ud800b", "a\x7fb",
+    "ok\u0085", "tab\there", "", "../../etc", "ok",
+)  # fmt: skip
+BIG_FRAME_BYTES = (65, 100, 2000, 3000, 20_000, 32_768, 40_000)
+
+
+def hostile_for(item: str) -> list[str]:
+    kind = Corpus.ITEMS[item][1]
+    return [h for h, (_w, on) in HOSTILE.items() if item in on or f"kind:{kind}" in on]
+
+
+def make_hostile(path: Path, item: str, how: str, rng: np.random.Generator, corpus: Corpus) -> tuple[str, list[str]]:
+    """Make ``path`` (the case's copy of ``item``) hostile; returns a description and the names a
+    message refusing it may name (the file, or the hostile entry inside it)."""
+    name = path.name
+    if how == "aliasbomb":
+        levels = int(rng.integers(6, 13))
+        lines = ["zz_b0: &zzb0 [" + ", ".join(["lol"] * 10) + "]"]
+        lines += [f"zz_b{i}: &zzb{i} [" + ", ".join([f"*zzb{i - 1}"] * 10) + "]" for i in range(1, levels)]
+        with open(path, "a") as f:
+            f.write("\n" + "\n".join(lines) + "\n")
+        return f"an alias bomb of 10^{levels} nodes appended", [name]
+    if how == "deepnest":
+        depth = int(rng.choice([65, 1000, 100_000, 300_000]))
+        with open(path, "a") as f:
+            f.write("\nzz_deep: " + "[" * depth + "]" * depth + "\n")
+        return f"nested {depth} deep", [name]
+    if how == "recursive":
+        with open(path, "a") as f:
+            f.write("\nzz_rec: &zzr [1, {again: *zzr}]\n")
+        return "an alias inside its own node", [name]
+    if how == "mqttstring":
+        import yaml
+
+        raw = yaml.safe_load(path.read_text())
+        keys = MQTT_FIELDS[int(rng.integers(len(MQTT_FIELDS)))]
+        value = MQTT_VALUES[int(rng.integers(len(MQTT_VALUES)))]
+        node = raw["uplink"]
+        for k in keys[:-1]:
+            node = node.setdefault(k, {})
+        node[keys[-1]] = value
+        path.write_text(yaml.safe_dump(raw, sort_keys=False))
+        return f"uplink.{'.'.join(keys)} = {value[:20]!r}{'...' if len(value) > 20 else ''}", [name]
+    if how == "bigframe":
+        lines = path.read_text().splitlines(keepends=True)
+        i = int(rng.integers(len(lines)))
+        ts, iface, frame = lines[i].split()
+        n = int(rng.choice(BIG_FRAME_BYTES))
+        fd = bool(rng.integers(2))
+        ident = frame.split("#")[0]
+        payload = rng.integers(0, 256, n, dtype=np.uint8).tobytes().hex().upper()
+        lines.insert(i, f"{ts} {iface} {ident}{'##1' if fd else '#'}{payload}\n")
+        path.write_text("".join(lines))
+        return f"a {'CAN FD ' if fd else ''}frame of {n} data bytes at line {i + 1}", [name]
+    secret = corpus.secret()
+    if item == "fleetdir":
+        machine = path / "wl-1"
+        if how == "machinenl":
+            machine.rename(path / "wl-1\n")
+            return "machine folder 'wl-1\\n'", [name, "wl-1"]
+        if how == "symlinkout":
+            (machine / "evil.log").symlink_to(secret)
+            return "evil.log -> a file outside the folder", [name, "evil.log"]
+        choice = int(rng.integers(3))
+        if choice == 0:
+            os.mkfifo(machine / "fifo.log")
+            return "fifo.log, a FIFO nobody writes to", [name, "fifo.log"]
+        target = ("/dev/zero", "/etc/passwd")[choice - 1]
+        (machine / "dev.log").symlink_to(target)
+        return f"dev.log -> {target}", [name, "dev.log", target]
+    # the manifest: rows naming what is not a log of this folder
+    import csv
+    import io
+
+    rows = list(csv.reader(io.StringIO(path.read_text())))
+    if how == "machinenl":
+        rows[1][0] = "wl-1\n"
+        what, names = "machine 'wl-1\\n'", [name, "wl-1"]
+    elif how == "symlinkout":
+        choice = int(rng.integers(2))
+        rows[1][1] = str(secret) if choice else os.path.relpath(secret, path.parent)
+        what, names = f"log {rows[1][1]}", [name, "secret.log"]
+    else:
+        choice = int(rng.integers(3))
+        if choice == 0:
+            os.mkfifo(path.parent / "fifo.log")
+            rows[1][1] = "fifo.log"
+        else:
+            rows[1][1] = ("/dev/zero", "/etc/passwd")[choice - 1]
+        what, names = f"log {rows[1][1]}", [name, rows[1][1]]
+    out = io.StringIO()
+    csv.writer(out, lineterminator="\n").writerows(rows)
+    path.write_text(out.getvalue())
+    return what, names
+
+
 # -- one case -----------------------------------------------------------------------------------------
 
 
@@ -460,6 +640,7 @@ class Case:
     dir: Path = Path()
     argv: list[str] = field(default_factory=list)
     pristine: str = ""  # SHA-256 of the spoiled input before it was spoiled
+    names: list[str] = field(default_factory=list)  # what a refusal may name (the spoiled file by default)
 
 
 @dataclass
@@ -487,6 +668,10 @@ def draw(
     how = names[int(rng.choice(len(names), p=p / p.sum()))]
     if how == "nonutf8" and Corpus.ITEMS[item][1] not in TEXT_KINDS:
         how = "bitflip"
+    hostile = hostile_for(item)
+    if hostile and rng.random() < HOSTILE_SHARE:
+        w = np.array([HOSTILE[h][0] for h in hostile])
+        how = hostile[int(rng.choice(len(hostile), p=w / w.sum()))]
     return target, item, how, rng
 
 
@@ -512,20 +697,63 @@ def prepare_case(corpus: Corpus, work: Path, seed: int, index: int, targets: lis
     case = Case(index, target, item, how, dir=d, argv=list(target.argv))
     spoiled = d / Corpus.ITEMS[item][0]
     case.pristine = hashlib.sha256(spoiled.read_bytes()).hexdigest() if spoiled.is_file() else ""
-    case.detail = mutate(d / Corpus.ITEMS[item][0], Corpus.ITEMS[item][1], how, rng, corpus)
+    case.names = [spoiled.name]
+    if how in HOSTILE:
+        case.detail, case.names = make_hostile(spoiled, item, how, rng, corpus)
+    else:
+        case.detail = mutate(spoiled, Corpus.ITEMS[item][1], how, rng, corpus)
     return case
 
 
 def snapshot(d: Path) -> dict[str, str]:
+    """Every path under ``d`` with what it is: a folder, a symlink and its target, a FIFO or another
+    special file, or a regular file's SHA-256. Symlinks are not followed (one may point at /dev/zero)."""
     out = {}
-    for p in sorted(d.rglob("*")):
-        rel = str(p.relative_to(d))
-        out[rel] = "dir" if p.is_dir() else hashlib.sha256(p.read_bytes()).hexdigest()
+    for root, dirs, files in os.walk(d, followlinks=False):
+        for n in dirs + files:
+            p = Path(root) / n
+            st = p.lstat()
+            rel = str(p.relative_to(d))
+            if stat.S_ISLNK(st.st_mode):
+                out[rel] = "link:" + os.readlink(p)
+            elif stat.S_ISDIR(st.st_mode):
+                out[rel] = "dir"
+            elif stat.S_ISREG(st.st_mode):
+                out[rel] = hashlib.sha256(p.read_bytes()).hexdigest()
+            else:
+                out[rel] = f"special:{stat.S_IFMT(st.st_mode):o}"
     return out
 
 
-def run_case(case: Case) -> Outcome:
+def quotes_canary(d: Path, paths: set[str]) -> list[str]:
+    """The written files (of ``paths`` under ``d``) that hold the canary: as bytes, or for a Parquet file
+    in any of its values (its pages may be compressed)."""
+    found = []
+    for rel in sorted(paths):
+        p = d / rel
+        if p.is_symlink() or not p.is_file():
+            continue
+        data = p.read_bytes()
+        hit = CANARY.encode() in data
+        if not hit and p.suffix == ".parquet":
+            try:
+                import pyarrow.parquet as pq
+
+                hit = CANARY in str(pq.read_table(p).to_pylist())
+            except Exception:  # not readable as Parquet: the bytes were searched
+                hit = False
+        if hit:
+            found.append(rel)
+    return found
+
+
+def _under(path: str, prefixes: tuple[str, ...]) -> bool:
+    return any(path == o.rstrip("/") or path.startswith(o.rstrip("/") + "/") for o in prefixes)
+
+
+def run_case(case: Case, outside: Path | None = None) -> Outcome:
     before = snapshot(case.dir)
+    outside_before = snapshot(outside) if outside is not None and outside.exists() else {}
     cmd = [sys.executable, "-m", "cmcan", *case.argv]
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     err_path = case.dir.parent / f"{case.dir.name}.stderr"
@@ -533,13 +761,23 @@ def run_case(case: Case) -> Outcome:
     t0 = time.monotonic()
     problems: list[str] = []
     with open(err_path, "w") as err, open(out_path, "w") as out:
-        proc = subprocess.Popen(cmd, cwd=case.dir, env=env, stdout=out, stderr=err)
+        # a session of its own: a case that hangs is killed with what it started (Dask's workers)
+        proc = subprocess.Popen(cmd, cwd=case.dir, env=env, stdout=out, stderr=err, start_new_session=True)
         code = _wait(proc, case, err_path, problems)
     seconds = time.monotonic() - t0
     stderr = err_path.read_text(errors="replace")
     stdout = out_path.read_text(errors="replace")
     err_path.unlink()
     out_path.unlink()
+    after = snapshot(case.dir)
+    changed = {k for k in set(before) | set(after) if before.get(k) != after.get(k)}
+    if CANARY in stderr or CANARY in stdout:
+        problems.append("a message quotes a file outside the folder (the canary secret)")
+    leaked = quotes_canary(case.dir, changed)
+    if leaked:
+        problems.append(f"an output quotes a file outside the folder (the canary secret): {leaked[:3]}")
+    if outside is not None and outside.exists() and snapshot(outside) != outside_before:
+        problems.append(f"written outside the case's folder: {outside}")
     if code is not None:
         if code not in ALLOWED:
             problems.append(f"exit code {code} is not one of {sorted(ALLOWED)}")
@@ -550,24 +788,25 @@ def run_case(case: Case) -> Outcome:
         rel, kind = Corpus.ITEMS[case.item]
         if code == 0 and kind == "onnx" and before.get(rel) != case.pristine:
             problems.append("a spoiled model was accepted")  # its digest must catch any changed byte
-        if code != 0:
-            name = Path(Corpus.ITEMS[case.item][0]).name
+        outputs = case.target.outputs()
+        stray = sorted(k for k in changed if not _under(k, outputs))
+        if code not in case.target.ok_codes:
+            names = case.names or [Path(rel).name]
             lines = [x for x in stderr.splitlines() if x.strip()]
             if not lines:
                 problems.append("no message")
-            elif name not in stderr:
-                problems.append(f"the message does not name {name}")
-            after = snapshot(case.dir)
-            if case.target.writes_on_failure:
-                after = {k: v for k, v in after.items() if k in before}
-            if after != before:
-                changed = sorted(set(after.items()) ^ set(before.items()))
-                problems.append(f"written on failure: {sorted({k for k, _ in changed})[:6]}")
+            elif not any(n in stderr for n in names):
+                problems.append(f"the message does not name {' or '.join(repr(n) for n in names)}")
+            written = stray if case.target.writes_on_failure else sorted(changed)
+            if written:
+                problems.append(f"written on failure: {written[:6]}")
+        elif stray:
+            problems.append(f"written besides its outputs {list(outputs)}: {stray[:6]}")
     return Outcome(case, code, seconds, problems, stderr[-2000:])
 
 
 def _wait(proc: subprocess.Popen, case: Case, err_path: Path, problems: list[str]) -> int | None:
-    deadline = time.monotonic() + CASE_TIMEOUT_S
+    deadline = time.monotonic() + case.target.timeout_s
     if case.target.daemon:  # started: stop it the way systemd does
         while proc.poll() is None and time.monotonic() < deadline:
             if "cmcan running on" in err_path.read_text(errors="replace"):
@@ -576,8 +815,7 @@ def _wait(proc: subprocess.Popen, case: Case, err_path: Path, problems: list[str
                 try:
                     code = proc.wait(15)
                 except subprocess.TimeoutExpired:
-                    proc.kill()
-                    proc.wait()
+                    _kill(proc)
                     problems.append("did not stop within 15 s of SIGTERM")
                     return None
                 if code != 0:
@@ -587,13 +825,19 @@ def _wait(proc: subprocess.Popen, case: Case, err_path: Path, problems: list[str
     try:
         code = proc.wait(max(0.0, deadline - time.monotonic()))
     except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait()
-        problems.append(f"still running after {CASE_TIMEOUT_S:.0f} s")
+        _kill(proc)
+        problems.append(f"still running after {case.target.timeout_s:.0f} s")
         return None
     if code < 0:
         problems.append(f"killed by signal {-code}")
     return code
+
+
+def _kill(proc: subprocess.Popen) -> None:
+    """SIGKILL to the case's process group (the command and every process it started), then reap it."""
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
 
 
 # -- the run ----------------------------------------------------------------------------------------
@@ -682,7 +926,7 @@ def fuzz(
     def worker() -> None:
         while (i := next_index()) is not None:
             case = prepare_case(corpus, work / "cases", seed, i, targets, round_robin)
-            o = run_case(case)
+            o = run_case(case, corpus.base / OUTSIDE)
             with lock:
                 pending[0] -= 1
                 summary.add(o)
@@ -693,6 +937,7 @@ def fuzz(
 
     try:
         corpus.path("log")  # the shared simulated run, before the workers start
+        corpus.secret()  # and the folder outside every case, compared around each of them
         with ThreadPoolExecutor(jobs) as pool:
             for f in [pool.submit(worker) for _ in range(jobs)]:
                 f.result()

@@ -26,6 +26,7 @@ LAYERS: list[tuple[str, ...]] = [
         "cmcan.errors",
         "cmcan.oil",
         "cmcan.schema",
+        "cmcan.yamlsafe",
         "cmcan.codec",
         "cmcan.checksums",
         "cmcan.j1939",

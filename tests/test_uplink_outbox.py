@@ -13,7 +13,7 @@ from concurrent.futures import ThreadPoolExecutor
 import pytest
 
 from cmcan.uplink import outbox as outbox_mod
-from cmcan.uplink.outbox import Outbox, OutboxError, open_outbox
+from cmcan.uplink.outbox import Clock, Outbox, OutboxError, describe, open_outbox
 from cmcan.uplink.records import Entry, dumps
 from cmcan.uplink.writer import BATCH_MAX, OutboxWriter
 
@@ -83,20 +83,111 @@ def test_prune_by_size_drops_summaries_first_and_records_it(tmp_path):
     assert [k for _, k, _ in rows(box)].count("dropped") == 2  # drop notices are never dropped
 
 
-def test_prune_by_age(tmp_path):
-    box = Outbox(tmp_path / "o.sqlite")
-    box.append([("summary", T0 + i, T0 + 100.0 + i, "{}") for i in range(10)])
+class BootClock:
+    """A boot clock the test moves: forward as time passes, back to near 0 when the gateway restarts."""
+
+    def __init__(self, t: float = 1000.0) -> None:
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def test_prune_by_age_on_the_outbox_clock(tmp_path):
+    boot = BootClock(100.0)
+    box = Outbox(tmp_path / "o.sqlite", clock=boot)
+    for i in range(10):  # one entry a second; the wall clock stamps say nothing about age
+        boot.t = 100.0 + i
+        box.append([("summary", T0 + i, 5.0, "{}")])
+    boot.t = 155.5
     dropped = box.prune(max_bytes=10**9, max_age_s=50.0, now_s=T0 + 155.5, t_now_s=T0 + 10)
     assert [(d.reason, d.entries, d.first_seq, d.last_seq) for d in dropped] == [("age", 6, 1, 6)]
     assert [s for s, k, _ in rows(box) if k == "summary"] == [7, 8, 9, 10]
     assert box.count() == 5  # four summaries and the note
 
 
-def test_entries_written_before_the_clock_was_set_are_not_old(tmp_path):
-    box = Outbox(tmp_path / "o.sqlite")
-    box.append([("summary", T0, 12.0, "{}"), ("summary", T0 + 1, T0 - 86400 * 200, "{}")])  # 1970, 200 d ago
-    dropped = box.prune(max_bytes=10**9, max_age_s=86400 * 90, now_s=T0, t_now_s=T0)
-    assert [(d.reason, d.first_seq, d.last_seq) for d in dropped] == [("age", 2, 2)]
+@pytest.mark.parametrize("step_s", [-86400 * 365 * 3, 86400 * 200], ids=["back-3-years", "ahead-200-days"])
+def test_a_step_of_the_wall_clock_neither_drops_nor_hides_anything(tmp_path, step_s):
+    """A GPS fix or NTP sets the wall clock years back or months ahead between the writes: the age
+    bound and the late flag run on the outbox clock, so nothing is dropped as old and what waited is
+    still late."""
+    boot = BootClock(5000.0)
+    wall = {"t": T0}
+    w = OutboxWriter(str(tmp_path / "o.sqlite"), 10**9, max_age_s=86400 * 90, wall=lambda: wall["t"], clock=boot)
+    w.start()
+    for i in range(3):
+        w.submit(entry(i, "event"))
+    w.close()
+    wall["t"] += step_s
+    boot.t += 120.0  # two minutes later
+    w = OutboxWriter(str(tmp_path / "o.sqlite"), 10**9, max_age_s=86400 * 90, wall=lambda: wall["t"], clock=boot)
+    w.start()
+    w.submit(entry(3, "event"))
+    w.close()
+    box = Outbox(tmp_path / "o.sqlite", clock=boot)
+    assert [b["i"] for _, k, b in rows(box) if k == "event"] == [0, 1, 2, 3] and w.stats.pruned == 0
+    clock = box.clock()
+    got = box.fetch_after(0, 10)
+    assert [r.late(clock, after_s=60.0) for r in got] == [True, True, True, False]
+    assert describe(box.usage(), clock)["oldest_age_s"] == 120.0
+
+
+def test_the_outbox_clock_goes_on_across_a_restart_of_the_gateway(tmp_path):
+    boot = BootClock(3600.0)
+    box = Outbox(tmp_path / "o.sqlite", clock=boot)
+    box.append([("event", T0, T0, "{}")])
+    boot.t = 3660.0
+    box.append([("event", T0 + 60, T0 + 60, "{}")])
+    before = box.clock()
+    assert before.now_s == 60.0 and before.epoch == 1
+    box.close()
+    boot.t = 20.0  # the gateway restarted: its boot clock begins again
+    box = Outbox(tmp_path / "o.sqlite", clock=boot)
+    after = box.clock()
+    assert after.epoch == 2 and after.now_s == 60.0  # goes on from where it was; the time off is not counted
+    assert [r.late(after, after_s=3600.0) for r in box.fetch_after(0, 10)] == [True, True]  # waited across it
+    assert box.note_restart() is True and box.note_restart() is False  # recorded once, at a start
+    boot.t = 50.0
+    assert box.clock() == Clock(90.0, 2)
+    box.append([("event", T0 + 90, T0, "{}")])
+    assert [r.late(box.clock(), 3600.0) for r in box.fetch_after(0, 10)] == [True, True, False]
+    boot.t = 50.0 + 86400 * 2
+    assert box.prune(10**9, 86400.0, T0, T0)[0].entries == 3  # the age bound still holds, on that clock
+
+
+FORMAT_1 = """
+CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE entries (seq INTEGER PRIMARY KEY AUTOINCREMENT, kind TEXT NOT NULL, t_s REAL NOT NULL,
+                      created_s REAL NOT NULL, body TEXT NOT NULL, nbytes INTEGER NOT NULL);
+CREATE INDEX entries_kind_seq ON entries (kind, seq);
+CREATE TABLE usage (k INTEGER PRIMARY KEY CHECK (k = 0), entries INTEGER NOT NULL, bytes INTEGER NOT NULL);
+INSERT INTO usage VALUES (0, 0, 0);
+CREATE TRIGGER entries_ins AFTER INSERT ON entries BEGIN
+    UPDATE usage SET entries = entries + 1, bytes = bytes + NEW.nbytes WHERE k = 0;
+END;
+CREATE TRIGGER entries_del AFTER DELETE ON entries BEGIN
+    UPDATE usage SET entries = entries - 1, bytes = bytes - OLD.nbytes WHERE k = 0;
+END;
+PRAGMA user_version = 1;
+"""
+
+
+def test_an_outbox_of_format_1_is_upgraded_in_place(tmp_path):
+    """The entries a previous cmcan wrote stay, counted as queued at the upgrade and late (their
+    wait cannot be measured on the new clock)."""
+    path = tmp_path / "o.sqlite"
+    con = sqlite3.connect(path, isolation_level=None)
+    con.executescript(FORMAT_1)
+    con.execute("INSERT INTO meta VALUES ('stream_id', 'abc'), ('created_s', '1.0')")
+    con.execute("INSERT INTO entries (kind, t_s, created_s, body, nbytes) VALUES ('event', 1.0, 2.0, '{}', 50)")
+    con.close()
+    boot = BootClock(10.0)
+    box = Outbox(path, clock=boot)
+    assert box.con.execute("PRAGMA user_version").fetchone()[0] == outbox_mod.FORMAT_VERSION
+    box.append([("event", 3.0, 4.0, "{}")])
+    got = box.fetch_after(0, 10)
+    assert [(r.seq, r.queued_s, r.epoch) for r in got] == [(1, 0.0, 0), (2, 0.0, 1)]
+    assert [r.late(box.clock(), 60.0) for r in got] == [True, False] and box.stream_id == "abc"
 
 
 def test_corrupt_outbox_is_kept_aside_never_deleted(tmp_path):

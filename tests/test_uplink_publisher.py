@@ -122,14 +122,15 @@ class PublisherModel(RuleBasedStateMachine):
         self.tmp = TMP / f"run-{next(RUNS)}"
         self.tmp.mkdir()
         self.settings = settings_for(self.tmp)
-        self.writer = Outbox(self.settings.outbox.path, durable=False)  # the daemon's side; fsync not needed here
-        self.broker = ModelBroker()
         self.clock = Clock()
+        # the daemon's side; fsync not needed here. The outbox clock (ages, late) runs on the test's clock
+        self.writer = Outbox(self.settings.outbox.path, durable=False, clock=self.clock)
+        self.broker = ModelBroker()
         self.written: dict[int, str] = {}  # seq -> kind
         self.pub = self._publisher()
 
     def _publisher(self) -> Publisher:
-        box = Outbox(self.settings.outbox.path, durable=False)
+        box = Outbox(self.settings.outbox.path, durable=False, clock=self.clock)
         return Publisher(
             self.settings,
             box,
@@ -255,3 +256,37 @@ def test_publisher_delivery_rules_under_random_interleavings(tmp_path):
     # The interesting cases were reached, not just the happy path.
     for case in ("drops", "restarts", "duplicates", "deleted after PUBACK", "ack timeouts", "late"):
         assert REACHED[case] > 0, (case, dict(REACHED))
+
+
+def test_late_is_measured_on_the_outbox_clock_not_the_wall_clock(tmp_path):
+    """The wall clock steps 3 years back (a GPS fix after a boot in the future) while an entry waits
+    two minutes, then 200 days ahead while the next waits one second: the first is late, the second
+    not (on the wall clock it was the other way round)."""
+    boot, wall = Clock(), Clock()
+    wall.t = 1.7e9
+    s = settings_for(tmp_path, late_after_s=60)
+    writer = Outbox(s.outbox.path, durable=False, clock=boot)
+    broker = ModelBroker()
+    pub = Publisher(
+        s,
+        Outbox(s.outbox.path, durable=False, clock=boot),
+        clock=boot,
+        wall=wall,
+        rng=lambda: 0.5,
+        client_factory=lambda: FakeClient(broker),
+    )
+
+    def publish_one(n: int) -> dict[str, Any]:
+        for _ in range(4):  # connect, CONNACK, publish
+            pub.iterate()
+        return next(m for _, m in reversed(broker.received) if m.get("n") == n)
+
+    writer.append([("event", 1.7e9, wall(), dumps({"n": 1}))])
+    boot.t += 120.0
+    wall.t -= 3 * 365 * 86400
+    assert publish_one(1)["late"] is True
+    writer.append([("event", 1.7e9 + 1, wall(), dumps({"n": 2}))])
+    boot.t += 1.0
+    wall.t += 200 * 86400
+    assert publish_one(2)["late"] is False
+    assert pub.stats.late == 1

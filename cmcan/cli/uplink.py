@@ -6,14 +6,20 @@ import argparse
 import logging
 import signal
 import sys
-import time
 from types import FrameType
+from typing import TYPE_CHECKING
 
 from cmcan.cli.common import Subparsers
 from cmcan.cli.jsonout import print_json
 from cmcan.errors import CmcanError, Kind
 from cmcan.preflight import load_config
 from cmcan.sdnotify import Notifier
+
+if TYPE_CHECKING:  # imported when run: the command line starts without the uplink's modules
+    import ssl
+
+    from cmcan.uplink.config import UplinkSettings
+    from cmcan.uplink.outbox import Outbox
 
 log = logging.getLogger("cmcan")
 
@@ -40,9 +46,8 @@ def add_subparser(sub: Subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from cmcan.uplink.outbox import describe
-    from cmcan.uplink.publisher import Publisher
-    from cmcan.uplink.setup import SetupError, open_for_uplink, read_password, tls_context
+    from cmcan.uplink.outbox import Usage, describe
+    from cmcan.uplink.setup import OutboxLock, open_for_uplink, read_password, require_folder, tls_context
 
     if args.verbose == 0:
         logging.getLogger().setLevel(logging.INFO)
@@ -52,29 +57,49 @@ def run(args: argparse.Namespace) -> int:
         raise CmcanError(f"--timeout: expected a positive number of seconds, got {args.timeout}", Kind.USAGE)
     cfg = load_config(args.config, state_dir=args.state_dir)
     settings = cfg.uplink
-    try:
-        if args.status:  # a query: a corrupt outbox is reported, not moved
-            box = open_for_uplink(settings.outbox.path, keep_aside=False, source=cfg.source)
-            out = {"outbox": str(box.path), "stream_id": box.stream_id, **describe(box.usage(), time.time())}
-            box.close()
-            print_json(out)
-            return 0
-        if not settings.enabled:
-            raise CmcanError(
-                f"{cfg.source}: uplink.enabled: the uplink is disabled; set it to true (and uplink.machine_id)",
-                Kind.CONFIG,
+    if args.status:  # a query: it creates nothing, a corrupt outbox is reported, not moved; no lock
+        require_folder(settings.outbox.path, cfg.source)
+        if not settings.outbox.path.exists():  # the daemon has not written one yet
+            print_json(
+                {"outbox": str(settings.outbox.path), "stream_id": None, **describe(Usage(0, 0, None, None), None)}
             )
-        tls = tls_context(settings.mqtt.tls, cfg.source)
-        password = read_password(settings.mqtt, cfg.source)
-        box = open_for_uplink(settings.outbox.path, source=cfg.source)
-        notifier = Notifier() if not args.check else Notifier(env={})
-        pub = Publisher(settings, box, password=password, tls=tls, notifier=notifier)
-        if args.check:
-            print(f"ok: {pub.check_connection()}; outbox {box.path} holds {box.usage().entries} entries")
-            box.close()
             return 0
-    except SetupError:  # a CmcanError with its kind: the command line's table gives the exit code
-        raise
+        box = open_for_uplink(settings.outbox.path, keep_aside=False, source=cfg.source)
+        out = {"outbox": str(box.path), "stream_id": box.stream_id, **describe(box.usage(), box.clock())}
+        box.close()
+        print_json(out)
+        return 0
+    if not settings.enabled:
+        raise CmcanError(
+            f"{cfg.source}: uplink.enabled: the uplink is disabled; set it to true (and uplink.machine_id)",
+            Kind.CONFIG,
+        )
+    # Each problem is a CmcanError with its kind: the command line's table gives the exit code.
+    tls = tls_context(settings.mqtt.tls, cfg.source)
+    password = read_password(settings.mqtt, cfg.source)
+    require_folder(settings.outbox.path, cfg.source)
+    # One uplink per outbox, --check included: it connects with the same client id, which would take
+    # the running uplink's session from it.
+    lock = OutboxLock(settings.outbox.path).acquire()
+    try:
+        return _publish(args, settings, open_for_uplink(settings.outbox.path, source=cfg.source), password, tls)
+    finally:
+        lock.release()
+
+
+def _publish(
+    args: argparse.Namespace, settings: UplinkSettings, box: Outbox, password: str | None, tls: ssl.SSLContext | None
+) -> int:
+    from cmcan.uplink.publisher import Publisher
+
+    notifier = Notifier() if not args.check else Notifier(env={})
+    pub = Publisher(settings, box, password=password, tls=tls, notifier=notifier)
+    if args.check:
+        try:
+            print(f"ok: {pub.check_connection()}; outbox {box.path} holds {box.usage().entries} entries")
+        finally:
+            box.close()
+        return 0
 
     def on_signal(signum: int, _frame: FrameType | None) -> None:
         log.info("received %s, stopping", signal.Signals(signum).name)

@@ -16,6 +16,7 @@ from __future__ import annotations
 import hashlib
 import json
 from collections.abc import Iterator
+from dataclasses import dataclass
 
 KEY = "cmcan.content_sha256"
 _KEY_BYTES = KEY.encode()
@@ -50,7 +51,7 @@ def _varint_bytes(n: int) -> bytes:
     return bytes(out)
 
 
-def _fields(b: bytes) -> Iterator[tuple[int, int, int, int]]:
+def _fields(b: bytes | memoryview) -> Iterator[tuple[int, int, int, int]]:
     """(field number, start of the record, start of a length-delimited payload or -1, end) of each
     top-level field of message ``b``, in file order."""
     i = 0
@@ -140,3 +141,74 @@ def recorded_and_actual(blob: bytes) -> tuple[str | None, str]:
     if not isinstance(recorded, str):
         raise ValueError(f"metadata {KEY} is not a JSON string")
     return recorded, actual
+
+
+# -- what the graph holds, from the same walk ---------------------------------------------------------
+
+_GRAPH, _TRAINING_INFO, _FUNCTIONS = 7, 20, 25  # ModelProto
+_NODE = 1  # GraphProto
+_OP_TYPE, _ATTRIBUTE, _DOMAIN = 4, 5, 7  # NodeProto
+_ATTR_GRAPH, _ATTR_GRAPHS = 6, 11  # AttributeProto: a subgraph (the body of Loop, Scan, If), a list of them
+
+
+@dataclass(frozen=True)
+class GraphContent:
+    """What a model file's graph holds, read from its bytes without the ``onnx`` package."""
+
+    ops: tuple[tuple[str, str], ...]  # (domain, op type) of each node of the main graph, in file order
+    subgraphs: int  # node attributes that hold a graph
+    functions: int  # model-local function definitions (operators the file defines itself)
+    training_info: int  # training graphs (ONNX training_info)
+
+
+def metadata_props(blob: bytes) -> dict[str, str] | None:
+    """The file's ``metadata_props`` as a parser reads them (the last entry of a key wins), or None
+    when an entry is not UTF-8 (then onnxruntime names it). Raises :class:`MalformedError`."""
+    view = memoryview(blob)
+    props: dict[str, str] = {}
+    for entry in _submessages(view, _METADATA_PROPS):
+        try:
+            props[bytes(_last(entry, _ENTRY_KEY)).decode()] = bytes(_last(entry, _ENTRY_VALUE)).decode()
+        except UnicodeDecodeError:
+            return None
+    return props
+
+
+def _last(b: memoryview, number: int) -> memoryview:
+    value = memoryview(b"")
+    for v in _submessages(b, number):  # a parser keeps the last of a repeated scalar field
+        value = v
+    return value
+
+
+def _submessages(b: memoryview, number: int) -> Iterator[memoryview]:
+    for n, _start, payload, end in _fields(b):
+        if n == number and payload >= 0:
+            yield b[payload:end]
+
+
+def _last_string(b: memoryview, number: int) -> str:
+    return bytes(_last(b, number)).decode("utf-8", errors="replace")
+
+
+def graph_content(blob: bytes) -> GraphContent:
+    """The operators of the graph (every ``graph`` entry of the file: a parser merges them), and
+    whether it holds subgraphs, local functions or training graphs: a walk of the protobuf wire
+    format over the graph and its nodes, the weights skipped by their length. Raises
+    :class:`MalformedError` for bytes that are not protobuf messages down to the nodes' fields."""
+    view = memoryview(blob)
+    ops: list[tuple[str, str]] = []
+    subgraphs = functions = training = 0
+    for number, _start, payload, end in _fields(view):
+        if payload < 0:
+            continue
+        if number == _FUNCTIONS:
+            functions += 1
+        elif number == _TRAINING_INFO:
+            training += 1
+        elif number == _GRAPH:
+            for node in _submessages(view[payload:end], _NODE):
+                ops.append((_last_string(node, _DOMAIN), _last_string(node, _OP_TYPE)))
+                for attr in _submessages(node, _ATTRIBUTE):
+                    subgraphs += sum(1 for n, *_ in _fields(attr) if n in (_ATTR_GRAPH, _ATTR_GRAPHS))
+    return GraphContent(tuple(ops), subgraphs, functions, training)

@@ -7,10 +7,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from cmcan.schema import Bool, Num, Obj, SchemaError, Str
+from cmcan.schema import Bool, Num, Obj, SchemaError, Str, show
 
 
-# One path segment of an MQTT topic: no wildcards, no separators, nothing a broker may refuse.
 class OptStr(Str):
     """A string that may be left unset (absent or null); checking a checked value again is a no-op."""
 
@@ -18,19 +17,62 @@ class OptStr(Str):
         return None if value is None else super().check(value, src, path)
 
 
-_SEGMENT = re.compile(r"^[A-Za-z0-9._-]{1,64}$")
-_PREFIX = re.compile(r"^[A-Za-z0-9._-]{1,64}(/[A-Za-z0-9._-]{1,64}){0,7}$")
+# Whole-string patterns (fullmatch: '$' would let a trailing newline through). A topic segment: no
+# wildcards, no separators, nothing a broker may refuse; a host: a name, IPv4 or IPv6 literal.
+_SEGMENT = re.compile(r"[A-Za-z0-9._-]{1,64}")
+_PREFIX = re.compile(r"[A-Za-z0-9._-]{1,64}(?:/[A-Za-z0-9._-]{1,64}){0,7}")
+_HOST = re.compile(r"[A-Za-z0-9._:%-]{1,253}")
+MQTT_MAX_BYTES = 65535  # an MQTT string's length field is 16 bits (3.1.1 section 1.5.3, 5.0 section 1.5.4)
+TOPIC_KINDS = ("event", "summary", "dropped", "status", "health")
+
+
+def mqtt_string_problem(value: str) -> str | None:
+    """Why ``value`` cannot go into an MQTT UTF-8 string field (client id, user name, topic), or None.
+
+    MQTT forbids U+0000 and surrogates and a length over 65535 bytes; a broker may close the
+    connection on control characters and non-characters (they SHOULD NOT be sent): a client would
+    then reconnect for ever, so these are refused as well."""
+    try:
+        n = len(value.encode("utf-8"))
+    except UnicodeEncodeError:
+        return "is not valid UTF-8 (it holds a lone surrogate)"
+    if n > MQTT_MAX_BYTES:
+        return f"is {n} bytes long in UTF-8, more than MQTT's {MQTT_MAX_BYTES}"
+    for ch in value:
+        c = ord(ch)
+        if c < 0x20 or 0x7F <= c <= 0x9F or 0xFDD0 <= c <= 0xFDEF or (c & 0xFFFE) == 0xFFFE:
+            return f"holds the control character or non-character U+{c:04X}, which MQTT forbids or a broker refuses"
+    return None
+
+
+def publish_topic_problem(topic: str) -> str | None:
+    """Why ``topic`` cannot be published to, or None: not empty, no wildcard, an MQTT string."""
+    if not topic:
+        return "is empty"
+    if "+" in topic or "#" in topic:
+        return "holds a wildcard ('+' or '#'), which a publish topic must not"
+    return mqtt_string_problem(topic)
 
 
 def _rule(u: dict[str, Any]) -> tuple[str, str] | None:
     if u["enabled"] and u["machine_id"] is None:
         return "machine_id", "missing; every machine needs its own id in the topics and payloads when enabled"
-    if u["machine_id"] is not None and not _SEGMENT.match(u["machine_id"]):
-        return "machine_id", f"expected 1-64 letters, digits, '.', '_' or '-', got {u['machine_id']!r}"
+    if u["machine_id"] is not None and not _SEGMENT.fullmatch(u["machine_id"]):
+        return "machine_id", f"expected 1-64 letters, digits, '.', '_' or '-', got {show(u['machine_id'])}"
     m = u["mqtt"]
-    if not _PREFIX.match(m["topic_prefix"]):
-        got = m["topic_prefix"]
-        return "mqtt.topic_prefix", f"expected segments of letters, digits, '.', '_', '-' joined by '/', got {got!r}"
+    if not _PREFIX.fullmatch(m["topic_prefix"]):
+        got = show(m["topic_prefix"])
+        return "mqtt.topic_prefix", f"expected segments of letters, digits, '.', '_', '-' joined by '/', got {got}"
+    for kind in TOPIC_KINDS:  # what is published: the prefix, the machine and the kind
+        problem = publish_topic_problem(f"{m['topic_prefix']}/{u['machine_id'] or 'unnamed'}/{kind}")
+        if problem:
+            return "mqtt.topic_prefix", f"the topics {problem}"
+    if not _HOST.fullmatch(m["host"]):
+        return "mqtt.host", f"expected a host name or an IPv4 or IPv6 address, got {show(m['host'])}"
+    for name in ("client_id", "username"):
+        problem = None if m[name] is None else mqtt_string_problem(m[name])
+        if problem:
+            return f"mqtt.{name}", f"{problem}: {show(m[name])}"
     if m["reconnect_min_s"] > m["reconnect_max_s"]:
         return "mqtt.reconnect_min_s", f"must not exceed reconnect_max_s ({m['reconnect_max_s']:g})"
     if m["password_file"] is not None and m["username"] is None:

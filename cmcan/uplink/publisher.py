@@ -207,7 +207,7 @@ class Publisher:
         now = self.clock()
         s = self.session
         try:
-            backlog: dict[str, Any] | None = describe(self.box.usage(), self.wall())
+            backlog: dict[str, Any] | None = describe(self.box.usage(), self.box.clock())
         except Exception as exc:  # health must not fail because the outbox does
             backlog = {"error": str(exc)}
         return {
@@ -310,9 +310,13 @@ class Publisher:
         except Exception as exc:
             self._outbox_failed(exc)
             return False
-        wall = self.wall()
+        try:
+            clock = self.box.clock()  # ages on the outbox clock: the wall clock steps
+        except Exception as exc:
+            self._outbox_failed(exc)
+            return False
         for r in rows:
-            late = wall - r.created_s > self.m.late_after_s
+            late = r.late(clock, self.m.late_after_s)
             payload = envelope(self.s.machine_id, self.box.stream_id, r.seq, r.kind, r.t_s, late, r.body)
             info = s.client.publish(self.s.topic(r.kind), payload, qos=QOS)
             if info.rc != mqtt.MQTT_ERR_SUCCESS:
@@ -392,7 +396,7 @@ class Publisher:
         self.highest_published = 0
         self.box.close()
         try:
-            self.box = open_outbox(self.box.path, durable=False)
+            self.box = open_outbox(self.box.path, durable=False, clock=self.box.boot_clock)
         except OutboxError as exc:
             self.stats.outbox_errors += 1
             self.ratelog(logging.ERROR, "uplink-outbox", "uplink: %s", exc)

@@ -3,15 +3,18 @@ field it comes from and the kind of sysexits code it deserves."""
 
 from __future__ import annotations
 
+import os
 import socket
 import sqlite3
 import ssl
+import stat
 import time
 from pathlib import Path
 
 from cmcan.errors import CmcanError, Kind
+from cmcan.statefile import StateLock
 from cmcan.uplink.config import MqttSettings, TlsSettings
-from cmcan.uplink.outbox import Outbox, OutboxError, open_outbox, record_corrupt, set_aside
+from cmcan.uplink.outbox import Outbox, OutboxError, open_outbox, problem_kind, record_corrupt, set_aside
 
 _KINDS = {
     "config": Kind.CONFIG,
@@ -19,13 +22,21 @@ _KINDS = {
     "data": Kind.DATA,
     "unavailable": Kind.UNAVAILABLE,
     "cantcreat": Kind.CANT_CREATE,
+    "ioerr": Kind.IO_ERROR,
+    "noperm": Kind.NO_PERMISSION,
     "tempfail": Kind.TEMPFAIL,
 }
+# An outbox that cannot be opened, by what a restart can do about it: another process's lock and a
+# full disk pass (75: the unit restarts the uplink later), an I/O error may (74, restarted too);
+# permissions and a missing folder need a person (77, 73: not restarted in a loop).
+_OUTBOX_PROBLEMS = {"busy": "tempfail", "full": "tempfail", "io": "ioerr", "denied": "noperm", "cantopen": "cantcreat"}
+MAX_PASSWORD_BYTES = 65535  # MQTT's binary data field
 
 
 class SetupError(CmcanError):
     """The uplink cannot start (or ``--check`` failed); ``problem`` names it the uplink's way
-    ('config', 'noinput', 'data', 'unavailable', 'cantcreat', 'tempfail'), ``kind`` is its Kind."""
+    ('config', 'noinput', 'data', 'unavailable', 'cantcreat', 'ioerr', 'noperm', 'tempfail'),
+    ``kind`` is its Kind."""
 
     def __init__(self, message: str, problem: str) -> None:
         super().__init__(message, _KINDS[problem])
@@ -77,31 +88,95 @@ def _ssl_reason(exc: BaseException) -> str:
 
 
 def read_password(m: MqttSettings, source: str = "config") -> str | None:
+    """The password file's one line: a regular file (a FIFO or a device neither blocks nor fills
+    memory), UTF-8, at most MQTT's 65535 bytes."""
     if m.password_file is None:
         return None
+    where = f"{source}: uplink.mqtt.password_file: {m.password_file}"
     try:
-        text = m.password_file.read_text(encoding="utf-8")
+        fd = os.open(m.password_file, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
     except FileNotFoundError:
-        raise SetupError(f"{source}: uplink.mqtt.password_file: {m.password_file}: file not found", "noinput") from None
+        raise SetupError(f"{where}: file not found", "noinput") from None
     except OSError as exc:
-        raise SetupError(f"{source}: uplink.mqtt.password_file: {m.password_file}: {exc.strerror}", "noinput") from None
-    pw = text.rstrip("\r\n")
+        raise SetupError(
+            f"{where}: {exc.strerror}", "noperm" if isinstance(exc, PermissionError) else "noinput"
+        ) from None
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise SetupError(f"{where}: not a regular file", "config")
+        data = os.read(fd, MAX_PASSWORD_BYTES + 3)
+    except OSError as exc:
+        raise SetupError(f"{where}: {exc.strerror}", "ioerr") from None
+    finally:
+        os.close(fd)
+    try:
+        pw = data.decode("utf-8").rstrip("\r\n")
+    except UnicodeDecodeError as exc:
+        raise SetupError(f"{where}: not UTF-8 text (byte {exc.start})", "config") from None
     if not pw:
-        raise SetupError(f"{source}: uplink.mqtt.password_file: {m.password_file}: empty", "config")
+        raise SetupError(f"{where}: empty", "config")
+    if len(pw.encode("utf-8")) > MAX_PASSWORD_BYTES:
+        raise SetupError(f"{where}: longer than MQTT's {MAX_PASSWORD_BYTES} bytes", "config")
     return pw
+
+
+class OutboxLock(StateLock):
+    """One uplink per outbox: an exclusive ``flock`` on ``<outbox>.lock`` beside it, held for the
+    uplink's life (the daemon's state lock, on another file: the daemon and the uplink share the
+    outbox, two uplinks must not). Two uplinks on one outbox would publish every entry twice and,
+    with one client id, take the broker session from each other every second or two (subscribers see
+    the machine flap offline). As the state lock, the kernel drops it however the holder ends."""
+
+    def __init__(self, outbox: Path) -> None:
+        super().__init__(outbox.parent)
+        self.outbox = outbox
+        self.path = outbox.with_name(outbox.name + ".lock")
+
+    def acquire(self) -> OutboxLock:
+        """Take the lock, or raise a temporary failure (75) naming the lock file and the holder's pid;
+        a lock file that cannot be made or written is said with its cause (a full disk: 75)."""
+        try:  # opened here first for the cause of a failure, which the state lock's message leaves out
+            os.close(os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o640))
+            super().acquire()
+        except OSError as exc:  # creating the file, or writing the pid into it on a full disk
+            problem = _OUTBOX_PROBLEMS.get(problem_kind(exc, "cantopen"), "ioerr")
+            raise SetupError(f"{self.path}: cannot take the outbox lock: {exc.strerror}", problem) from None
+        except CmcanError as exc:
+            if exc.kind is not Kind.TEMPFAIL:
+                raise
+            pid = self.holder()
+            who = f"pid {pid}" if pid and pid > 0 else "another process"
+            raise SetupError(
+                f"{self.path}: the outbox {self.outbox.name} is in use by another cmcan uplink ({who} holds the "
+                "lock); one uplink per outbox",
+                "tempfail",
+            ) from None
+        return self
+
+
+def require_folder(path: Path, source: str = "the configuration") -> None:
+    """The outbox's folder (the state directory) exists: nothing else is made without it."""
+    if not path.parent.is_dir():
+        raise SetupError(
+            f"{path.parent}: state directory does not exist (state.directory, uplink.outbox.file in {source})",
+            "cantcreat",
+        )
 
 
 def open_for_uplink(path: Path, keep_aside: bool = True, source: str = "the configuration") -> Outbox:
     """The outbox for publishing; a corrupt file is kept aside and reported (the next start, or the
     daemon, begins a new one), a missing folder or a newer format is reported. Without
     ``keep_aside`` (``--status``, a query) a corrupt file is reported and left as it is."""
-    if not path.parent.is_dir():
-        raise SetupError(
-            f"{path.parent}: state directory does not exist (state.directory, uplink.outbox.file in {source})",
-            "cantcreat",
-        )
+    require_folder(path, source)
     try:
-        return open_outbox(path, durable=False, keep_aside=False)
+        box = open_outbox(path, durable=False, keep_aside=False)
+        if keep_aside:  # the uplink proper (not a query): a restart of the gateway is recorded at once
+            box.note_restart()
+        return box
+    except (sqlite3.Error, OSError) as exc:  # recording the restart: the outbox could be read, not written
+        raise SetupError(
+            f"{path}: cannot write the outbox: {exc}", _OUTBOX_PROBLEMS.get(problem_kind(exc), "ioerr")
+        ) from None
     except OutboxError as exc:
         if exc.kind == "corrupt" and not keep_aside:
             raise SetupError(f"{exc}; left as it is (cmcan uplink keeps it aside when it runs)", "data") from None
@@ -118,7 +193,7 @@ def open_for_uplink(path: Path, keep_aside: bool = True, source: str = "the conf
             ) from None
         if exc.kind == "version":
             raise SetupError(str(exc), "data") from None
-        raise SetupError(str(exc), "cantcreat") from None
+        raise SetupError(str(exc), _OUTBOX_PROBLEMS.get(exc.kind, "ioerr")) from None
 
 
 def describe_connect_error(exc: BaseException, m: MqttSettings) -> str:

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from cmcan.ratelog import RateLimitedLog
-from cmcan.uplink.outbox import Outbox, OutboxError, is_corruption, open_outbox, set_aside
+from cmcan.uplink.outbox import Outbox, OutboxError, boot_clock, is_corruption, open_outbox, set_aside
 from cmcan.uplink.records import DROPPED, Dropped, Entry
 
 log = logging.getLogger("cmcan.uplink.writer")
@@ -74,11 +74,13 @@ class OutboxWriter:
         wall: Callable[[], float] = time.time,
         backoff_min_s: float = 0.2,
         backoff_max_s: float = 10.0,
+        clock: Callable[[], float] = boot_clock,
     ) -> None:
         self.path = path
         self.max_bytes = max_bytes
         self.max_age_s = max_age_s
-        self.wall = wall
+        self.wall = wall  # stamps created_s (information); ages run on the outbox clock
+        self.clock = clock  # the outbox clock's source (the boot clock) and the prune schedule
         self.backoff_min_s = backoff_min_s
         self.backoff_max_s = backoff_max_s
         self.q: queue.Queue[Entry | None] = queue.Queue(maxsize=queue_size)
@@ -162,9 +164,9 @@ class OutboxWriter:
                 self._write(pending)
                 pending = []
                 backoff = self.backoff_min_s
-                now = self.wall()
+                now = self.clock()
                 if now >= next_prune or self._over_size():
-                    self._prune(now)
+                    self._prune()
                     next_prune = now + PRUNE_EVERY_S
             except (sqlite3.Error, OSError, OutboxError) as exc:
                 self._failed(exc)
@@ -189,7 +191,8 @@ class OutboxWriter:
             self._box.close()
             self._box = None
         if self._box is None:
-            self._box = open_outbox(self.path, durable=True)
+            self._box = open_outbox(self.path, durable=True, clock=self.clock)
+            self._box.note_restart()  # a restart of the gateway is recorded now, not at the first entry
             self.stats.reopened += 1
             if self._box.kept_aside is not None:
                 self._note_corrupt(self._box.kept_aside)
@@ -227,9 +230,9 @@ class OutboxWriter:
             return False
         return box.con.execute("SELECT bytes FROM usage").fetchone()[0] > self.max_bytes
 
-    def _prune(self, now: float) -> None:
+    def _prune(self) -> None:
         box = self._open()
-        for d in box.prune(self.max_bytes, self.max_age_s, now, self._newest_t_s):
+        for d in box.prune(self.max_bytes, self.max_age_s, self.wall(), self._newest_t_s):
             self.stats.pruned += d.entries
             log.warning(
                 "outbox over its %s bound: %d entries (%d bytes) dropped, recorded for the uplink",
