@@ -83,16 +83,9 @@ def check_predictions(model: GrayBoxModel, limits: GateLimits) -> None:
     input at its minimum and its maximum with the others at the centre), alone and in one batch, are
     predictions the monitor accepts (:func:`cmcan.monitor.gating.prediction_ok`): a model that
     returns nonsense is refused before it is run, not reported on the bus tick after tick."""
-    env = model.envelope
     names = list(MODEL_INPUTS)
-    centre = [(env[r][0] + env[r][1]) / 2.0 for r in names]
-    points = [centre]
-    for i, r in enumerate(names):
-        for bound in env[r]:
-            x = list(centre)
-            x[i] = bound
-            points.append(x)
-    x = np.array(points, dtype=np.float64)
+    x = model.probe_rows()  # the points the loader's bounded probe ran: they run within its budget
+    points = x.tolist()
     try:
         batch, _ = model.predict(x)
         single = [model.predict_one(*row)[0] for row in points]

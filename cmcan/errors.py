@@ -3,6 +3,7 @@ each kind to a sysexits(3) code (``cmcan.cli.errors.EXIT_CODES``)."""
 
 from __future__ import annotations
 
+import errno
 from enum import Enum
 
 
@@ -28,3 +29,31 @@ class CmcanError(Exception):
         super().__init__(message)
         if kind is not None:
             self.kind = kind
+
+
+# What the operating system said about a file, as a kind: a full disk or quota is a temporary failure
+# (free space and try again: systemd restarts the service), an I/O error or a file over its size
+# limit an I/O error, no permission its own kind, a place that cannot exist (read-only file system,
+# missing folder, a file where a folder should be) cannot create, out of descriptors or memory temporary.
+_ERRNO_KINDS = {
+    errno.ENOSPC: Kind.TEMPFAIL,
+    errno.EDQUOT: Kind.TEMPFAIL,
+    errno.EFBIG: Kind.IO_ERROR,
+    errno.EIO: Kind.IO_ERROR,
+    errno.EACCES: Kind.NO_PERMISSION,
+    errno.EPERM: Kind.NO_PERMISSION,
+    errno.EROFS: Kind.CANT_CREATE,
+    errno.ENOENT: Kind.CANT_CREATE,
+    errno.ENOTDIR: Kind.CANT_CREATE,
+    errno.EISDIR: Kind.CANT_CREATE,
+    errno.ENAMETOOLONG: Kind.CANT_CREATE,
+    errno.EMFILE: Kind.TEMPFAIL,
+    errno.ENFILE: Kind.TEMPFAIL,
+    errno.ENOMEM: Kind.TEMPFAIL,
+}
+DISK_FULL = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+
+
+def kind_of_oserror(exc: OSError) -> Kind:
+    """The kind of an OSError on a file cmcan writes or reads (:data:`_ERRNO_KINDS`; others: I/O error)."""
+    return _ERRNO_KINDS.get(exc.errno or 0, Kind.IO_ERROR)

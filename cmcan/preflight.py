@@ -14,7 +14,7 @@ from cmcan.statefile import StateLock, StateStore
 
 log = logging.getLogger("cmcan.preflight")
 
-_IFNAME = re.compile(r"^[A-Za-z0-9_.:-]{1,15}$")
+_IFNAME = re.compile(r"[A-Za-z0-9_.:-]{1,15}")
 ARPHRD_CAN = "280"
 
 
@@ -91,7 +91,7 @@ CANFD_MTU = 72
 
 
 def _check_link(cfg: cfgmod.Config, field: str, chan: str, fd: bool, bitrate: int, sys_class_net: Path) -> None:
-    if not _IFNAME.match(chan):
+    if not _IFNAME.fullmatch(chan):
         raise CmcanError(
             f"{cfg.source}: {field}: {chan!r} is not a network interface name "
             "(1-15 letters, digits, '_', '.', ':', '-')",

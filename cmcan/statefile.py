@@ -12,7 +12,7 @@ import os
 import stat
 from pathlib import Path
 
-from cmcan.errors import CmcanError, Kind
+from cmcan.errors import CmcanError, Kind, kind_of_oserror
 from cmcan.monitor.totals import StateError, Totals
 
 log = logging.getLogger("cmcan.state")
@@ -146,7 +146,7 @@ class StateLock:
         try:
             fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o640)
         except OSError as exc:
-            raise CmcanError(f"{self.path}: cannot open the state lock: {exc.strerror}", Kind.CANT_CREATE) from None
+            raise CmcanError(f"{self.path}: cannot open the state lock: {exc.strerror}", kind_of_oserror(exc)) from None
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as exc:
@@ -160,8 +160,13 @@ class StateLock:
                 "one daemon per state directory",
                 Kind.TEMPFAIL,
             ) from None
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        try:  # the holder's pid, for whoever finds the lock taken
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        except OSError as exc:
+            os.close(fd)
+            why = f"{self.path}: cannot write the state lock: {exc.strerror}"
+            raise CmcanError(why, kind_of_oserror(exc)) from None
         self._fd = fd
         return self
 

@@ -200,7 +200,7 @@ def test_the_same_content_under_two_names_is_replayed_once(logs, tmp_path, clien
 
 @pytest.mark.parametrize(
     ("err", "kind"),
-    [(errno.ENOSPC, Kind.IO_ERROR), (errno.EDQUOT, Kind.IO_ERROR), (errno.EACCES, Kind.NO_PERMISSION),
+    [(errno.ENOSPC, Kind.TEMPFAIL), (errno.EDQUOT, Kind.TEMPFAIL), (errno.EACCES, Kind.NO_PERMISSION),
      (errno.EROFS, Kind.CANT_CREATE)],
 )  # fmt: skip
 def test_an_os_error_of_the_data_set_ends_the_run_with_its_kind_and_path(

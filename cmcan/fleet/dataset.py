@@ -45,7 +45,7 @@ from typing import Any
 import numpy as np
 
 from cmcan import __version__
-from cmcan.errors import CmcanError, Kind
+from cmcan.errors import DISK_FULL, CmcanError, Kind, kind_of_oserror
 
 FORMAT = "cmcan-fleet/2"
 OLD_FORMATS = ("cmcan-fleet/1",)
@@ -72,29 +72,6 @@ def sha256_file(path: str | Path) -> str:
 
 # -- errors of the data set's own files -------------------------------------------------------------
 
-# What the operating system said, as the command line's exit status: a full disk or an I/O error is
-# 74, no permission 77, a path that cannot exist 73 (``cmcan.cli.errors`` maps the kinds).
-_ERRNO_KINDS = {
-    errno.ENOSPC: Kind.IO_ERROR,
-    errno.EDQUOT: Kind.IO_ERROR,
-    errno.EFBIG: Kind.IO_ERROR,
-    errno.EIO: Kind.IO_ERROR,
-    errno.EACCES: Kind.NO_PERMISSION,
-    errno.EPERM: Kind.NO_PERMISSION,
-    errno.EROFS: Kind.CANT_CREATE,
-    errno.ENOENT: Kind.CANT_CREATE,
-    errno.ENOTDIR: Kind.CANT_CREATE,
-    errno.EISDIR: Kind.CANT_CREATE,
-    errno.ENAMETOOLONG: Kind.CANT_CREATE,
-    errno.EMFILE: Kind.TEMPFAIL,
-    errno.ENFILE: Kind.TEMPFAIL,
-    errno.ENOMEM: Kind.TEMPFAIL,
-}
-
-
-def kind_of_oserror(exc: OSError) -> Kind:
-    return _ERRNO_KINDS.get(exc.errno or 0, Kind.IO_ERROR)
-
 
 class DatasetError(CmcanError):
     """Writing or reading the data set's own files failed (not a log's fault): the run stops."""
@@ -106,7 +83,8 @@ def dataset_error(exc: OSError, doing: str, path: str | Path | None = None) -> D
     name = errno.errorcode.get(exc.errno or 0, "")
     why = exc.strerror or str(exc)
     hint = {
-        Kind.IO_ERROR: " (is the disk full?)" if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG) else "",
+        Kind.TEMPFAIL: " (is the disk full?)" if exc.errno in DISK_FULL else "",
+        Kind.IO_ERROR: " (is the disk full?)" if exc.errno in DISK_FULL else "",
         Kind.NO_PERMISSION: " (this user may not write there)",
     }.get(kind_of_oserror(exc), "")
     return DatasetError(f"{where}: cannot {doing}: {why}{f' ({name})' if name else ''}{hint}", kind_of_oserror(exc))

@@ -36,6 +36,7 @@ from cmcan.dbc import default_dbc_path, load_dbc
 from cmcan.io.candump import write_candump
 from cmcan.model.features import operating_points, series_from_columns
 from cmcan.model.train import train_on_points
+from cmcan.schema import load_yaml
 from cmcan.sim import fleet as sf
 from cmcan.sim.frames import Frames, frames_from_run
 from cmcan.sim.run import simulate
@@ -57,7 +58,7 @@ def _write_bytes(path: Path, blob: bytes) -> None:
 
 def type_config(t: sf.MachineType) -> str:
     """The shipped configuration with the type's motor displacement, its own model and the fleet's DBC."""
-    raw = yaml.safe_load(cfgmod.default_config_path().read_text(encoding="utf-8"))
+    raw = load_yaml(cfgmod.default_config_path())
     raw["dbc"] = "../../dbc/cmcan.dbc"
     raw["model"] = "model.onnx"
     raw["drive"] = {"motor_disp_cc": t.motor_disp_cc}

@@ -494,7 +494,7 @@ class Publisher:
 def _close_client(client: mqtt.Client, polite: bool) -> None:
     """End a client for good: DISCONNECT when the connection still works (so the broker does not
     publish the will), then close its socket and its wake-up socket pair (paho keeps both open until
-    garbage collection otherwise; ``_reset_sockets`` is paho 2.x's own way to close them)."""
+    garbage collection otherwise; ``reinitialise`` closes them, leaving a client with no sockets)."""
     try:
         if polite and client.socket() is not None:
             client.disconnect()  # written at once; paho closes the socket after it
@@ -503,7 +503,7 @@ def _close_client(client: mqtt.Client, polite: bool) -> None:
     except Exception as exc:  # the socket may already be gone
         log.debug("disconnect: %s", exc)
     try:
-        client._reset_sockets()
+        client.reinitialise()
     except Exception as exc:
         log.debug("closing the client's sockets: %s", exc)
 
