@@ -352,7 +352,7 @@ def check_statement(con: Any, sql: str) -> None:
     if kind not in ALLOWED_STATEMENTS:
         raise QueryRefused(
             f"query refused: statement type {kind}; fleet query is read-only and runs one SELECT over the views "
-            "timeline, events, logs, quarantine, machine_logs, machines (docs/security-fleet.md)"
+            "timeline, events, logs, quarantine, machine_logs, machines (docs/security.md)"
         )
 
 
