@@ -432,6 +432,7 @@ def input_messages(cfg: Config, db: Database) -> list[InputMessage]:
             if integ.checksum is not None and integ.algorithm is not None
             else None
         )
+        accepted = frozenset(sources) if j1939 and sources is not None else None
         health = HealthSpec(
             counter=codec.layout(msg, integ.counter) if integ.counter is not None else None,
             max_step=cfg.input_health.max_counter_step,
@@ -441,6 +442,8 @@ def input_messages(cfg: Config, db: Database) -> list[InputMessage]:
             checksum_name=f"{integ.checksum} ({integ.algorithm})" if check is not None else "",
             algorithm=integ.algorithm or "",
             checksum_layout=codec.layout(msg, integ.checksum) if check is not None else None,
+            j1939=j1939,
+            senders=j1939 and (accepted is None or len(accepted) > 1),
         )
         out.append(
             InputMessage(
@@ -453,8 +456,8 @@ def input_messages(cfg: Config, db: Database) -> list[InputMessage]:
                 channel=cfg.message_channel(name),
                 extended=bool(msg.is_extended_frame),
                 pgn=pgn,
-                sources=frozenset(sources) if j1939 and sources is not None else None,
-                destinations=frozenset({int(ids.pdu_specific(msg.frame_id))}) if pgn is not None else frozenset(),
+                sources=accepted,
+                destinations=frozenset(mc.destinations) if j1939 and mc.destinations is not None else None,
                 health=health,
             )
         )
@@ -654,6 +657,7 @@ def build_monitor(
         totals=totals or Totals(),
         channels=channels(cfg, log_aliases),
         dm1=dm1_params(cfg, db),
+        own_address=cfg.j1939.source_address if cfg.j1939.enabled else None,
     )
 
 

@@ -276,10 +276,8 @@ def encode(msg: Message, values: Mapping[str, NDArray[np.float64]], fill_unused:
 # -- one frame (the monitor's per-frame path) ---------------------------------------------------------
 
 
-def compile_raw_decoder(msg: Message, names: list[str]) -> Callable[[bytes], tuple[int, ...]]:
-    """Raw values of the signals ``names`` of one frame, in that order."""
-    size = frame_bytes(msg)
-    lays = message_layouts(msg, names)
+def raw_decoder(lays: Sequence[Layout], size: int) -> Callable[[bytes], tuple[int, ...]]:
+    """Raw values of the layouts of one frame (a message read as ``size`` bytes), in that order."""
     need_be = any(x.big_endian for x in lays)
 
     def decode(data: bytes) -> tuple[int, ...]:
@@ -351,11 +349,6 @@ def checked_decoder(lays: Sequence[Layout], size: int) -> Callable[[bytes], tupl
     return decode
 
 
-def compile_checked_decoder(msg: Message, names: list[str]) -> Callable[[bytes], tuple[int, ...] | None]:
-    """:func:`checked_decoder` of the signals ``names`` of ``msg``."""
-    return checked_decoder(message_layouts(msg, names), frame_bytes(msg))
-
-
 def frame_encoder(
     lays: Sequence[Layout], size: int, length: int, fill: int = 0
 ) -> Callable[[Mapping[str, float]], bytes]:
@@ -376,11 +369,3 @@ def frame_encoder(
         return both.to_bytes(size, "big")[:length]
 
     return encode
-
-
-def compile_encoder(msg: Message, fill_unused: bool = False) -> Callable[[Mapping[str, float]], bytes]:
-    """One frame from physical values (missing signals 0, values saturated to the signal's range,
-    bits of no signal 0, or 1 with ``fill_unused``): the monitor's output frames."""
-    size = frame_bytes(msg)
-    fill = int.from_bytes(unused(msg).ljust(size, b"\0"), "big") if fill_unused else 0
-    return frame_encoder(message_layouts(msg), size, msg.length, fill)

@@ -218,7 +218,7 @@ _CONFIG = Obj(
 )
 
 
-# -- machine buses: channels, frame formats, per-message matching and health, J1939 (issue 11) -----------
+# -- machine buses: channels, frame formats, per-message matching and health, J1939 ---------------------
 
 _ADDRESS = Num(0, 253, integer=True)  # J1939 unicast source addresses (254 null, 255 global)
 _SOURCES = Either((Str(choices=("any",)), Seq(_ADDRESS, min_len=1)), default=None)
@@ -263,6 +263,10 @@ _BUS_SECTIONS = {
             {
                 "channel": Str(default=None),
                 "source_addresses": _SOURCES,
+                # PDU1 messages: the destination addresses accepted (default: any; 255 is global)
+                "destinations": Either(
+                    (Str(choices=("any",)), Seq(Num(0, 255, integer=True), min_len=1)), default="any"
+                ),
                 "counter": Str(default=None),
                 "checksum_signal": Str(default=None),
                 "checksum": Str(choices=(*ALGORITHMS, "none"), default=None),
@@ -418,6 +422,7 @@ class MessageConfig:
     counter: str | None = None  # a signal name, "none", or None: found by name in the DBC
     checksum_signal: str | None = None  # None: found by name in the DBC
     checksum: str | None = None  # an algorithm, "none", or None: input_health.checksum
+    destinations: tuple[int, ...] | None = None  # PDU1: the destinations accepted; None: any
 
 
 @dataclass(frozen=True)
@@ -608,7 +613,7 @@ def _sources(v: Any) -> tuple[int, ...] | None:
 
 
 def _with_bus_sections(cfg: Config, raw: dict[str, Any], source: str) -> Config:
-    """The sections of issue 11 (channels, frame formats, messages, health, J1939), checked across."""
+    """The machine's bus sections (channels, frame formats, messages, health, J1939), checked across."""
     ch = raw["channels"]
     names = [cfg.bus.channel]
     extra = []
@@ -638,6 +643,7 @@ def _with_bus_sections(cfg: Config, raw: dict[str, Any], source: str) -> Config:
             m["counter"],
             m["checksum_signal"],
             m["checksum"],
+            _sources(m["destinations"]),
         )
     inputs = {v["message"] for v in raw["signals"].values() if v is not None}
     for name in messages:

@@ -122,15 +122,16 @@ def can_filters(inputs: Sequence[InputMessage], channel: str) -> list[dict[str, 
         elif m.pgn is None:
             out.append({"can_id": m.frame_id, "can_mask": ids.MAX_ID, "extended": True})
         else:
-            dests = sorted(m.destinations) if ids.is_pdu1(m.pgn) else [0]
+            any_dest = ids.is_pdu1(m.pgn) and m.destinations is None
+            dests = sorted(m.destinations) if ids.is_pdu1(m.pgn) and m.destinations is not None else [0]
+            pgn_mask = J1939_PGN_MASK & ~0xFF00 if any_dest else J1939_PGN_MASK  # any destination: PS not compared
             for da in dests:
                 base = (m.pgn | da) << 8
                 if m.sources is None:
-                    out.append({"can_id": base, "can_mask": J1939_PGN_MASK, "extended": True})
+                    out.append({"can_id": base, "can_mask": pgn_mask, "extended": True})
                 else:
                     out += [
-                        {"can_id": base | sa, "can_mask": J1939_PGN_MASK | 0xFF, "extended": True}
-                        for sa in sorted(m.sources)
+                        {"can_id": base | sa, "can_mask": pgn_mask | 0xFF, "extended": True} for sa in sorted(m.sources)
                     ]
     return out or [NOTHING]
 

@@ -75,7 +75,7 @@ def test_every_width_decodes_exactly_per_frame_and_in_arrays(msg, data):
     values += [data.draw(st.integers(lo, hi)) for _ in range(4)]
     payloads = [_payload_with(msg, v, data.draw(st.binary(min_size=msg.length, max_size=msg.length))) for v in values]
     names = [s.name for s in msg.signals]
-    per_frame = codec.compile_raw_decoder(msg, names)
+    per_frame = codec.raw_decoder(codec.message_layouts(msg, names), codec.frame_bytes(msg))
     arr = np.frombuffer(b"".join(payloads), dtype=np.uint8).reshape(len(payloads), msg.length)
     vec = codec.decode_raw(msg, arr, names)
     phys = codec.decode(msg, arr, names)

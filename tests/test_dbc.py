@@ -145,10 +145,10 @@ def test_out_of_range_values_saturate_instead_of_failing(db):
 def test_per_frame_encoder_and_decoder_equal_cantools(db, name, data):
     m = db.get_message_by_name(name)
     values = {s.name: data.draw(signal_values(m, s), label=s.name) for s in m.signals}
-    frame = codec.compile_encoder(m)(values)
+    frame = codec.frame_encoder(codec.message_layouts(m), codec.frame_bytes(m), m.length)(values)
     assert frame == m.encode(values, strict=True)
     names = [s.name for s in m.signals]
-    raws = codec.compile_raw_decoder(m, names)(frame)
+    raws = codec.raw_decoder(codec.message_layouts(m, names), codec.frame_bytes(m))(frame)
     ref = m.decode(frame, decode_choices=False, scaling=False)
     assert raws == tuple(ref[n] for n in names)
 
@@ -159,7 +159,7 @@ def test_per_frame_encoder_and_decoder_equal_cantools(db, name, data):
 def test_checked_decoder_gives_raws_and_flags_out_of_range(db, name, payload):
     m = db.get_message_by_name(name)
     names = [s.name for s in m.signals]
-    fn = codec.compile_checked_decoder(m, names)
+    fn = codec.checked_decoder(codec.message_layouts(m, names), codec.frame_bytes(m))
     ref = m.decode(payload, decode_choices=False, scaling=True)
     raw = m.decode(payload, decode_choices=False, scaling=False)
     in_range = all(s.minimum <= ref[s.name] <= s.maximum for s in m.signals)
@@ -215,7 +215,7 @@ def layouts(draw):
 def test_bit_extractor_equals_cantools_on_random_layouts(msg, data):
     payloads = [data.draw(st.binary(min_size=msg.length, max_size=msg.length)) for _ in range(3)]
     names = [s.name for s in msg.signals]
-    per_frame = codec.compile_raw_decoder(msg, names)
+    per_frame = codec.raw_decoder(codec.message_layouts(msg, names), codec.frame_bytes(msg))
     arr = np.frombuffer(b"".join(payloads), dtype=np.uint8).reshape(len(payloads), msg.length)
     vec = codec.decode_raw(msg, arr, names)
     for i, p in enumerate(payloads):
@@ -226,7 +226,7 @@ def test_bit_extractor_equals_cantools_on_random_layouts(msg, data):
     raws = {s.name: msg.decode(payloads[0], decode_choices=False, scaling=False)[s.name] for s in msg.signals}
     phys = {s.name: raws[s.name] * s.scale + s.offset for s in msg.signals}
     want = msg.encode(raws, scaling=False, strict=False, padding=False)
-    assert codec.compile_encoder(msg)(phys) == want
+    assert codec.frame_encoder(codec.message_layouts(msg), codec.frame_bytes(msg), msg.length)(phys) == want
     assert bytes(codec.encode(msg, {k: np.array([v]) for k, v in phys.items()})[0]) == want
 
 
@@ -261,7 +261,7 @@ def test_checked_decoder_on_the_j1939_example_equals_cantools(name, payload):
     names = [s.name for s in m.signals]
     ref = m.decode(payload, decode_choices=False, scaling=True)
     raw = m.decode(payload, decode_choices=False, scaling=False)
-    got = codec.compile_checked_decoder(m, names)(payload)
+    got = codec.checked_decoder(codec.message_layouts(m, names), codec.frame_bytes(m))(payload)
     in_range = all(s.minimum <= ref[s.name] <= s.maximum for s in m.signals)
     assert got == (tuple(raw[n] for n in names) if in_range else None)
 

@@ -99,28 +99,29 @@ def test_a_wrong_checksum_leaves_the_counter_alone():
 
 
 def test_timeouts_are_counted_only_while_another_message_is_alive():
-    a, b = Stream(spec(2)), Stream(spec(2))
-    total = {"timeout": 0}
+    h = health.Health([spec(2), spec(2)])
+    a, b = h.streams
     for st_ in (a, b):
         st_.note(0.0, health.OK)
-    assert not health.tick([a, b], 0.05, total)
+    assert not h.tick(0.05)
     b.note(0.2, health.OK)  # a went quiet, b goes on
-    health.tick([a, b], 0.25, total)
+    h.tick(0.25)
     assert a.counts["timeout"] == 1 and b.counts["timeout"] == 0
-    health.tick([a, b], 0.35, total)  # still out: not counted twice
+    h.tick(0.35)  # still out: not counted twice
     assert a.counts["timeout"] == 1
-    health.tick([a, b], 5.0, total)  # everything silent: the bus is idle, nothing changes
+    h.tick(5.0)  # everything silent: the bus is idle, nothing changes
     a.note(5.01, health.OK)
     b.note(5.01, health.OK)
-    health.tick([a, b], 5.05, total)
+    h.tick(5.05)
     assert a.counts["timeout"] == 1 and b.counts["timeout"] == 0
-    assert total["timeout"] == 1  # the monitor's total counts with the streams
+    assert h.counts()["timeout"] == 1  # the total over the streams
 
 
 def test_an_erratic_stream_makes_the_tick_erratic():
-    a, b = Stream(spec(2)), Stream(spec(2))
+    h = health.Health([spec(2), spec(2)])
+    a, b = h.streams
     a.note(0.0, health.OK)
     b.note(0.0, health.COUNTER_FROZEN)
-    assert health.tick([a, b], 0.05, {"timeout": 0})
-    assert not health.tick([a, b], 0.2, {"timeout": 0})  # b's rejected frame is older than its timeout now
+    assert h.tick(0.05)
+    assert not h.tick(0.2)  # b's rejected frame is older than its timeout now
     assert b.counts["counter_frozen"] == 1

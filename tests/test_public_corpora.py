@@ -119,7 +119,7 @@ def test_cantools_test_dbcs_through_check_and_the_bit_extractor(dbc, tmp_path):
             continue
         readable.append((msg, names[0]))
         frames = rng.integers(0, 256, size=(8, msg.length), dtype=np.uint8)
-        per_frame = codec.compile_raw_decoder(msg, names)
+        per_frame = codec.raw_decoder(codec.message_layouts(msg, names), codec.frame_bytes(msg))
         arr = codec.decode_raw(msg, frames, names)
         for i, row in enumerate(frames):
             data = bytes(row)

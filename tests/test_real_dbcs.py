@@ -156,7 +156,7 @@ def test_a_signal_of_a_multiplexed_message_that_is_in_every_frame_is_read(tmp_pa
 
     msg = cantools.database.load_file(str(dbc)).get_message_by_name("EMS12")
     frames = [bytes([mux << 6 | 5, t, 0, 0, 0, 0, 0, 0]) for mux in (0, 1, 3) for t in (0, 100, 255)]
-    per_frame = codec.compile_raw_decoder(msg, ["TEMP_ENG"])
+    per_frame = codec.raw_decoder(codec.message_layouts(msg, ["TEMP_ENG"]), codec.frame_bytes(msg))
     arr = codec.decode(msg, np.frombuffer(b"".join(frames), dtype=np.uint8).reshape(-1, 8), ["TEMP_ENG"])["TEMP_ENG"]
     for i, f in enumerate(frames):
         want = msg.decode(f)["TEMP_ENG"]

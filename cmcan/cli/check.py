@@ -13,6 +13,7 @@ from cmcan.cli.errors import exit_code
 from cmcan.cli.jsonout import print_json
 from cmcan.config import Config
 from cmcan.errors import CmcanError
+from cmcan.j1939 import ids
 from cmcan.monitor.totals import StateError
 from cmcan.preflight import check_channel, load_config, prepare
 from cmcan.roles import UNITS
@@ -203,6 +204,9 @@ def _describe(m: Any) -> dict[str, Any]:
     if m.pgn is not None:
         src = "any address" if m.sources is None else ", ".join(f"0x{a:02X}" for a in sorted(m.sources))
         match = f"PGN {m.pgn} (0x{m.pgn:04X}) from {src}"
+        if ids.is_pdu1(m.pgn):  # a PDU1 PGN carries a destination address
+            dest = "any" if m.destinations is None else ", ".join(f"0x{a:02X}" for a in sorted(m.destinations))
+            match += f" to {dest} (destination address)"
     else:
         match = f"id 0x{m.frame_id:0{8 if m.extended else 3}X}"
     h = m.health

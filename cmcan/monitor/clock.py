@@ -178,11 +178,12 @@ class TickClock:
         k_prev = running_max(np.concatenate([[float(self.next_k)], g]))[:-1]
         return ClockPlan(t, g, k_prev, t < (k_prev - 1) * P - eps)
 
-    def regular_until(self, plan: ClockPlan, accepted: NDArray[np.bool_]) -> tuple[int, float]:
+    def regular_until(self, plan: ClockPlan, accepted: NDArray[np.bool_], limit: int) -> tuple[int, float]:
         """How many frames of the plan the stretch takes: up to the first that :meth:`step` would
         take otherwise than the plan says (a time that is not a number, a step of the clock back, a
-        gap, a rounding edge). ``accepted``: the frames accepted as input (they move the newest
-        frame's time). Returns that count and the newest accepted frame's time up to there."""
+        gap, a rounding edge), at most ``limit``. ``accepted``: the frames accepted as input (they
+        move the newest frame's time). Returns that count and the newest accepted frame's time up to
+        there."""
         t, g, k_prev, late = plan.t, plan.g, plan.k_prev, plan.late
         advances = t > k_prev * self.period + TIME_EPS_S
         lf = np.maximum.accumulate(np.concatenate([[self.last_frame_t], np.where(accepted, t, -np.inf)]))
@@ -191,7 +192,7 @@ class TickClock:
         step_back = late & (t < lf_prev - STEP_BACK_S)  # the wall clock stepped back: re-based frame by frame
         odd_step = ~late & ~advances & (g > k_prev)  # a frame in step must not move the clock
         irregular = ~np.isfinite(t) | step_back | gap | odd_step
-        stop = int(np.argmax(irregular)) if irregular.any() else len(t)
+        stop = min(int(np.argmax(irregular)) if irregular.any() else len(t), limit)
         return stop, float(lf[stop])
 
     def ticks_of(self, plan: ClockPlan, stop: int) -> tuple[NDArray[np.int64], NDArray[np.int64], int]:

@@ -57,11 +57,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cmcan.frame import Frame, FrameColumns
+from cmcan.j1939 import ids as j1939_ids
 from cmcan.monitor.clock import TickClock
 from cmcan.monitor.diagnostics import Dm1Params, Dm1Producer
 from cmcan.monitor.filter import RatioFilter
 from cmcan.monitor.gating import Gate, GateLimits, gate_columns, gate_point
-from cmcan.monitor.health import OK, OUT_OF_RANGE, Health, Stream
+from cmcan.monitor.health import NOT_AVAILABLE, OK, OUT_OF_RANGE, Health, Stream
 from cmcan.monitor.inputs import Channels, InputMessage, Router, payload_rows
 from cmcan.monitor.payloads import Outputs, Payloads
 from cmcan.monitor.ratio import Point, Points, Predictor, Ratio
@@ -92,6 +93,10 @@ COUNTERS = (
     "extrapolated",
     "model_errors",
     "clock_steps",
+    "own_address",
+    "other_sender",
+    "error_code",
+    "not_available",
 )
 _CONDITION = {
     "ok": (Level.OK, Reason.NONE),
@@ -146,6 +151,7 @@ class Monitor:
         totals: Totals | None = None,
         channels: Channels | None = None,
         dm1: Dm1Params | None = None,
+        own_address: int | None = None,
     ) -> None:
         p = self.params = params
         self.inputs = tuple(inputs)
@@ -163,7 +169,7 @@ class Monitor:
         self.slots = tuple(
             Slot(i, m, s, self.windows) for i, (m, s) in enumerate(zip(self.inputs, self.health.streams, strict=True))
         )
-        self.router = Router(self.inputs, self.channels, self.slots)
+        self.router = Router(self.inputs, self.channels, self.slots, own_address)
         self.ratio = Ratio(model, p.limits, p.lpm_per_unit)
         self.queue = OutputQueue()
         self.dm1_producer = Dm1Producer(dm1, self.totals) if dm1 is not None else None
@@ -227,15 +233,17 @@ class Monitor:
             for k in step.ticks:
                 out += self._evaluate(k)
         stream = slot.stream
-        verdict = stream.check(t, frame[2], data) if slot.checked else OK
-        raws = slot.decode(data) if verdict == OK else None
-        if raws is None:
-            stream.note(t, verdict if verdict != OK else OUT_OF_RANGE)
-        else:
-            self.accepted += 1
-            stream.note(t, OK)
-            clock.started(t)
-            slot.add(t, raws)
+        raws = slot.decode(data)
+        verdict = stream.check(t, frame[2], data, raws == NOT_AVAILABLE) if slot.checked else OK
+        if verdict == OK:
+            if raws.__class__ is tuple:  # accepted: its samples into the windows
+                self.accepted += 1
+                stream.note(t, OK)
+                clock.started(t)
+                slot.add(t, raws)  # type: ignore[arg-type]
+                return self.queue.release(out, t) if self.queue.later else out
+            verdict = OUT_OF_RANGE if raws is None else raws  # (or a J1939 code: error, not available)
+        stream.note(t, verdict, frame[2])  # type: ignore[arg-type]
         return self.queue.release(out, t) if self.queue.later else out
 
     def advance(self, t: float) -> list[Frame]:
@@ -370,17 +378,18 @@ class Monitor:
         dec = _Decoded(
             message=np.zeros(n, np.int64),
             raws={},
-            ok=np.ones(n, bool),
+            values=np.zeros(n, np.int8),
             row=np.zeros(n, np.int64),
             ctr=np.zeros(n, np.int64),
             cs_ok=np.ones(n, bool),
+            sa=(cols.arbitration_id[idx] & 0xFF).astype(np.int64),
         )
         for slot, sel in zip(self.slots, groups, strict=True):
             if not len(sel):
                 continue
             rows = idx[sel]
             data = payload_rows(cols, rows, slot.spec.width)
-            dec.raws[slot.index], dec.ok[sel] = slot.spec.decode_columns(data)
+            dec.raws[slot.index], dec.values[sel] = slot.spec.decode_columns(data)
             dec.message[sel] = slot.index
             dec.row[sel] = np.arange(len(sel))
             if slot.checked:
@@ -398,10 +407,12 @@ class Monitor:
         # each message's frames from pos on that reach the checks (not late), in arrival order
         reach = [g[np.searchsorted(g, pos) :] - pos for g in groups_all] if pos else groups_all
         reach = [g[~plan.late[g]] for g in reach]
-        checks = self.health.check_columns(t, reach, dec.ctr[pos:], dec.cs_ok[pos:])
-        verdict = np.where(checks != OK, checks, np.where(dec.ok[pos:], OK, OUT_OF_RANGE)).astype(np.int8)
+        sa = dec.sa[pos:]
+        values = dec.values[pos:]
+        checks, until = self.health.check_columns(t, reach, dec.ctr[pos:], dec.cs_ok[pos:], sa, values == NOT_AVAILABLE)
+        verdict = np.where(checks != OK, checks, values).astype(np.int8)
         accepted = (verdict == OK) & ~plan.late
-        stop, last_frame_t = self.clock.regular_until(plan, accepted)
+        stop, last_frame_t = self.clock.regular_until(plan, accepted, until)
         if stop == 0:
             return pos
         self.health.commit_counters(stop)
@@ -416,7 +427,7 @@ class Monitor:
         samples = self.windows.stretch(t, per_message)
         ticks, trig, k_end = self.clock.ticks_of(plan, stop)
         t_k = ticks.astype(np.float64) * self.period
-        erratic = self.health.tick_columns(t, reach, verdict, trig, t_k)
+        erratic = self.health.tick_columns(t, reach, verdict, trig, t_k, sa)
         if len(ticks):
             self._evaluate_columns(ticks, samples.stats(trig, t_k), erratic, out)
         self.clock.commit(plan, stop, k_end, last_frame_t)
@@ -561,26 +572,34 @@ class Monitor:
             "counters": self.counters,
             "warning_count": self.totals.warning_count,
             "evaluated_h": self.totals.evaluated_s / 3600.0,
-            "inputs": {
-                s.spec.name or hex(s.spec.frame_id): {"bad_length": self.router.bad_length[s.index], **s.stream.counts}
-                for s in self.slots
-            },
+            "inputs": {s.spec.name or hex(s.spec.frame_id): self._input_counts(s) for s in self.slots},
+            "unknown_ids": [
+                {"channel": ch, "id": f"0x{fid:0{8 if ext else 3}X}", "frames": n, **_j1939_fields(fid, ext)}
+                for (ch, fid, ext), n in self.router.busiest_unknown()
+            ],
             "dtcs_active": list(self.totals.dtc_active),
         }
+
+    def _input_counts(self, s: Slot) -> dict[str, Any]:
+        out: dict[str, Any] = {"bad_length": self.router.bad_length[s.index], **s.stream.counts}
+        if s.stream.by_source:  # J1939: the rejected and not-available frames per sender
+            out["by_source"] = {f"0x{a:02X}": dict(v) for a, v in sorted(s.stream.by_source.items())}
+        return out
 
 
 @dataclass
 class _Decoded:
     """A chunk's routed frames decoded: each frame's message, the raw values per message (one array
-    per value over the message's frames), the DBC range check, each frame's row in its message's
-    arrays, its counter and whether its checksum holds."""
+    per value over the message's frames), the verdict on its values, each frame's row in its
+    message's arrays, its counter, whether its checksum holds, its source address."""
 
     message: NDArray[np.int64]
     raws: dict[int, list[NDArray[np.int64]]]
-    ok: NDArray[np.bool_]
+    values: NDArray[np.int8]  # the verdict on the values: OK, OUT_OF_RANGE, ERROR_CODE, NOT_AVAILABLE
     row: NDArray[np.int64]
     ctr: NDArray[np.int64]
     cs_ok: NDArray[np.bool_]
+    sa: NDArray[np.int64]  # the identifier's last byte: a J1939 frame's source address
 
 
 class _Out:
@@ -610,6 +629,13 @@ class _Out:
         if not self.pieces:
             return None
         return self.pieces[0] if len(self.pieces) == 1 else FrameColumns.concat(self.pieces)
+
+
+def _j1939_fields(fid: int, extended: bool) -> dict[str, Any]:
+    """A 29-bit identifier as J1939 reads it: its PGN and source address (for people)."""
+    if not extended:
+        return {}
+    return {"pgn": j1939_ids.pgn(fid), "source": f"0x{j1939_ids.source_address(fid):02X}"}
 
 
 def _groups(ids: NDArray[np.int64], n: int) -> list[NDArray[np.int64]]:

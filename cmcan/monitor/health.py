@@ -3,11 +3,21 @@ timeout. Pure state over the frames' own times; nothing here reads a clock.
 
 Each mapped input message is one *stream*, whatever J1939 source address its frames carry (a
 controller that claims another address keeps its counter sequence; two senders interleaving on one
-message show up as a jumping counter). For each frame of the stream that has the message's length and
-is not late (:mod:`cmcan.monitor.clock`), in arrival order:
+message are rule 1b's). For each frame of the stream that has the message's length and is not late
+(:mod:`cmcan.monitor.clock`), in arrival order:
 
 1. Checksum, where the message has one: a frame whose checksum does not match is rejected
    (``checksum``) and changes nothing else.
+1a. Not available: on a J1939 message, a frame with a mapped value that is "not available" (or a
+   reserved indicator) is no sample (``not_available``): counted, neither accepted nor rejected,
+   as if it had not come; it takes no part in the rules below (a node that sends the message filled
+   with 0xFF is not a second sender, nor does it break the counter).
+1b. Senders, for a J1939 message that more than one source address may send (``source_addresses``
+   ``any`` or a list): a frame from address X is rejected (``other_sender``) when X sent the message
+   before, within the timeout, and another address has sent it since X's previous frame, within the
+   timeout too: two nodes send the message at once, interleaved, and neither is believed (the input
+   is not a blend of two senders, it is a health problem: erratic, then a fault). A sender that is new,
+   or back after its timeout, passes: a controller that claimed another address goes on at once.
 2. Alive counter, where the message has one, modulo M = 2**bits: let p be the counter of the stream's
    previous frame that passed step 1 and dt the time since that frame. With no such frame, or dt above
    the message's timeout (the sender restarted, or the machine was off), the frame passes. Otherwise,
@@ -15,8 +25,12 @@ is not late (:mod:`cmcan.monitor.clock`), in arrival order:
    (``counter_jump``); both reject the frame; 1 <= d <= max_step passes (max_step 2 tolerates one lost
    frame). Either way p becomes c: after a jump the counter is followed from its new value, so the next
    frame in sequence passes again.
-3. Range: a value outside its DBC range rejects the frame (``out_of_range``).
-A frame that passes all three is *accepted*: its values go into the role windows.
+3. Values: on a J1939 message, a value carrying J1939-71's error indicator rejects the frame
+   (``error_code``); a value outside its DBC range rejects it (``out_of_range``)
+   (:mod:`cmcan.j1939.values`).
+A frame that passes all of them is *accepted*: its values go into the role windows. Rejections and
+frames not available are counted per stream and, on a J1939 message, per source address
+(``by_source``).
 
 At an evaluation tick at time t, a message is
 - *erratic* when its newest frame at or before t (of those that reached step 1) was rejected and is no
@@ -48,11 +62,30 @@ from numpy.typing import NDArray
 from cmcan.checksums import TSC1_FOLD, byte_sums, crc8_ok, id_sum
 from cmcan.codec import Layout, extract, extract_all
 
-OK, CHECKSUM, COUNTER_FROZEN, COUNTER_JUMP, OUT_OF_RANGE = 0, 1, 2, 3, 4
-REASONS = ("ok", "checksum", "counter_frozen", "counter_jump", "out_of_range")
-REJECTIONS = (CHECKSUM, COUNTER_FROZEN, COUNTER_JUMP, OUT_OF_RANGE)
+OK, CHECKSUM, COUNTER_FROZEN, COUNTER_JUMP, OUT_OF_RANGE, OTHER_SENDER, ERROR_CODE, NOT_AVAILABLE = range(8)
+REASONS = (
+    "ok",
+    "checksum",
+    "counter_frozen",
+    "counter_jump",
+    "out_of_range",
+    "other_sender",
+    "error_code",
+    "not_available",
+)
+REJECTIONS = (CHECKSUM, COUNTER_FROZEN, COUNTER_JUMP, OUT_OF_RANGE, OTHER_SENDER, ERROR_CODE)
 # what a stream counts; bad_length is the router's (a frame too short is matched, never checked)
-COUNTED = ("checksum", "counter_frozen", "counter_jump", "out_of_range", "timeout")
+COUNTED = (
+    "checksum",
+    "counter_frozen",
+    "counter_jump",
+    "out_of_range",
+    "timeout",
+    "other_sender",
+    "error_code",
+    "not_available",
+)
+MAX_SOURCES = 256  # addresses remembered per stream (a J1939 source address is one byte)
 _TSC1_FOLD = np.array(TSC1_FOLD, dtype=np.uint8)
 
 
@@ -70,6 +103,8 @@ class HealthSpec:
     checksum_name: str = ""  # the checksum's signal and algorithm, for people
     algorithm: str = ""  # the checksum's algorithm (j1939_tsc1 is checked inline, the common J1939 case)
     checksum_layout: Layout | None = None
+    j1939: bool = False  # matched as J1939: counted per source address
+    senders: bool = False  # J1939, more than one source address possible: rule 1b
 
     @property
     def modulo(self) -> int:
@@ -78,7 +113,7 @@ class HealthSpec:
     @property
     def checked(self) -> bool:
         """Whether frames of the message are checked before their values are read (steps 1-2)."""
-        return self.counter is not None or self.checksum is not None
+        return self.counter is not None or self.checksum is not None or self.senders
 
 
 def counter_reader(lay: Layout, nbytes: int) -> Callable[[bytes], int]:
@@ -104,14 +139,17 @@ class Stream:
         "_mask",
         "_read",
         "_shift",
+        "by_source",
         "checksum",
         "counts",
+        "last_sa",
         "max_step",
         "modulo",
         "newest_ok",
         "newest_t",
         "prev",
         "prev_t",
+        "seen",
         "spec",
         "timed_out",
         "timeout_s",
@@ -138,6 +176,9 @@ class Stream:
         self.max_step = spec.max_step
         self.timeout_s = spec.timeout_s
         self.counts = dict.fromkeys(COUNTED, 0)
+        self.by_source: dict[int, dict[str, int]] = {}  # J1939: rejections and not available, per address
+        self.last_sa: int | None = None  # rule 1b: the address of the frame before, and each one's last time
+        self.seen: dict[int, float] = {}
         self.prev: int | None = None
         self.prev_t = -math.inf
         self.newest_t = -math.inf
@@ -152,21 +193,31 @@ class Stream:
         """The wall clock stepped by ``delta_s``: the stream's times move onto the new time base."""
         self.prev_t += delta_s
         self.newest_t += delta_s
+        self.seen = {sa: t + delta_s for sa, t in self.seen.items()}
 
     # -- one frame ---------------------------------------------------------------------------------
 
-    def check(self, t: float, can_id: int, data: bytes) -> int:
-        """Steps 1 and 2 for a frame at ``t``: OK, CHECKSUM, COUNTER_FROZEN or COUNTER_JUMP."""
+    def check(self, t: float, can_id: int, data: bytes, absent: bool = False) -> int:
+        """Steps 1 to 2 for a frame at ``t`` (``absent``: a value not available, rule 1a): OK,
+        CHECKSUM, NOT_AVAILABLE, OTHER_SENDER, COUNTER_FROZEN or COUNTER_JUMP."""
         if self.tsc1:  # 8 bytes (the message's length, checked before): counter and checksum in byte 8
             if can_id != self._id:
                 self._id, self._id_sum = can_id, id_sum(can_id)
             c = data[7]
             if c >> 4 != TSC1_FOLD[sum(data) - (c & 0xF0) + self._id_sum]:
                 return CHECKSUM
+            if absent:
+                return NOT_AVAILABLE
+            if self.spec.senders and self.other_sender(t, can_id & 0xFF):
+                return OTHER_SENDER
             c &= 0x0F
         else:
             if self.checksum is not None and not self.checksum(can_id, data):
                 return CHECKSUM
+            if absent:
+                return NOT_AVAILABLE
+            if self.spec.senders and self.other_sender(t, can_id & 0xFF):
+                return OTHER_SENDER
             at = self._at
             if at >= 0:
                 c = (data[at] >> self._shift) & self._mask if len(data) > at else 0
@@ -186,13 +237,37 @@ class Stream:
         self.prev_t = t
         return verdict
 
-    def note(self, t: float, verdict: int) -> None:
-        """The frame at ``t`` was accepted (OK) or rejected for ``verdict`` (counted)."""
-        if t >= self.newest_t:
+    def other_sender(self, t: float, sa: int) -> bool:
+        """Rule 1b for a frame from address ``sa`` at ``t`` (that passed the checksum): True when
+        another node sends the message at the same time (the frame is then rejected)."""
+        seen = self.seen
+        prev = seen.get(sa)
+        seen[sa] = t
+        if sa == self.last_sa:  # the frame before was this sender's: nobody else sent since
+            return False
+        self.last_sa = sa
+        if prev is None or t - prev > self.timeout_s:  # new, or back after its timeout
+            if len(seen) > MAX_SOURCES:
+                self.seen = {sa: t}
+            return False
+        return any(a != sa and last >= prev and t - last <= self.timeout_s for a, last in seen.items())
+
+    def note(self, t: float, verdict: int, can_id: int = -1) -> None:
+        """The frame at ``t`` (identifier ``can_id`` where the source address counts) was accepted
+        (OK), rejected for ``verdict``, or not a sample (NOT_AVAILABLE); counted."""
+        if verdict == OK:
+            if t >= self.newest_t:
+                self.newest_t = t
+                self.newest_ok = True
+            return
+        if verdict != NOT_AVAILABLE and t >= self.newest_t:
             self.newest_t = t
-            self.newest_ok = verdict == OK
-        if verdict != OK:
-            self.counts[REASONS[verdict]] += 1
+            self.newest_ok = False
+        reason = REASONS[verdict]
+        self.counts[reason] += 1
+        if can_id >= 0 and self.spec.j1939:
+            per = self.by_source.setdefault(can_id & 0xFF, {})
+            per[reason] = per.get(reason, 0) + 1
 
     def erratic(self, t: float) -> bool:
         return not self.newest_ok and self.newest_t <= t and t - self.newest_t <= self.timeout_s
@@ -284,12 +359,19 @@ class Health:
         reach: Sequence[NDArray[np.int64]],
         ctr: NDArray[np.int64],
         cs_ok: NDArray[np.bool_],
-    ) -> NDArray[np.int8]:
-        """Steps 1 and 2 for the frames that reach them (``reach[i]``: stream i's, in arrival order;
-        ``ctr``, ``cs_ok`` from :meth:`Stream.integrity_columns`): a failed checksum, else the counter
-        against the previous frame that passed the checksum (within the timeout). Keeps each
-        stream's passing frames for :meth:`commit_counters`."""
+        sa: NDArray[np.int64],
+        absent: NDArray[np.bool_],
+    ) -> tuple[NDArray[np.int8], int]:
+        """Steps 1 to 2 for the frames that reach them (``reach[i]``: stream i's, in arrival order;
+        ``ctr``, ``cs_ok`` from :meth:`Stream.integrity_columns`, ``sa`` their source addresses,
+        ``absent`` the frames with a value not available): a failed checksum, else (a frame with its
+        values) the counter against the previous frame that passed the checksum (within the
+        timeout); the frames not available are left OK here (their values say it). Rule 1b's array
+        form takes the frames of the stream's sender; the verdicts hold up to the first frame from
+        another address than the frame before (returned, else the length), which rule 1b decides
+        frame by frame. Keeps what :meth:`commit_counters` needs."""
         out = np.zeros(len(t), dtype=np.int8)
+        until = len(t)
         self._passing = []
         for st, mine in zip(self.streams, reach, strict=True):
             if not st.spec.checked:
@@ -297,25 +379,29 @@ class Health:
                 continue
             passed = cs_ok[mine]
             out[mine[~passed]] = CHECKSUM
-            if not st.has_counter:
-                self._passing.append(None)
-                continue
-            p = mine[passed]
+            p = mine[passed & ~absent[mine]]
+            if st.spec.senders and len(p):  # frames from the address of the frame before pass
+                other = np.flatnonzero(sa[p] != (st.last_sa if st.last_sa is not None else -1))
+                if len(other):
+                    until = min(until, int(p[other[0]]))
             self._passing.append((p, ctr[p], t[p]))
-            if len(p):
+            if len(p) and st.has_counter:
                 out[p] = _counter_verdicts(st, ctr[p], t[p])
-        return out
+        return out, until
 
     def commit_counters(self, stop: int) -> None:
-        """Each stream's previous counter and its time as the first ``stop`` frames leave them."""
+        """Each stream's previous counter and its time, and its sender's last frame, as the first
+        ``stop`` frames leave them."""
         for st, passing in zip(self.streams, self._passing, strict=True):
             if passing is None:
                 continue
             p, c, tp = passing
             n = int(np.searchsorted(p, stop))
-            if n:
+            if n and st.has_counter:
                 st.prev = int(c[n - 1])
                 st.prev_t = float(tp[n - 1])
+            if n and st.spec.senders:
+                st.seen[st.last_sa] = float(tp[n - 1])  # type: ignore[index]
         self._passing = []
 
     def tick_columns(
@@ -325,6 +411,7 @@ class Health:
         verdict: NDArray[np.int8],
         trig: NDArray[np.int64],
         t_k: NDArray[np.float64],
+        sa: NDArray[np.int64],
     ) -> NDArray[np.bool_]:
         """:meth:`tick` at every tick of a stretch, with the frames' verdicts noted: each stream's
         newest frame and its verdict at each tick (the frames before ``trig``, the one that completes
@@ -336,7 +423,12 @@ class Health:
         silent_after_frames = []
         ends = []
         for st, f in zip(self.streams, reach, strict=True):
-            nt, ok_t, end = _newest_at_ticks(st, t[f], verdict[f], f, trig)
+            vf = verdict[f]
+            _count(st, vf, sa[f])
+            sample = vf != NOT_AVAILABLE  # a frame not available is as if it had not come
+            if not sample.all():
+                f, vf = f[sample], vf[sample]
+            nt, ok_t, end = _newest_at_ticks(st, t[f], vf, f, trig)
             ends.append(end)
             with np.errstate(invalid="ignore"):
                 age = t_k - nt
@@ -372,7 +464,7 @@ def _newest_at_ticks(
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_], tuple[float, bool]]:
     """A stream's newest frame time and whether it was accepted, at each tick (the frames before the
     tick's trigger), as :meth:`Stream.note` leaves them frame after frame (later frames win ties);
-    the rejections counted; and the state after the last frame."""
+    and the state after the last frame."""
     n_ticks = len(trig)
     if not len(f):
         return np.full(n_ticks, st.newest_t), np.full(n_ticks, st.newest_ok), (st.newest_t, st.newest_ok)
@@ -386,6 +478,20 @@ def _newest_at_ticks(
         ok_after = np.where(last >= 0, vf[np.maximum(last, 0)] == OK, st.newest_ok)
     seen = np.searchsorted(f, trig)
     ok_t = np.where(seen > 0, ok_after[np.maximum(seen - 1, 0)], st.newest_ok)
-    for code in REJECTIONS:
-        st.counts[REASONS[code]] += int(np.count_nonzero(vf == code))
     return run[seen], ok_t, (float(run[-1]), bool(ok_after[-1]))
+
+
+def _count(st: Stream, vf: NDArray[np.int8], sa: NDArray[np.int64]) -> None:
+    """A stream's rejected and not-available frames counted, per source address on J1939."""
+    for code in (*REJECTIONS, NOT_AVAILABLE):
+        hit = vf == code
+        n = int(np.count_nonzero(hit))
+        if not n:
+            continue
+        reason = REASONS[code]
+        st.counts[reason] += n
+        if st.spec.j1939:
+            addresses, per = np.unique(sa[hit], return_counts=True)
+            for a, k in zip(addresses.tolist(), per.tolist(), strict=True):
+                d = st.by_source.setdefault(a, {})
+                d[reason] = d.get(reason, 0) + k

@@ -10,9 +10,12 @@ identifier and identifier format, so a batched reader can apply the very same ru
 3. On its channel, a standard (11-bit) frame is the message with that identifier. An extended
    (29-bit) frame is the message with exactly that identifier, or, for a message matched as J1939,
    the one whose PGN equals the frame's, whose source addresses include the frame's (or are "any")
-   and, for a PDU1 PGN, whose destinations include the frame's destination address. The priority
-   bits are ignored. The configuration check refuses mappings where two messages could match one
-   frame, so the order of the rules does not matter.
+   and, for a PDU1 PGN, whose destinations include the frame's destination address (or are "any",
+   the default: a PDU1 message addressed to another node is still the message). The priority bits
+   are ignored. The configuration check refuses mappings where two messages could match one frame,
+   so the order of the rules does not matter.
+4. A J1939 frame claiming cmcan's own source address is never an input (``own_address``): whoever
+   sends it, it is not the drive's controller.
 """
 
 from __future__ import annotations
@@ -24,16 +27,27 @@ from typing import Any, Generic, Protocol, TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
-from cmcan.codec import Layout, checked_decoder, extract_all, raw_bounds
+from cmcan.codec import Layout, checked_decoder, extract_all, raw_bounds, raw_decoder
 from cmcan.frame import Frame, FrameColumns
-from cmcan.j1939 import ids
-from cmcan.monitor.health import HealthSpec
+from cmcan.j1939 import ids, values
+from cmcan.monitor.health import ERROR_CODE, NOT_AVAILABLE, OK, OUT_OF_RANGE, HealthSpec
 
 MEMO_MAX = 1 << 16  # identifiers remembered per channel (a flood of random ones is looked up anew)
 # why a frame is no input (:class:`Router`); 0 and up: the input message's index
 UNKNOWN_ID, UNKNOWN_CHANNEL, BAD_FD, NOT_DATA = -1, -2, -3, -4
+OWN_ADDRESS = -6  # a J1939 frame claiming cmcan's own source address
 # the router's counters: every frame, and each reason a frame is no input
-ROUTED = ("frames_total", "error_frame", "remote_frame", "unknown_channel", "bad_fd", "unknown_id", "bad_length")
+ROUTED = (
+    "frames_total",
+    "error_frame",
+    "remote_frame",
+    "unknown_channel",
+    "bad_fd",
+    "unknown_id",
+    "bad_length",
+    "own_address",
+)
+UNKNOWN_KEPT = 256  # kinds of unknown identifiers counted one by one
 
 
 @dataclass(frozen=True)
@@ -53,28 +67,49 @@ class InputMessage:
     extended: bool = False
     pgn: int | None = None  # matched as J1939 on this PGN
     sources: frozenset[int] | None = None  # J1939 source addresses accepted; None: any
-    destinations: frozenset[int] = frozenset({ids.GLOBAL_ADDRESS})  # PDU1: destinations accepted
+    destinations: frozenset[int] | None = None  # PDU1: destinations accepted; None: any
     health: HealthSpec = field(default_factory=HealthSpec)
-    decode: Callable[[bytes], tuple[int, ...] | None] = field(init=False, repr=False, compare=False)
+    decode: Callable[[bytes], tuple[int, ...] | int | None] = field(init=False, repr=False, compare=False)
     bounds: tuple[tuple[int, int], ...] = field(init=False, repr=False, compare=False)
+    # J1939: each value's reserved codes (:mod:`cmcan.j1939.values`), None where it has none
+    reserved: tuple[tuple[int, int, int] | None, ...] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "decode", checked_decoder(self.layouts, self.size))
-        object.__setattr__(self, "bounds", tuple(raw_bounds(x) for x in self.layouts))
+        bounds = tuple(raw_bounds(x) for x in self.layouts)
+        reserved = tuple(values.thresholds(x.length, x.signed) if self.pgn is not None else None for x in self.layouts)
+        object.__setattr__(self, "bounds", bounds)
+        object.__setattr__(self, "reserved", reserved)
+        if any(r is not None for r in reserved):
+            decode = j1939_decoder(raw_decoder(self.layouts, self.size), bounds, reserved)
+        else:
+            decode = checked_decoder(self.layouts, self.size)
+        object.__setattr__(self, "decode", decode)
 
     @property
     def width(self) -> int:
         """The bytes of a frame the message's reading and checks look at."""
         return max(self.size, self.health.nbytes, self.length)
 
-    def decode_columns(self, data: NDArray[np.uint8]) -> tuple[list[NDArray[np.int64]], NDArray[np.bool_]]:
+    def decode_columns(self, data: NDArray[np.uint8]) -> tuple[list[NDArray[np.int64]], NDArray[np.int8]]:
         """:attr:`decode` over many frames (``data``: (n, :attr:`width`) payloads): the raw values,
-        one array per value, and whether all of a frame's values are within their DBC range."""
+        one array per value, and each frame's verdict on its values (``OK``, ``ERROR_CODE``,
+        ``OUT_OF_RANGE``, ``NOT_AVAILABLE``, the first that applies in that order)."""
         vals = extract_all(data[:, : self.size], self.layouts, self.size)
-        good = np.ones(len(data), dtype=bool)
-        for v, (lo, hi) in zip(vals, self.bounds, strict=True):
-            good &= (lo <= v) & (v <= hi)
-        return vals, good
+        n = len(data)
+        error, outside, na = np.zeros(n, bool), np.zeros(n, bool), np.zeros(n, bool)
+        for v, (lo, hi), t in zip(vals, self.bounds, self.reserved, strict=True):
+            if t is not None:
+                kind = values.classify_columns(v, t)
+                error |= kind == values.ERROR
+                na |= kind == values.NOT_AVAILABLE
+                outside |= (kind == values.VALID) & ~((lo <= v) & (v <= hi))
+            else:
+                outside |= ~((lo <= v) & (v <= hi))
+        verdict = np.full(n, OK, dtype=np.int8)
+        verdict[na] = NOT_AVAILABLE
+        verdict[outside] = OUT_OF_RANGE
+        verdict[error] = ERROR_CODE
+        return vals, verdict
 
     def matches(self, can_id: int, extended: bool) -> bool:
         """Rule 3 for a frame already on this message's channel."""
@@ -86,7 +121,33 @@ class InputMessage:
             return False
         if self.sources is not None and ids.source_address(can_id) not in self.sources:
             return False
-        return not ids.is_pdu1(self.pgn) or ids.pdu_specific(can_id) in self.destinations
+        return self.destinations is None or not ids.is_pdu1(self.pgn) or ids.pdu_specific(can_id) in self.destinations
+
+
+def j1939_decoder(
+    raw: Callable[[bytes], tuple[int, ...]],
+    bounds: tuple[tuple[int, int], ...],
+    reserved: tuple[tuple[int, int, int] | None, ...],
+) -> Callable[[bytes], tuple[int, ...] | int | None]:
+    """One frame of a J1939 message: its raw values, or ``ERROR_CODE`` (a value carries the error
+    indicator), None (a value outside its DBC range), ``NOT_AVAILABLE`` (a value not available), the
+    first that applies in that order."""
+    checks = tuple(zip(bounds, reserved, strict=True))
+
+    def decode(data: bytes) -> tuple[int, ...] | int | None:
+        raws = raw(data)
+        verdict: int | None = OK
+        for r, ((lo, hi), t) in zip(raws, checks, strict=True):
+            if t is not None and r >= t[0]:
+                if values.classify(r, t) == values.ERROR:
+                    return ERROR_CODE
+                if verdict == OK:
+                    verdict = NOT_AVAILABLE
+            elif not lo <= r <= hi:
+                verdict = None
+        return raws if verdict == OK else verdict
+
+    return decode
 
 
 @dataclass(frozen=True)
@@ -143,7 +204,8 @@ def overlap(a: InputMessage, b: InputMessage) -> bool:
         return other.matches(exact.frame_id, exact.extended)
     if a.pgn != b.pgn:
         return False
-    if ids.is_pdu1(a.pgn) and not (a.destinations & b.destinations):
+    pdu1_apart = a.destinations is not None and b.destinations is not None and not a.destinations & b.destinations
+    if ids.is_pdu1(a.pgn) and pdu1_apart:
         return False
     return a.sources is None or b.sources is None or bool(a.sources & b.sources)
 
@@ -184,10 +246,15 @@ class Router(Generic[S]):
     state of that message, with its ``index`` and ``length``). Matching is a pure function of
     channel name, identifier, format and FD flag, remembered per combination."""
 
-    def __init__(self, inputs: Sequence[InputMessage], channels: Channels, slots: Sequence[S]) -> None:
+    def __init__(
+        self, inputs: Sequence[InputMessage], channels: Channels, slots: Sequence[S], own_address: int | None = None
+    ) -> None:
         self.inputs = tuple(inputs)
         self.channels = channels
         self.slots = tuple(slots)
+        self.own_address = own_address  # cmcan's J1939 source address: frames from it are no input
+        self.unknown: dict[tuple[str, int, bool], int] = {}  # frames no input matched, per identifier
+        self.unknown_other = 0
         self.lengths = np.array([m.length for m in self.inputs], dtype=np.int64)
         self.matcher = Matcher(self.inputs, channels)
         self.counts = dict.fromkeys(ROUTED, 0)
@@ -218,9 +285,11 @@ class Router(Generic[S]):
         slot = (ch.slot_ext if extended else ch.slot_std).get(fid, _MISS)
         if slot is _MISS:
             i = self._lookup(ch, fid, extended)
-            slot = self.slots[i] if i >= 0 else None
-        if slot is None:
-            c["unknown_id"] += 1
+            slot = self.slots[i] if i >= 0 else i
+        if slot.__class__ is int:  # no input: an unknown identifier, or cmcan's own address
+            c[_REASON[slot]] += 1
+            if slot == UNKNOWN_ID:
+                self.note_unknown(channel, fid, extended, 1)
             return None
         if len(data) < slot.length:  # (a slot has its message's length)
             c["bad_length"] += 1
@@ -237,12 +306,30 @@ class Router(Generic[S]):
 
     def _lookup(self, ch: _Channel, fid: int, extended: bool) -> int:
         spec = self.matcher.match(ch.index, fid, extended)
-        i = UNKNOWN_ID if spec is None else next(j for j, m in enumerate(self.inputs) if m is spec)
+        if spec is None:
+            i = UNKNOWN_ID
+        elif spec.pgn is not None and ids.source_address(fid) == self.own_address:
+            i = OWN_ADDRESS  # a frame claiming to come from cmcan itself is never an input
+        else:
+            i = next(j for j, m in enumerate(self.inputs) if m is spec)
         memo, slots = (ch.ext, ch.slot_ext) if extended else (ch.std, ch.slot_std)
         if len(memo) < MEMO_MAX:
             memo[fid] = i
-            slots[fid] = self.slots[i] if i >= 0 else None
+            slots[fid] = self.slots[i] if i >= 0 else i
         return i
+
+    def note_unknown(self, channel: str, fid: int, extended: bool, n: int) -> None:
+        """``n`` frames of an identifier no input matches, counted per channel and identifier (at
+        most :data:`UNKNOWN_KEPT` kinds; beyond, in ``unknown_other``)."""
+        key = (channel, fid, extended)
+        if key in self.unknown or len(self.unknown) < UNKNOWN_KEPT:
+            self.unknown[key] = self.unknown.get(key, 0) + n
+        else:
+            self.unknown_other += n
+
+    def busiest_unknown(self, top: int = 10) -> list[tuple[tuple[str, int, bool], int]]:
+        """The identifiers no input matched that came most often, with their counts."""
+        return sorted(self.unknown.items(), key=lambda kv: (-kv[1], kv[0]))[:top]
 
     def channels_seen(self) -> dict[str, str | None]:
         """Each channel name frames came with so far, and the configured channel it was read as."""
@@ -264,14 +351,25 @@ class Router(Generic[S]):
         c["frames_total"] += len(cols)
         c["error_frame"] += int(err.sum())
         c["remote_frame"] += int((rtr & ~err).sum())
-        for code in (UNKNOWN_CHANNEL, BAD_FD, UNKNOWN_ID):
+        for code in (UNKNOWN_CHANNEL, BAD_FD, UNKNOWN_ID, OWN_ADDRESS):
             c[_REASON[code]] += int(np.count_nonzero(which == code))
+        unknown = np.flatnonzero(which == UNKNOWN_ID)
+        if len(unknown):
+            self._note_unknown_columns(cols, unknown)
         if short.any():
             c["bad_length"] += int(short.sum())
             for i, n in enumerate(np.bincount(which[short], minlength=len(self.inputs)).tolist()):
                 self.bad_length[i] += n
             which[short] = BAD_LENGTH
         return which
+
+    def _note_unknown_columns(self, cols: FrameColumns, rows: NDArray[np.int64]) -> None:
+        key = cols.arbitration_id[rows].astype(np.int64) | cols.extended[rows].astype(np.int64) << 29
+        key |= cols.channel[rows].astype(np.int64) << 30
+        kinds, per = np.unique(key, return_counts=True)
+        names = cols.channel_names
+        for k, n in zip(kinds.tolist(), per.tolist(), strict=True):
+            self.note_unknown(names[k >> 30] if names else "", k & 0x1FFFFFFF, bool(k >> 29 & 1), n)
 
     def _match(self, cols: FrameColumns, live: NDArray[np.bool_]) -> NDArray[np.int64]:
         """The codes of :meth:`route` by channel, identifier, format and FD flag, looked up once per
@@ -313,7 +411,13 @@ class Router(Generic[S]):
 
 
 BAD_LENGTH = -5
-_REASON = {UNKNOWN_ID: "unknown_id", UNKNOWN_CHANNEL: "unknown_channel", BAD_FD: "bad_fd", BAD_LENGTH: "bad_length"}
+_REASON = {
+    UNKNOWN_ID: "unknown_id",
+    UNKNOWN_CHANNEL: "unknown_channel",
+    BAD_FD: "bad_fd",
+    BAD_LENGTH: "bad_length",
+    OWN_ADDRESS: "own_address",
+}
 
 
 def _distinct(keys: NDArray[np.int64], few: int = 16) -> NDArray[np.int64]:
