@@ -26,7 +26,7 @@ from cmcan.j1939 import ids
 from cmcan.model import GrayBoxModel, ModelError, default_model_path, load_model
 from cmcan.monitor.core import Monitor, MonitorParams
 from cmcan.monitor.diagnostics import Dm1Params
-from cmcan.monitor.gating import GateLimits, prediction_ok
+from cmcan.monitor.gating import GateLimits, RoleFit, fit_to_cycles, prediction_ok
 from cmcan.monitor.health import HealthSpec
 from cmcan.monitor.inputs import MEMO_MAX, Channels, InputMessage, Matcher, overlap
 from cmcan.monitor.payloads import OutputMessage, Outputs, output_span, output_spans
@@ -311,9 +311,17 @@ def integrity(cfg: Config, msg: Message) -> Integrity:
     return Integrity(counter, checksum, algorithm)
 
 
+def cycle_s(cfg: Config, msg: Message) -> float | None:
+    """A message's cycle time: ``messages.NAME.cycle_ms``, else the DBC's GenMsgCycleTime; None when
+    neither gives one."""
+    ms = cfg.message(msg.name).cycle_ms or msg.cycle_time
+    return ms / 1000.0 if ms else None
+
+
 def timeout_s(cfg: Config, msg: Message) -> float:
-    """How long a message may be missing before it is stale: timeout_cycles DBC cycle times."""
-    return cfg.input_health.timeout_cycles * msg.cycle_time / 1000.0 if msg.cycle_time else math.inf
+    """How long a message may be missing before it is stale: timeout_cycles cycle times."""
+    cycle = cycle_s(cfg, msg)
+    return cfg.input_health.timeout_cycles * cycle if cycle else math.inf
 
 
 def check_bus(cfg: Config, db: Database) -> None:
@@ -606,27 +614,39 @@ def dm1_params(cfg: Config, db: Database) -> Dm1Params | None:
     )
 
 
-def max_ages(cfg: Config, db: Database) -> dict[str, float]:
-    """Each gated role's largest sample age: the configured one, at most its message's timeout (a
-    role the machine holds constant has no message)."""
-    roles = gated_roles(cfg.quantity)
-    ages = {r: cfg.max_age_s(r) for r in roles}
+def _role_messages(cfg: Config) -> dict[str, str]:
+    """Each gated role's message (dp's is high pressure's: it is formed at each high-pressure frame;
+    a role the machine holds constant has none)."""
     msg_of = {r: ref.message for r, ref in cfg.signals.items()}
     if DP not in msg_of and HIGH_PRESSURE in msg_of:
-        msg_of[DP] = msg_of[HIGH_PRESSURE]  # dp is formed at each high-pressure frame
-    for r in roles:
-        if r in msg_of:
-            ages[r] = min(ages[r], timeout_s(cfg, db.get_message_by_name(msg_of[r])))
+        msg_of[DP] = msg_of[HIGH_PRESSURE]
+    return {r: msg_of[r] for r in gated_roles(cfg.quantity) if r in msg_of}
+
+
+def max_ages(cfg: Config, db: Database) -> dict[str, float]:
+    """Each gated role's largest sample age: the configured one, at most its message's timeout."""
+    ages = {r: cfg.max_age_s(r) for r in gated_roles(cfg.quantity)}
+    for r, name in _role_messages(cfg).items():
+        ages[r] = min(ages[r], timeout_s(cfg, db.get_message_by_name(name)))
     return ages
+
+
+def fitted_limits(cfg: Config, db: Database) -> tuple[GateLimits, dict[str, float], dict[str, RoleFit]]:
+    """The gate limits and maximum sample ages fitted to the cycle time of each role's message
+    (:func:`cmcan.monitor.gating.fit_to_cycles`: a slow message's role gets its own window and
+    sample count), and how each role was fitted."""
+    cycles = {r: cycle_s(cfg, db.get_message_by_name(name)) for r, name in _role_messages(cfg).items()}
+    return fit_to_cycles(cfg.gate_limits, max_ages(cfg, db), cycles)
 
 
 def monitor_params(cfg: Config, db: Database, envelope: dict[str, tuple[float, float]] | None) -> MonitorParams:
     env = None if envelope is None else envelope_for(cfg, envelope)
     affine, dp = role_affines(cfg, db)
+    limits, ages, _ = fitted_limits(cfg, db)
     return MonitorParams(
         rate_hz=cfg.rate_hz,
-        limits=cfg.gate_limits,
-        max_age_s=max_ages(cfg, db),
+        limits=limits,
+        max_age_s=ages,
         envelope=env,
         filter_samples=cfg.filter.samples,
         filter_min_samples=cfg.filter.min_samples,

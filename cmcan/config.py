@@ -263,6 +263,8 @@ _BUS_SECTIONS = {
             {
                 "channel": Str(default=None),
                 "source_addresses": _SOURCES,
+                # its cycle time when the DBC has none (or to correct it): fits windows and timeouts
+                "cycle_ms": Num(1, 3_600_000, "ms", default=None),
                 # PDU1 messages: the destination addresses accepted (default: any; 255 is global)
                 "destinations": Either(
                     (Str(choices=("any",)), Seq(Num(0, 255, integer=True), min_len=1)), default="any"
@@ -423,6 +425,7 @@ class MessageConfig:
     checksum_signal: str | None = None  # None: found by name in the DBC
     checksum: str | None = None  # an algorithm, "none", or None: input_health.checksum
     destinations: tuple[int, ...] | None = None  # PDU1: the destinations accepted; None: any
+    cycle_ms: float | None = None  # None: the DBC's GenMsgCycleTime
 
 
 @dataclass(frozen=True)
@@ -644,6 +647,7 @@ def _with_bus_sections(cfg: Config, raw: dict[str, Any], source: str) -> Config:
             m["checksum_signal"],
             m["checksum"],
             _sources(m["destinations"]),
+            None if m["cycle_ms"] is None else float(m["cycle_ms"]),
         )
     inputs = {v["message"] for v in raw["signals"].values() if v is not None}
     for name in messages:

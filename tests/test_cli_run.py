@@ -79,7 +79,7 @@ def test_invalid_configuration_is_named_and_exits_78(tmp_path, change, needle):
 
 def test_a_dbc_that_does_not_parse(tmp_path):
     bad = tmp_path / "bad.dbc"
-    bad.write_text('VERSION ""\nBO_ 256 X: 8 Y\n SG_ a : 0|99@1+ (1,0) [0|1] "" Y\n')
+    bad.write_text('VERSION ""\nBO_ 256 X: 8 Y\n SG_ a : 0|8@1+ (1,0) [0|1] "" Y\n BO_ garbage\n')
     run, _ = run_and_check(tmp_path, config_copy(tmp_path, dbc=str(bad)))
     assert run.returncode == EX_CONFIG and "bad.dbc: not a valid DBC" in run.stderr
 

@@ -231,3 +231,24 @@ def test_the_kernel_filter_of_a_pdu1_input_lets_any_destination_through_unless_t
     (g,) = can_filters([replace(m, destinations=frozenset({0x27}), sources=frozenset({3}))], "")
     assert passes(g, ids.make_id(6, 0, 3, dest=0x27)) and not passes(g, ids.make_id(6, 0, 3, dest=0xFE))
     assert not passes(g, ids.make_id(6, 0, 4, dest=0x27))
+
+
+def test_a_message_sent_once_a_second_is_judged_with_a_window_that_fits_it(healthy):
+    """Vehicle Fluids (the oil temperature) sent once a second, as J1939-71 has it: with its cycle time
+    known (here ``messages.VF.cycle_ms``) the temperature gets a 2 s window and one sample suffices,
+    so points are judged (both engines alike); without it, every point would stay warming_up."""
+    cfg, frames, _ = healthy
+    vf = ids.pgn(dbc_for(cfg).get_message_by_name("VF").frame_id)
+    t0 = float(frames.timestamp_s[0])
+    is_vf = ids.pgn(frames.arbitration_id) == vf
+    keep = ~is_vf | (np.round((frames.timestamp_s - t0) * 10).astype(np.int64) % 10 == 0)
+    slow = frames.select(np.flatnonzero(keep)).to_frames()
+    assert 25 <= sum(ids.pgn(f.arbitration_id) == vf for f in slow) <= 31
+    told = replace(cfg, messages={**cfg.messages, "VF": replace(cfg.message("VF"), cycle_ms=1000.0)})
+    a, b = both(told, slow, 1500)
+    assert_same(a, b)
+    gates = {int(g) for g in a[0].gate}
+    assert 0 in gates and a[3].counters["evaluated"] > 100  # judged
+    stuck, _ = both(cfg, slow, 5000)  # the DBC's 100 ms: five samples a second wanted
+    assert stuck[3].counters["evaluated"] == 0
+

@@ -170,3 +170,20 @@ def test_the_timeline_leaves_empty_what_a_tick_does_not_have(logs, tmp_path):
         assert (r["cm_ratio_filt_pct"] != "") == v and (r["extra_leak_lpm"] != "") == v
     mean = np.mean([float(r["cm_ratio_raw_pct"]) for r in evaluated])
     assert 99.0 < mean < 101.0
+
+
+def test_replay_says_what_a_log_has_when_nothing_matched(logs):
+    """The J1939 example's configuration on an 11-bit log: no input at all. Replay names what it
+    expected and the log's busiest identifiers; a --channel-map naming a channel the log does not
+    have is said too."""
+    from tests.conftest import ROOT
+
+    d, _log, _run = logs
+    r = run_cli("replay", str(d / "short.log"), "--config", str(ROOT / "config" / "j1939-example.yaml"), "--json")
+    assert r.returncode == 0, r.stderr
+    assert "not one frame of the log was an input" in r.stderr
+    assert "HST_MOTOR (PGN 0xFF11 on can0)" in r.stderr and "0x102 x" in r.stderr
+    unknown = json.loads(r.stdout)["final"]["unknown_ids"]
+    assert {u["id"] for u in unknown} == {"0x100", "0x101", "0x102", "0x103"}
+    r = run_cli("replay", str(d / "short.log"), "--channel-map", "can7=can0")
+    assert "--channel-map names 'can7', which the log does not have (it has can0)" in r.stderr

@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from cmcan import units
-from cmcan.assemble import check_against_dbc, check_output_ranges, dbc_for, dbc_warnings
+from cmcan.assemble import check_against_dbc, check_output_ranges, dbc_for, dbc_warnings, fitted_limits
 from cmcan.cli.common import Subparsers
 from cmcan.cli.errors import exit_code
 from cmcan.cli.jsonout import print_json
@@ -90,6 +90,7 @@ def run(args: argparse.Namespace) -> int:
         ],
         "outputs_channel": cfg.output_channel,
         "input_messages": [_describe(m) for m in prep.parts.monitor.inputs],
+        "timing": _timing(cfg, prep.parts.db),
         "j1939": (
             {
                 "source_address": cfg.j1939.source_address,
@@ -162,6 +163,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"  j1939  source address 0x{j['source_address']:02X}, {dm_text}")
         for m in result["input_messages"]:
             print(f"  {m['message']:<18} {m['match']} on {m['channel']}; {m['health']}")
+        for r, tm in result["timing"].items():
+            print(f"  {r:<18} {tm['text']}")
         if "state" in result:
             st = result["state"]
             saved = (
@@ -196,6 +199,35 @@ def unchecked_units(cfg: Config, db: Any) -> dict[str, str]:
         unit = db.get_message_by_name(ref.message).get_signal_by_name(ref.signal).unit or ""
         if not units.judged(UNITS[role], unit):
             out[role] = unit
+    return out
+
+
+def _timing(cfg: Config, db: Any) -> dict[str, dict[str, Any]]:
+    """Per gated role, how its window, sample count and age fit its message's cycle time; said for
+    the roles the fit changed or could not fit (no cycle time known)."""
+    limits, _, fits = fitted_limits(cfg, db)
+    out = {}
+    for role, f in fits.items():
+        if f.fitted and f.window_s == limits.window_s and f.min_samples == limits.min_samples:
+            continue  # a message fast enough for the configured window: nothing to say
+        if f.fitted:
+            text = (
+                f"sent every {f.cycle_s:g} s: judged over {f.window_s:g} s with at least {f.min_samples} "
+                f"sample(s), stale after {f.max_age_s:g} s"
+            )
+        else:
+            text = (
+                f"no cycle time for its message (no GenMsgCycleTime in the DBC, no messages.NAME.cycle_ms): "
+                f"assumed to bring {limits.min_samples} samples a {limits.window_s:g} s window; if it comes "
+                "more slowly its points stay warming_up: give its cycle_ms"
+            )
+        out[role] = {
+            "cycle_s": f.cycle_s,
+            "window_s": f.window_s,
+            "min_samples": f.min_samples,
+            "max_age_s": f.max_age_s,
+            "text": text,
+        }
     return out
 
 

@@ -9,7 +9,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from cmcan import config as cfgmod
-from cmcan.assemble import check_against_dbc, dbc_for, frame_matcher, load_model_for
+from cmcan.assemble import check_against_dbc, dbc_for, fitted_limits, frame_matcher, load_model_for
 from cmcan.errors import CmcanError, Kind
 from cmcan.preflight import load_config as _load_config
 
@@ -40,7 +40,7 @@ def load_points(
     db = dbc_for(cfg)
     match = frame_matcher(cfg, db)
     op = load_operating_points(
-        path, cfg.gate_limits, db, cfg.signals, cfg.rate_hz, cfg.drive.fixed, envelope, match, keep_truncated
+        path, fitted_limits(cfg, db)[0], db, cfg.signals, cfg.rate_hz, cfg.drive.fixed, envelope, match, keep_truncated
     )
     note = match.merged_note(cfg)
     if note is not None:

@@ -78,6 +78,7 @@ def run(args: argparse.Namespace) -> int:
         raise CmcanError(f"{args.log}: log file not found", Kind.NO_INPUT)
     cfg = load_config(args.config, check_dbc=False)
     aliases = channel_map(args.channel_map, cfg)
+    args.channel_map_names = list(aliases)
     mon = assemble(cfg, args.model, log_aliases=aliases).monitor
     sinks = _Sinks(outs, cfg.quantity)
     res, cut = _replay(args, mon, sinks.all)
@@ -155,6 +156,14 @@ def _summary(
         )
     if fit.verdict == DOES_NOT_FIT:
         print(f"cmcan replay: warning: {fit.describe()}", file=sys.stderr)
+    for name in sorted(set(args.channel_map_names) - set(seen)):
+        print(
+            f"cmcan replay: warning: --channel-map names {name!r}, which the log does not have "
+            f"(it has {', '.join(sorted(seen)) or 'no channel names'})",
+            file=sys.stderr,
+        )
+    if res.counters["accepted"] == 0:
+        print(f"cmcan replay: warning: {nothing_matched(mon, res.snapshot)}", file=sys.stderr)
     return {
         "log": str(args.log),
         "channels": {k: v for k, v in sorted(seen.items())},
@@ -173,6 +182,28 @@ def _summary(
         },
         "cut": cut.to_dict() if cut is not None else None,
     }
+
+
+def nothing_matched(mon: Any, snapshot: dict[str, Any]) -> str:
+    """What a log had against what the configuration expects, when not one input frame was used."""
+    want = "; ".join(f"{m.name} ({_what(m)} on {m.channel or 'the bus'})" for m in mon.inputs)
+    has = ", ".join(_seen(u) for u in snapshot["unknown_ids"][:8])
+    c = snapshot["counters"]
+    other = {k: c[k] for k in ("unknown_channel", "bad_fd", "bad_length", "own_address", "error_frame") if c[k]}
+    extra = "".join(f", {k.replace('_', ' ')} {v}" for k, v in other.items())
+    return (
+        f"not one frame of the log was an input: the configuration expects {want}; "
+        f"the log's busiest other identifiers: {has or 'none'}{extra}"
+    )
+
+
+def _what(m: Any) -> str:
+    return f"PGN 0x{m.pgn:04X}" if m.pgn is not None else f"id 0x{m.frame_id:X}"
+
+
+def _seen(u: dict[str, Any]) -> str:
+    j1939 = f" (PGN 0x{u['pgn']:04X} from {u['source']})" if "pgn" in u else ""
+    return f"{u['id']}{j1939} x{u['frames']} on {u['channel'] or '?'}"
 
 
 def _finite(x: float) -> float | None:

@@ -334,7 +334,8 @@ def operating_points(
     t_out = series[quantity][0]
     spans = contiguous_spans(t_out, max_gap_s=max(limits.window_s, 1.0))
     t_eval = np.concatenate([eval_times(a, b, rate_hz) for a, b in spans]) if spans else np.empty(0)
-    stats = window_stats({r: series[r] for r in gated_roles(quantity)}, t_eval, limits.window_s)
+    roles = gated_roles(quantity)
+    stats = window_stats({r: series[r] for r in roles}, t_eval, {r: limits.window_of(r) for r in roles})
     codes = gate(stats, limits, envelope=envelope)
     x = np.column_stack([stats.mean[r] for r in MODEL_INPUTS])
     tr = {}

@@ -163,7 +163,13 @@ class Monitor:
         self.clock = TickClock(p.rate_hz, max_gap_s=max(p.limits.window_s, 1.0))
         roles = gated_roles(p.output_role)
         self.windows = Windows(
-            roles, p.affine, p.limits.window_s, p.limits.min_samples, p.constants, p.dp_from_high_low
+            roles,
+            p.affine,
+            p.limits.window_s,
+            p.limits.min_samples,
+            p.constants,
+            p.dp_from_high_low,
+            p.limits.role_window_s,
         )
         self.health = Health([m.health for m in self.inputs])
         self.slots = tuple(

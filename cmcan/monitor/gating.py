@@ -95,6 +95,15 @@ class GateLimits:
             "motor_speed_rpm": (0.0, 9000.0),
         }
     )
+    # A role whose message comes slowly (:func:`fit_to_cycles`): its own window and sample count.
+    role_window_s: dict[str, float] = field(default_factory=dict)
+    role_min_samples: dict[str, int] = field(default_factory=dict)
+
+    def window_of(self, role: str) -> float:
+        return self.role_window_s.get(role, self.window_s)
+
+    def min_samples_of(self, role: str) -> int:
+        return self.role_min_samples.get(role, self.min_samples)
 
 
 def scaled(
@@ -154,19 +163,20 @@ class WindowStats:
 def window_stats(
     series: dict[str, tuple[NDArray[np.float64], NDArray[np.float64]]],
     eval_t: NDArray[np.float64],
-    window_s: float,
+    window_s: float | Mapping[str, float],
 ) -> WindowStats:
     """Trailing-window statistics at each evaluation time, for irregularly sampled series.
 
     ``series[role] = (timestamps, values)``, timestamps ascending. The window at time t holds the
-    samples with t - window_s < timestamp <= t (the monitor's window, :mod:`cmcan.monitor.windows`).
-    Float values are centred on their median before the cumulative sums (less cancellation); integer
-    raw values would be exact.
+    samples with t - window_s < timestamp <= t (``window_s`` one for all roles, or each role's: the
+    monitor's window, :mod:`cmcan.monitor.windows`). Float values are centred on their median before
+    the cumulative sums (less cancellation); integer raw values would be exact.
     """
     mean, std, count, age = {}, {}, {}, {}
     for role, (ts, vs) in series.items():
         ref = float(np.median(vs)) if len(vs) else 0.0
-        s1, s2, n, newest = window_sums(ts, np.asarray(vs, dtype=np.float64) - ref, eval_t, window_s)
+        span = window_s[role] if isinstance(window_s, Mapping) else window_s
+        s1, s2, n, newest = window_sums(ts, np.asarray(vs, dtype=np.float64) - ref, eval_t, span)
         mean[role], std[role] = mean_std(s1, s2, n, Affine(1.0, ref))
         count[role] = n
         age[role] = eval_t - newest
@@ -256,7 +266,7 @@ def _inputs_gate(
     if missing:
         return Gate.STALE_INPUT
     for r in roles:
-        if count[r] < limits.min_samples:
+        if count[r] < limits.min_samples_of(r):
             return Gate.WARMING_UP
     signed = signed_roles(limits)
     for r in roles:
@@ -313,7 +323,7 @@ def gate_columns(
     decide(missing == len(roles), Gate.NO_INPUT)
     decide(missing > 0, Gate.STALE_INPUT)
     for r in roles:
-        decide(count[r] < limits.min_samples, Gate.WARMING_UP)
+        decide(count[r] < limits.min_samples_of(r), Gate.WARMING_UP)
     with np.errstate(invalid="ignore"):
         for r in roles:
             decide(outside_plausible(r, mean[r], limits), Gate.IMPLAUSIBLE_INPUT)  # NaN too
@@ -366,3 +376,58 @@ def eval_times(t_first: float, t_last: float, rate_hz: float) -> NDArray[np.floa
     k0 = np.floor(t_first / period) + 1
     k1 = np.floor(t_last / period)
     return np.arange(k0, k1 + 1) * period
+
+
+# -- slow messages ----------------------------------------------------------------------------------
+
+WINDOW_CYCLES = 2.0  # a role's window holds at least this many cycles of its message
+AGE_CYCLES = 1.5  # and its newest sample may be this many cycles old before it is stale
+
+
+@dataclass(frozen=True)
+class RoleFit:
+    """How one role's window, sample count and age fit its message's cycle time (:func:`fit_to_cycles`)."""
+
+    cycle_s: float | None  # None: not known (no cycle time in the DBC or the configuration)
+    window_s: float
+    min_samples: int
+    max_age_s: float
+
+    @property
+    def fitted(self) -> bool:
+        return self.cycle_s is not None
+
+
+def fit_to_cycles(
+    limits: GateLimits, max_age_s: Mapping[str, float], cycles_s: Mapping[str, float | None]
+) -> tuple[GateLimits, dict[str, float], dict[str, RoleFit]]:
+    """The limits and maximum sample ages fitted to each role's message cycle time (``cycles_s``:
+    seconds, None where not known), so that a role sent slowly is judged at all:
+
+    - its window spans at least ``WINDOW_CYCLES`` cycles (a message sent once a second gets a 2 s
+      window: the configured 1 s would hold one sample or none);
+    - it needs half the samples its window holds at its cycle, at least 1, at most ``min_samples``
+      (10 ms and 100 ms messages keep the configured 5);
+    - its newest sample may be ``AGE_CYCLES`` cycles old (at least the configured age).
+
+    A role whose cycle time is not known keeps the configured values (the configuration check says
+    so). Pure: the same fit for the monitor, training and scoring."""
+    role_window: dict[str, float] = {}
+    role_min: dict[str, int] = {}
+    ages = dict(max_age_s)
+    fits: dict[str, RoleFit] = {}
+    for role, cycle in cycles_s.items():
+        age = max_age_s.get(role, math.inf)
+        if cycle is None or not cycle > 0:
+            fits[role] = RoleFit(None, limits.window_s, limits.min_samples, age)
+            continue
+        window = max(limits.window_s, WINDOW_CYCLES * cycle)
+        need = min(limits.min_samples, max(1, math.floor(window / cycle / 2)))
+        age = max(age, AGE_CYCLES * cycle) if math.isfinite(age) else age
+        if window != limits.window_s:
+            role_window[role] = window
+        if need != limits.min_samples:
+            role_min[role] = need
+        ages[role] = age
+        fits[role] = RoleFit(cycle, window, need, age)
+    return replace(limits, role_window_s=role_window, role_min_samples=role_min), ages, fits

@@ -221,9 +221,11 @@ class Windows:
     min_samples: int
     constants: Mapping[str, float] = field(default_factory=dict)
     dp_from_high_low: DpFromHighLow | None = None
+    role_window_s: Mapping[str, float] = field(default_factory=dict)  # a slow message's role: its own
 
     def __post_init__(self) -> None:
         self.windows = {r: RoleWindow() for r in self.roles if r not in self.constants}
+        self.spans = {r: self.role_window_s.get(r, self.window_s) for r in self.windows}
         self.low: int | None = None
 
     def targets(self, value_roles: Sequence[str]) -> tuple[Target, ...]:
@@ -286,7 +288,7 @@ class Windows:
         role the machine holds constant is that value, fresh, with no spread."""
         mean, std, count, age = {}, {}, {}, {}
         for role, w in self.windows.items():
-            mean[role], std[role], count[role] = w.stats(t, self.window_s, self.affine[role])
+            mean[role], std[role], count[role] = w.stats(t, self.spans[role], self.affine[role])
             age[role] = t - w.last_t
         for role, value in self.constants.items():
             mean[role], std[role], count[role], age[role] = float(value), 0.0, self.min_samples, 0.0
@@ -377,9 +379,9 @@ class Stretch:
         """:meth:`Windows.stats` at each tick ``t_k``, whose samples are those of the frames before
         ``trig`` (the frame that completes the tick)."""
         w = self.owner
-        cut = t_k - w.window_s + TIME_EPS_S
         mean, std, count, age = {}, {}, {}, {}
         for role, smp in self.samples.items():
+            cut = t_k - w.spans[role] + TIME_EPS_S
             mean[role], std[role], count[role], age[role] = smp.stats(trig, cut, t_k, w.affine[role])
         n = len(t_k)
         for role, value in w.constants.items():
