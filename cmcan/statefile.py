@@ -131,6 +131,18 @@ def _no_constant(name: str) -> float:
     raise ValueError(f"{name} is not a number a state file holds")
 
 
+class LockHeld(CmcanError):
+    """Another process holds a lock cmcan wants (a temporary failure: that one may end)."""
+
+
+class LockFileError(CmcanError):
+    """A lock file that cannot be opened or written; ``strerror`` is the system's reason."""
+
+    def __init__(self, message: str, exc: OSError) -> None:
+        super().__init__(f"{message}: {exc.strerror}", kind_of_oserror(exc))
+        self.strerror = exc.strerror or str(exc)
+
+
 class StateLock:
     """An exclusive ``flock`` on ``cmcan.lock`` in the state directory, held for the daemon's life:
     two daemons on one directory would overwrite each other's state. The kernel drops the lock when
@@ -146,7 +158,7 @@ class StateLock:
         try:
             fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o640)
         except OSError as exc:
-            raise CmcanError(f"{self.path}: cannot open the state lock: {exc.strerror}", kind_of_oserror(exc)) from None
+            raise LockFileError(f"{self.path}: cannot open the state lock", exc) from None
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as exc:
@@ -155,7 +167,7 @@ class StateLock:
             if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN):
                 raise CmcanError(f"{self.path}: cannot lock: {exc.strerror}", Kind.CANT_CREATE) from None
             who = f"pid {holder}" if holder else "another process"
-            raise CmcanError(
+            raise LockHeld(
                 f"{self.path}: the state directory is in use by another cmcan ({who} holds the lock); "
                 "one daemon per state directory",
                 Kind.TEMPFAIL,
@@ -165,8 +177,7 @@ class StateLock:
             os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
         except OSError as exc:
             os.close(fd)
-            why = f"{self.path}: cannot write the state lock: {exc.strerror}"
-            raise CmcanError(why, kind_of_oserror(exc)) from None
+            raise LockFileError(f"{self.path}: cannot write the state lock", exc) from None
         self._fd = fd
         return self
 

@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 
 from cmcan.errors import CmcanError, Kind
-from cmcan.statefile import StateLock
+from cmcan.statefile import LockFileError, LockHeld, StateLock
 from cmcan.uplink.config import MqttSettings, TlsSettings
 from cmcan.uplink.outbox import Outbox, OutboxError, open_outbox, problem_kind, record_corrupt, set_aside
 
@@ -141,9 +141,7 @@ class OutboxLock(StateLock):
         except OSError as exc:  # creating the file, or writing the pid into it on a full disk
             problem = _OUTBOX_PROBLEMS.get(problem_kind(exc, "cantopen"), "ioerr")
             raise SetupError(f"{self.path}: cannot take the outbox lock: {exc.strerror}", problem) from None
-        except CmcanError as exc:
-            if exc.kind is not Kind.TEMPFAIL:
-                raise
+        except LockHeld:
             pid = self.holder()
             who = f"pid {pid}" if pid and pid > 0 else "another process"
             raise SetupError(
@@ -151,6 +149,9 @@ class OutboxLock(StateLock):
                 "lock); one uplink per outbox",
                 "tempfail",
             ) from None
+        except LockFileError as exc:  # writing the pid into the lock file failed (a full disk: 75)
+            problem = next(p for p, k in _KINDS.items() if k is exc.kind)
+            raise SetupError(f"{self.path}: cannot take the outbox lock: {exc.strerror}", problem) from None
         return self
 
 
