@@ -89,8 +89,8 @@ def scale_windows(cfg: cfgmod.Config, burst_s: float, every_min: float) -> cfgmo
     30 min by default, six times sparser, so the same windows would span six times as many hours.
     Scaling them by the sampling density keeps the demo's time-lapse comparable to the scenario.
     """
-    ref = scn.load(scn.shipped("run_to_failure")).raw["sampling"]
-    scale = min(1.0, (burst_s / every_min) / (ref["burst_s"] / ref["every_min"]))
+    ref = scn.load(scn.shipped("run_to_failure")).sampling
+    scale = min(1.0, (burst_s / every_min) / (ref.burst_s / ref.every_min))
     samples = max(30, round(cfg.filter.samples * scale))
     flt = replace(cfg.filter, samples=samples, min_samples=min(samples, max(10, round(cfg.filter.min_samples * scale))))
     th = replace(cfg.thresholds, debounce_s=max(10.0, cfg.thresholds.debounce_s * scale))

@@ -242,12 +242,6 @@ class Diagnosis:
     def ambiguous(self) -> tuple[tuple[str, ...], ...]:
         return tuple(g for g in self.groups if len(g) > 1)
 
-    def fitted_value(self, effect: str) -> tuple[float, ...]:
-        for f in self.fitted:
-            if f.name == effect:
-                return tuple(q.value for q in f.params)
-        raise KeyError(effect)
-
     def to_dict(self) -> dict[str, Any]:
         out = _plain(asdict(self))
         out["selected"] = list(self.selected)

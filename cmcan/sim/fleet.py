@@ -99,7 +99,7 @@ class MachinePlan:
 
     @property
     def start_epoch_s(self) -> float:
-        return float(self.scenario.raw["start_epoch_s"])
+        return self.scenario.start_epoch_s
 
 
 def _degradation(kind: str, t: MachineType, hours: float, rng: np.random.Generator) -> list[dict[str, Any]]:

@@ -16,7 +16,6 @@ from cmcan.sim import degradation, duty
 from cmcan.sim.drive import DriveInputs, integrate, load_torque_for_dp, steady_state
 from cmcan.sim.physics import DriveParams
 from cmcan.sim.scenario import Scenario
-from cmcan.sim.scenario import sensor_errors as scenario_sensor_errors
 from cmcan.sim.sensors import SensorError
 
 # Columns of a run, in file order. Measured quantities first, then the ground truth (never on the bus).
@@ -60,21 +59,21 @@ class Run:
 
 def time_grid(s: Scenario) -> tuple[NDArray[np.float64], list[tuple[int, int]]]:
     """Operating seconds of every sample, and the [start, stop) index range of each burst."""
-    dt = 1.0 / s.raw["sample_rate_hz"]
+    dt = 1.0 / s.sample_rate_hz
     total = s.duration_h * 3600.0
-    smp = s.raw["sampling"]
-    if smp["mode"] == "continuous":
+    smp = s.sampling
+    if not smp.bursts:
         n = round(total / dt)
         return np.arange(n) * dt, [(0, n)]
-    per = round(smp["burst_s"] / dt)
-    starts = np.arange(0.0, total, smp["every_min"] * 60.0)
+    per = round(smp.burst_s / dt)
+    starts = np.arange(0.0, total, smp.every_min * 60.0)
     t = (starts[:, None] + np.arange(per)[None, :] * dt).ravel()
     return t, [(i * per, (i + 1) * per) for i in range(len(starts))]
 
 
 def oil_temperatures(s: Scenario, t_s: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """(prescribed oil temperature or NaN where the heat balance decides, ambient temperature)."""
-    oil = s.raw["oil"]
+    oil = s.oil
     t_h = t_s / 3600.0
     if oil["model"] == "prescribed":
         temp = oil["temp_c"] + oil["swing_c"] * np.sin(2 * np.pi * t_h / oil["period_h"])
@@ -94,14 +93,14 @@ def simulate(s: Scenario, db: Database | None = None, mapping: dict[str, tuple[A
     mapping = mapping if mapping is not None else DEFAULT_INPUTS
     p: DriveParams = s.params
     rng_duty, rng_noise, rng_jitter = (np.random.default_rng(x) for x in np.random.SeedSequence(s.seed).spawn(3))
-    dt = 1.0 / s.raw["sample_rate_hz"]
+    dt = 1.0 / s.sample_rate_hz
     t_s, bursts = time_grid(s)
     t_h = t_s / 3600.0
 
-    sp = duty.setpoints(s.raw["duty"], t_s, rng_duty)
+    sp = duty.setpoints(s.duty, t_s, rng_duty)
     pump_disp_cc = sp.pump_disp_pct / 100.0 * p.pump_disp_max_cc
     load_nm = load_torque_for_dp(p, sp.dp_bar)
-    deg = degradation.evaluate(s.events, t_h, p.oil)
+    deg = degradation.evaluate(list(s.events), t_h, p.oil)
     disp_factor = deg.motor_disp_factor
     temp_presc, ambient = oil_temperatures(s, t_s)
 
@@ -110,8 +109,7 @@ def simulate(s: Scenario, db: Database | None = None, mapping: dict[str, tuple[A
     true_speed = np.empty(n)
     true_temp = np.empty(n)
     extra = np.empty(n)
-    oil = s.raw["oil"]
-    temp_state = oil.get("initial_c") or (float(ambient[0]) + 20.0 if n else 40.0)
+    temp_state = s.oil.get("initial_c") or (float(ambient[0]) + 20.0 if n else 40.0)
     for a, b in bursts:
         if b <= a:
             continue
@@ -152,8 +150,7 @@ def simulate(s: Scenario, db: Database | None = None, mapping: dict[str, tuple[A
         "temp_c": true_temp,
         "motor_speed_rpm": np.abs(true_speed),
     }
-    errors = scenario_sensor_errors(s.raw)
-    measured = sense(truth, s.raw["sensors"]["noise"], db, mapping, t_s, bursts, rng_noise, errors)
+    measured = sense(truth, s.sensors.noise, db, mapping, t_s, bursts, rng_noise, dict(s.sensors.errors))
     measured["dp_bar"] = measured["high_pressure_bar"] - measured["low_pressure_bar"]
     cols: dict[str, NDArray[np.float64]] = {"time_s": t_s, "operating_h": t_h}
     for k in MEASURED:
@@ -169,13 +166,13 @@ def simulate(s: Scenario, db: Database | None = None, mapping: dict[str, tuple[A
     meta = {
         "scenario": s.name,
         "seed": s.seed,
-        "jitter_ms": s.raw["sensors"]["jitter_ms"],
+        "jitter_ms": s.sensors.jitter_ms,
         "jitter_seed": int(rng_jitter.integers(2**31)),
         "bursts": len(bursts),
-        "scheduled_failures": degradation.scheduled_failures(s.events),
+        "scheduled_failures": degradation.scheduled_failures(list(s.events)),
         "motor_disp_cc": p.motor_disp_cc,
     }
-    return Run(s.name, s.raw["sample_rate_hz"], s.raw["start_epoch_s"], cols, meta)
+    return Run(s.name, s.sample_rate_hz, s.start_epoch_s, cols, meta)
 
 
 def sense(

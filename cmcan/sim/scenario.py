@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -323,32 +324,56 @@ _SCENARIO = Obj(
 
 
 @dataclass(frozen=True)
+class Sampling:
+    """Continuous, or bursts of ``burst_s`` seconds every ``every_min`` minutes of operation."""
+
+    mode: str
+    burst_s: float
+    every_min: float
+
+    @property
+    def bursts(self) -> bool:
+        return self.mode == "bursts"
+
+
+@dataclass(frozen=True)
+class Sensors:
+    """Each channel's noise (its section as validated), timestamp jitter, and the errors of
+    miscalibrated or slow transducers (only those that are not zero)."""
+
+    noise: Mapping[str, Any]
+    jitter_ms: float
+    errors: Mapping[str, SensorError]
+
+
+@dataclass(frozen=True)
 class Scenario:
+    """A validated scenario, section by section. ``duty``, ``oil`` and ``events`` are the validated
+    sections the duty cycle, the oil's temperature and the degradation models read
+    (:mod:`cmcan.sim.duty`, :func:`cmcan.sim.run.oil_temperatures`, :mod:`cmcan.sim.degradation`)."""
+
     name: str
     source: str
-    raw: dict[str, Any]
+    seed: int
+    duration_h: float
+    sample_rate_hz: float
+    start_epoch_s: float
+    sampling: Sampling
+    duty: Mapping[str, Any]
+    oil: Mapping[str, Any]
+    events: tuple[Mapping[str, Any], ...]
+    sensors: Sensors
     params: DriveParams
-
-    @property
-    def seed(self) -> int:
-        return int(self.raw["seed"])
-
-    @property
-    def duration_h(self) -> float:
-        return float(self.raw["duration_h"])
-
-    @property
-    def events(self) -> list[dict[str, Any]]:
-        return list(self.raw["events"])
+    document: Mapping[str, Any]  # the whole validated document: overrides start from it
 
     def with_overrides(self, **top: Any) -> Scenario:
         """A copy with top-level fields replaced (e.g. ``seed=``, ``duration_h=``), validated again.
 
         Shortening a run drops the events that would start after its new end."""
-        raw = {**self.raw, **top}
+        doc = {**self.document, **top}
         if "duration_h" in top and "events" not in top:
-            raw["events"] = [e for e in self.raw["events"] if e.get("start_h", e.get("at_h", 0.0)) <= top["duration_h"]]
-        return from_dict(raw, source=self.source)
+            doc["events"] = [e for e in self.events if e.get("start_h", e.get("at_h", 0.0)) <= top["duration_h"]]
+        return from_dict(doc, source=self.source)
 
 
 def _params_from(raw: dict[str, Any]) -> DriveParams:
@@ -377,7 +402,7 @@ def fluid_from(f: dict[str, Any]) -> Oil:
     return oil
 
 
-def sensor_errors(raw: dict[str, Any]) -> dict[str, SensorError]:
+def _sensor_errors(raw: dict[str, Any]) -> dict[str, SensorError]:
     """The sensor errors a validated scenario states, by channel (only those that are not zero)."""
     errs = {k: SensorError(**v) for k, v in raw["sensors"]["errors"].items()}
     return {k: e for k, e in errs.items() if e.any}
@@ -401,7 +426,22 @@ def _check_events(raw: dict[str, Any], source: str) -> None:
 def from_dict(data: Any, source: str = "<scenario>") -> Scenario:
     raw = _SCENARIO.check(data, source, "")
     _check_events(raw, source)
-    return Scenario(name=raw["name"], source=source, raw=raw, params=_params_from(raw))
+    smp, sen = raw["sampling"], raw["sensors"]
+    return Scenario(
+        name=raw["name"],
+        source=source,
+        seed=int(raw["seed"]),
+        duration_h=float(raw["duration_h"]),
+        sample_rate_hz=float(raw["sample_rate_hz"]),
+        start_epoch_s=float(raw["start_epoch_s"]),
+        sampling=Sampling(smp["mode"], float(smp["burst_s"]), float(smp["every_min"])),
+        duty=raw["duty"],
+        oil=raw["oil"],
+        events=tuple(raw["events"]),
+        sensors=Sensors(sen["noise"], float(sen["jitter_ms"]), _sensor_errors(raw)),
+        params=_params_from(raw),
+        document=raw,
+    )
 
 
 def load(path: str | Path) -> Scenario:
