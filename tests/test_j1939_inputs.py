@@ -251,4 +251,3 @@ def test_a_message_sent_once_a_second_is_judged_with_a_window_that_fits_it(healt
     assert 0 in gates and a[3].counters["evaluated"] > 100  # judged
     stuck, _ = both(cfg, slow, 5000)  # the DBC's 100 ms: five samples a second wanted
     assert stuck[3].counters["evaluated"] == 0
-
