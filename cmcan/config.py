@@ -247,7 +247,10 @@ def _name_rule(j: dict[str, Any]) -> tuple[str, str] | None:
             "(e.g. [0x8D, 0x8E, 0x8F]), or set name.arbitrary_address_capable: false"
         )
     if j["addresses"] and not capable:
-        return "name.arbitrary_address_capable", "is false: a node that is not arbitrary address capable never moves; drop j1939.addresses or set it true"
+        return (
+            "name.arbitrary_address_capable",
+            "is false: a node that is not arbitrary address capable never moves; drop j1939.addresses or set it true",
+        )
     if len(set(j["addresses"])) != len(j["addresses"]):
         return "addresses", "lists an address twice"
     return None

@@ -12,7 +12,7 @@ Bits, least significant first (as sent in the Address Claimed message's 8 data b
 | 48 | reserved (0) |
 | 49-55 | vehicle system (7 bits) |
 | 56-59 | vehicle system instance (4 bits) |
-| 60-62 | industry group (3 bits): 0 global, 1 on-highway, 2 agricultural and forestry, 3 construction, 4 marine, 5 industrial |
+| 60-62 | industry group (3 bits): 0 global, 1 on-highway, 2 agriculture, 3 construction, 4 marine, 5 industrial |
 | 63 | arbitrary address capable (1 bit): the node can move to another address when it loses its own |
 
 In an address-claim contention the NAME with the lower value wins (J1939-81), so the arbitrary-address

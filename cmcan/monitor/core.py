@@ -191,8 +191,12 @@ class Monitor:
         # cmcan as a J1939 node (address claim, requests), where configured: its frames come from the
         # router as NODE_SLOT, its gate passes every output frame (:mod:`cmcan.monitor.node`)
         self.node = Node(node) if node is not None else None
-        node_channel = self.channels.index(node.channel) if node is not None and node.channel in self.channels.names else 0
-        self.router = Router(self.inputs, self.channels, self.slots, own_address, NODE_SLOT if node else None, node_channel)
+        node_channel = (
+            self.channels.index(node.channel) if node is not None and node.channel in self.channels.names else 0
+        )
+        self.router = Router(
+            self.inputs, self.channels, self.slots, own_address, NODE_SLOT if node else None, node_channel
+        )
         self.ratio = Ratio(model, p.limits, p.lpm_per_unit)
         self.queue = OutputQueue()
         self.dm1_producer = Dm1Producer(dm1, self.totals) if dm1 is not None else None

@@ -118,7 +118,9 @@ class Node:
         self.counts["requests"] += 1
         return self._answer(t, sa, pgn, dest != ids.GLOBAL_ADDRESS, dm)
 
-    def _answer(self, t: float, sa: int, pgn: int, direct: bool, dm: Dm1Producer | None) -> tuple[list[Frame], Clear | None]:
+    def _answer(
+        self, t: float, sa: int, pgn: int, direct: bool, dm: Dm1Producer | None
+    ) -> tuple[list[Frame], Clear | None]:
         if dm is not None and pgn in (dm1.PGN_DM1, rq.PGN_DM2):
             self.counts["answered"] += 1
             return dm.answer(pgn, t), None
@@ -176,10 +178,8 @@ class Node:
             claims = cols.extended & (((fid >> 16) & 0xFF) == _AC_PF)
             if c.state == ac.CLAIMING and t.max() >= c.settle_at:
                 c.may_send(float(t.max()))  # the claim stands from settle_at
-            if c.state in (ac.CLAIMING, ac.CLAIMED):
-                keep = claims | (t >= c.settle_at)
-            else:
-                keep = claims
+            standing = c.state in (ac.CLAIMING, ac.CLAIMED)
+            keep = claims | (t >= c.settle_at) if standing else claims
             self.counts["held"] += int(len(cols) - keep.sum())
             if not keep.all():
                 cols = cols.take(np.flatnonzero(keep))
@@ -221,4 +221,3 @@ class Node:
 
 def _fields(cols: FrameColumns) -> dict[str, Any]:
     return {k: getattr(cols, k) for k in FrameColumns.__dataclass_fields__}
-
