@@ -76,6 +76,7 @@ class AddressClaim:
     others: dict[int, int] = field(default_factory=dict)  # address -> NAME value, from claims heard
     events: list[Event] = field(default_factory=list)  # newest last, at most EVENTS_MAX
     contentions: int = 0
+    n_events: int = 0  # events so far (the list keeps the newest EVENTS_MAX)
 
     EVENTS_MAX = 64
 
@@ -90,6 +91,7 @@ class AddressClaim:
     def _event(self, t: float, detail: str = "", by_name: int | None = None) -> None:
         self.events.append(Event(t, self.state, self.address, detail, by_name))
         del self.events[: -self.EVENTS_MAX]
+        self.n_events += 1
 
     def may_send(self, t: float) -> bool:
         """Whether normal traffic may go out at frame time ``t`` (the claim stands by then)."""

@@ -651,6 +651,8 @@ class Monitor:
         if self.dm1 is not None:
             same_dm1 = old.dm1_producer is not None and self.dm1 == old.dm1
             self.dm1_producer = old.dm1_producer if same_dm1 else Dm1Producer(self.dm1, self.totals)
+        if self.node is not None and old.node is not None and self.node.p == old.node.p:
+            self.node = old.node  # the claim stands: a node claims again only with another NAME or address
         return self._take_inputs(old)
 
     def _take_inputs(self, old: Monitor) -> list[str]:
