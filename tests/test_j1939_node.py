@@ -417,3 +417,50 @@ def test_the_clears_survive_a_restart_and_a_bad_record_is_refused():
     d["dtc_clears"][0]["kind"] = "dm99"
     with pytest.raises(StateError, match="dtc_clears"):
         Totals.from_dict(d)
+
+
+# -- several drives on one gateway ---------------------------------------------------------------------
+
+
+def drive_config(tmp_path, name: str, address: int, identity: int, instance: int, state: str):
+    import yaml
+
+    root = cfgmod.Path(__file__).resolve().parents[1]
+    raw = yaml.safe_load((root / "config" / "j1939-example.yaml").read_text())
+    raw["dbc"] = str(root / "dbc" / "j1939-example.dbc")
+    raw["state"]["directory"] = str(tmp_path / state)
+    raw["j1939"]["source_address"] = address
+    raw["j1939"]["name"].update(identity_number=identity, function_instance=instance)
+    p = tmp_path / name
+    p.write_text(yaml.safe_dump(raw))
+    return p
+
+
+def test_check_refuses_two_drives_that_would_send_the_same_identifiers_or_claim_one_address(tmp_path):
+    from tests.conftest import run_cli
+
+    left = drive_config(tmp_path, "left.yaml", 0x8C, 1001, 0, "left")
+    right = drive_config(tmp_path, "right.yaml", 0x8C, 1001, 0, "right")
+    r = run_cli("check", "--config", str(left), "--config", str(right))
+    assert r.returncode == 78, r.stderr
+    assert "both claim J1939 address 0x8C on can0" in r.stderr and "both send identifier 0x18FF208C" in r.stderr
+    assert "the same J1939 NAME" in r.stderr
+    drive_config(tmp_path, "right.yaml", 0x8D, 1002, 1, "right")
+    r = run_cli("check", "--config", str(tmp_path), "--json")  # a directory of drive configurations
+    assert r.returncode == 0, r.stdout + r.stderr
+    import json
+
+    got = json.loads(r.stdout)
+    assert [d["sends"][0] for d in got["drives"]] == ["0x18FF208C", "0x18FF208D"]
+
+
+def test_the_channel_probe_says_who_holds_cmcans_address():
+    from cmcan.claimprobe import judge
+
+    mine = OURS.value
+    assert judge(mine, SA, {SA: mine}, set())["state"] == "claimed"
+    assert judge(mine, SA, {0x10: 5}, {mine})["state"] == "lost"
+    assert judge(mine, SA, {0x10: 5}, set())["state"] == "free"
+    taken = judge(mine, SA, {SA: mine - 1}, set(), (0x8D,))
+    assert taken["state"] == "taken" and "move within j1939.addresses" in taken["text"]
+    assert judge(mine, SA, {SA: mine + 1}, set())["state"] == "contested"

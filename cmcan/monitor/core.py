@@ -188,15 +188,9 @@ class Monitor:
         self.slots = tuple(
             Slot(i, m, s, self.windows) for i, (m, s) in enumerate(zip(self.inputs, self.health.streams, strict=True))
         )
-        # cmcan as a J1939 node (address claim, requests), where configured: its frames come from the
-        # router as NODE_SLOT, its gate passes every output frame (:mod:`cmcan.monitor.node`)
+        # cmcan as a J1939 node where configured: the router hands it its frames (:mod:`.node`)
         self.node = Node(node) if node is not None else None
-        node_channel = (
-            self.channels.index(node.channel) if node is not None and node.channel in self.channels.names else 0
-        )
-        self.router = Router(
-            self.inputs, self.channels, self.slots, own_address, NODE_SLOT if node else None, node_channel
-        )
+        self.router = Router(self.inputs, self.channels, self.slots, own_address, *_node_route(node, self.channels))
         self.ratio = Ratio(model, p.limits, p.lpm_per_unit)
         self.queue = OutputQueue()
         self.dm1_producer = Dm1Producer(dm1, self.totals) if dm1 is not None else None
@@ -757,6 +751,13 @@ class _Out:
         if not self.pieces:
             return None
         return self.pieces[0] if len(self.pieces) == 1 else FrameColumns.concat(self.pieces)
+
+
+def _node_route(node: NodeParams | None, channels: Channels) -> tuple[NodeSlot | None, int]:
+    """What the router hands the node's frames back as, and the node's channel (its index)."""
+    if node is None:
+        return None, 0
+    return NODE_SLOT, channels.index(node.channel) if node.channel in channels.names else 0
 
 
 def _j1939_fields(fid: int, extended: bool) -> dict[str, Any]:
