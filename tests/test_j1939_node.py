@@ -464,3 +464,24 @@ def test_the_channel_probe_says_who_holds_cmcans_address():
     taken = judge(mine, SA, {SA: mine - 1}, set(), (0x8D,))
     assert taken["state"] == "taken" and "move within j1939.addresses" in taken["text"]
     assert judge(mine, SA, {SA: mine + 1}, set())["state"] == "contested"
+
+
+def test_clears_and_claim_changes_become_uplink_events():
+    from cmcan.uplink.records import claim_entry, clear_entry
+
+    t = Totals()
+    t.record_clear("dm3", 7.0, 7.0, TOOL, OURS.value, ["520193:9"])
+    e = clear_entry(t.dtc_clears[0])
+    assert (e.kind, e.t_s, e.body["type"], e.body["by_address"], e.body["cleared"]) == (
+        "event",
+        7.0,
+        "dtc_clear",
+        TOOL,
+        ["520193:9"],
+    )
+    m = machine()
+    m.start(1.0)
+    m.on_claim(2.0, SA, OURS.value - 1)
+    bodies = [claim_entry(x, m.name_value).body for x in m.events]
+    assert [(b["state"], b["address"]) for b in bodies] == [("claiming", SA), ("lost", None)]
+    assert bodies[-1]["by_name"] == f"0x{OURS.value - 1:016X}"

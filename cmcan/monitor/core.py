@@ -700,6 +700,7 @@ class Monitor:
                 for (ch, fid, ext), n in self.router.busiest_unknown()
             ],
             "dtcs_active": list(self.totals.dtc_active),
+            **({"j1939_node": self.node.describe()} if self.node is not None else {}),
         }
 
     def _input_counts(self, s: Slot) -> dict[str, Any]:
