@@ -151,7 +151,8 @@ class Daemon:
     def fresh_status(self, timeout: float = 10.0) -> dict[str, int]:
         """Counters from a STATUS sent after now (the daemon reports every 2 s)."""
         n = len(self.notify.got)
-        assert self.notify.wait_for(lambda: any("STATUS=" in m for _, m in self.notify.got[n:]), timeout)
+        got = self.notify.wait_for(lambda: any("STATUS=" in m for _, m in self.notify.got[n:]), timeout)
+        assert got, f"no STATUS within {timeout} s; the daemon said: {self.stderr()[-3000:]}"
         return self.notify.counters()
 
     def stop(self) -> tuple[float, float]:
