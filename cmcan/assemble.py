@@ -23,12 +23,14 @@ from cmcan.errors import Kind
 from cmcan.frame import Frame
 from cmcan.j1939 import dm1 as j1939_dm1
 from cmcan.j1939 import ids
+from cmcan.j1939.claim import ClaimParams
 from cmcan.model import GrayBoxModel, ModelError, default_model_path, load_model
 from cmcan.monitor.core import Monitor, MonitorParams
 from cmcan.monitor.diagnostics import Dm1Params
 from cmcan.monitor.gating import GateLimits, RoleFit, fit_to_cycles, prediction_ok
 from cmcan.monitor.health import HealthSpec
 from cmcan.monitor.inputs import MEMO_MAX, Channels, InputMessage, Matcher, overlap
+from cmcan.monitor.node import NodeParams
 from cmcan.monitor.payloads import OutputMessage, Outputs, output_span, output_spans
 from cmcan.monitor.totals import Totals
 from cmcan.monitor.windows import Affine, DpFromHighLow, dp_affine, role_affine
@@ -678,6 +680,28 @@ def build_monitor(
         channels=channels(cfg, log_aliases),
         dm1=dm1_params(cfg, db),
         own_address=cfg.j1939.source_address if cfg.j1939.enabled else None,
+        node=node_params(cfg, db),
+    )
+
+
+def node_params(cfg: Config, db: Database) -> NodeParams | None:
+    """cmcan as a J1939 node on its output channel, on a J1939 machine: it answers requests, and with
+    a NAME it claims its address (and, arbitrary address capable, moves within j1939.addresses)."""
+    j = cfg.j1939
+    if not j.enabled or j.source_address is None:
+        return None
+    claim = None
+    if j.name is not None:
+        claim = ClaimParams(j.name, j.source_address, j.addresses, cfg.output_channel)
+    out = [
+        msg for _, o in cfg.outputs.items(cfg.quantity) if (msg := db.get_message_by_name(o.message)).is_extended_frame
+    ]
+    return NodeParams(
+        address=j.source_address,
+        channel=cfg.output_channel,
+        claim=claim,
+        output_pgns=frozenset(int(ids.pgn(m.frame_id)) for m in out if _j1939_matched(cfg, m)),
+        request_interval_s=j.request_interval_ms / 1000.0,
     )
 
 

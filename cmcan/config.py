@@ -16,6 +16,7 @@ from typing import Any
 from cmcan.checksums import ALGORITHMS
 from cmcan.io.points import Condition, PointsError, PointSpec
 from cmcan.j1939.dm1 import PROPRIETARY_SPNS
+from cmcan.j1939.name import Name
 from cmcan.monitor.gating import REFERENCE_PUMP_DISP_CC, REFERENCE_PUMP_SPEED_RPM, GateLimits, scaled
 from cmcan.monitor.warnings import Thresholds
 from cmcan.oil import Oil, oil_from_grade
@@ -232,7 +233,43 @@ def _j1939_rule(j: dict[str, Any]) -> tuple[str, str] | None:
         return "dm1.enabled", "DM1 is a J1939 message: set j1939.enabled: true as well"
     if j["dm1"]["spn"] == j["dm1"]["input_spn"]:
         return "dm1.input_spn", "must differ from dm1.spn (the inputs' faults are another DTC than the condition)"
+    return _name_rule(j)
+
+
+def _name_rule(j: dict[str, Any]) -> tuple[str, str] | None:
+    """An arbitrary address capable NAME needs the addresses it may move to, and only it has them."""
+    capable = j["name"] is not None and j["name"]["arbitrary_address_capable"]
+    if j["addresses"] and j["name"] is None:
+        return "addresses", "the addresses an arbitrary address capable node moves to: give j1939.name as well"
+    if capable and not [a for a in j["addresses"] if a != j["source_address"]]:
+        return "addresses", (
+            "missing; an arbitrary address capable NAME moves to one of these when it loses its address "
+            "(e.g. [0x8D, 0x8E, 0x8F]), or set name.arbitrary_address_capable: false"
+        )
+    if j["addresses"] and not capable:
+        return (
+            "name.arbitrary_address_capable",
+            "is false: a node that is not arbitrary address capable never moves; drop j1939.addresses or set it true",
+        )
+    if len(set(j["addresses"])) != len(j["addresses"]):
+        return "addresses", "lists an address twice"
     return None
+
+
+_NAME = Obj(
+    {
+        "identity_number": Num(0, (1 << 21) - 1, integer=True),
+        "manufacturer_code": Num(0, (1 << 11) - 1, integer=True),
+        "function": Num(0, 255, integer=True),
+        "industry_group": Num(0, 7, integer=True, default=0),
+        "arbitrary_address_capable": Bool(default=False),
+        "ecu_instance": Num(0, 7, integer=True, default=0),
+        "function_instance": Num(0, 31, integer=True, default=0),
+        "vehicle_system": Num(0, 127, integer=True, default=0),
+        "vehicle_system_instance": Num(0, 15, integer=True, default=0),
+    },
+    default=None,
+)
 
 
 _BUS_SECTIONS = {
@@ -301,6 +338,10 @@ _BUS_SECTIONS = {
                 },
                 default={},
             ),
+            # J1939-81: with a NAME cmcan claims source_address before it sends anything else
+            "name": _NAME,
+            "addresses": Seq(Num(0, 253, integer=True), default=[]),
+            "request_interval_ms": Num(50, 10000, "ms", default=300.0),
         },
         default={},
         rule=_j1939_rule,
@@ -452,6 +493,9 @@ class J1939Config:
     source_addresses: tuple[int, ...] | None = None  # senders accepted by default; None: any
     bam_packet_gap_ms: float = 100.0
     dm1: Dm1Config = field(default_factory=Dm1Config)
+    name: Name | None = None  # J1939-81 NAME: cmcan claims its address (None: a fixed address, no claim)
+    addresses: tuple[int, ...] = ()  # an arbitrary address capable NAME's addresses to move to, in order
+    request_interval_ms: float = 300.0  # one answer per requester and PGN per this much frame time
 
 
 @dataclass(frozen=True)
@@ -678,6 +722,8 @@ def _with_bus_sections(cfg: Config, raw: dict[str, Any], source: str) -> Config:
         if own is not None and m.source_addresses is not None and own in m.source_addresses:
             raise SchemaError(source, f"messages.{name}.source_addresses", f"includes cmcan's own address {own}")
     default_sources = _sources(j["source_addresses"])
+    if j["name"] is not None and not j["enabled"]:
+        raise SchemaError(source, "j1939.name", "a NAME is claimed on a J1939 bus: set j1939.enabled: true as well")
     if own is not None and default_sources is not None and own in default_sources:
         raise SchemaError(source, "j1939.source_addresses", f"includes cmcan's own address {own}")
     return replace(
@@ -686,7 +732,16 @@ def _with_bus_sections(cfg: Config, raw: dict[str, Any], source: str) -> Config:
         channels=ChannelsConfig(tuple(extra), ch["outputs"], dict(ch["from_log"])),
         messages=messages,
         input_health=HealthConfig(float(h["timeout_cycles"]), h["max_counter_step"], h["checksum"]),
-        j1939=J1939Config(j["enabled"], own, default_sources, float(j["bam_packet_gap_ms"]), Dm1Config(**d)),
+        j1939=J1939Config(
+            j["enabled"],
+            own,
+            default_sources,
+            float(j["bam_packet_gap_ms"]),
+            Dm1Config(**d),
+            Name(**j["name"]) if j["name"] is not None else None,
+            tuple(j["addresses"]),
+            float(j["request_interval_ms"]),
+        ),
     )
 
 

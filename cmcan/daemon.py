@@ -45,7 +45,7 @@ from cmcan.monitor.core import Monitor
 from cmcan.monitor.inputs import InputMessage
 from cmcan.ratelog import RateLimitedLog
 from cmcan.sdnotify import Notifier
-from cmcan.statefile import StateStore
+from cmcan.statefile import StateStore, write_node_status
 
 if TYPE_CHECKING:  # only for the type hint: the uplink's feed is an application beside this one
     from cmcan.uplink.feed import UplinkFeed
@@ -107,6 +107,10 @@ MAX_BATCH = 4096  # several buses: frames read before some go on
 J1939_PGN_MASK = 0x03FFFF00  # EDP, DP, PF, PS: the priority and the source address left out
 # A filter no real frame matches: a channel that only carries cmcan's outputs receives nothing.
 NOTHING = {"can_id": 0, "can_mask": 0x1FFFFFFF, "extended": True}
+# cmcan's J1939 node hears every Request (PF 0xEA) and Address Claimed (PF 0xEE), whatever the
+# destination and sender: the priority bits left out, EDP, DP and PF compared
+NODE_FILTERS = [{"can_id": pf << 16, "can_mask": 0x03FF0000, "extended": True} for pf in (0xEA, 0xEE)]
+CAN_ERR_BUSOFF, CAN_ERR_RESTARTED = 0x40, 0x100  # error classes (linux/can/error.h)
 
 
 def can_filters(inputs: Sequence[InputMessage], channel: str) -> list[dict[str, Any]]:
@@ -137,12 +141,16 @@ def can_filters(inputs: Sequence[InputMessage], channel: str) -> list[dict[str, 
 
 
 def bus_kwargs(cfg: Config, channel: ChannelConfig, inputs: Sequence[InputMessage]) -> dict[str, Any]:
-    """python-can's ``Bus`` arguments for one configured channel (``fd=True`` on a CAN FD bus)."""
+    """python-can's ``Bus`` arguments for one configured channel (``fd=True`` on a CAN FD bus); on a
+    J1939 machine the output channel also lets the node's Requests and Address Claimed through."""
+    filters = can_filters(inputs, channel.name)
+    if cfg.j1939.enabled and channel.name == cfg.output_channel:
+        filters = [f for f in filters if f is not NOTHING] + NODE_FILTERS
     kw: dict[str, Any] = {
         "interface": cfg.bus.interface,
         "channel": channel.name,
         "bitrate": channel.bitrate or cfg.bus.bitrate,
-        "can_filters": can_filters(inputs, channel.name),
+        "can_filters": filters,
         "receive_own_messages": False,
     }
     if channel.fd:
@@ -187,6 +195,7 @@ class Link:
         self.retry_at = -math.inf
         self.backoff_s = 0.0
         self.down_reason = ""  # why the bus is closed, for the status ("" before the first try)
+        self.opens = 0  # times it was opened
 
 
 class Daemon:
@@ -246,6 +255,7 @@ class Daemon:
         self._wake_w: socket.socket | None = None
         self._sleep = sleep or self._wait
         self.loop = _LoopState(next_wd=clock(), next_status=clock(), last_save=clock())
+        self._node_seen: tuple[object, int] = (None, 0)  # the claim whose events were told, and how many
 
     def _set_links(self, open_bus: Callable[[], can.BusABC] | Mapping[str, Callable[[], can.BusABC]]) -> None:
         opens = dict(open_bus) if isinstance(open_bus, Mapping) else {self.cfg.bus.channel: open_bus}
@@ -375,6 +385,8 @@ class Daemon:
                     msg.arbitration_id,
                     bytes(msg.data).hex(),
                 )
+                if msg.arbitration_id & CAN_ERR_RESTARTED and link.name == self.cfg.output_channel:
+                    self._node_start(msg.timestamp, "controller restarted after bus-off")
             try:
                 out = self._feed(link, msg, st.last_frame_t)
             except Exception:  # the core must never take the daemon down: log, count, go on
@@ -384,6 +396,8 @@ class Daemon:
                 self._send(out)
             st.last_rx_wall = now
             st.last_frame_t = msg.timestamp
+        if self.monitor.node is not None:
+            self._node_news()
 
     def _feed(self, link: Link, msg: can.Message, last_frame_t: float) -> list[Frame]:
         if self.opt.stamps_on_wall_clock:
@@ -417,6 +431,8 @@ class Daemon:
                 self._internal_error()
         if out or self._tp_waiting:
             self._send(out)
+        if self.monitor.node is not None:
+            self._node_news()
 
     def _watch_wall_clock(self, frame_t: float) -> None:
         """A step of the wall clock forward moves the monitor onto the new time base (a step back the
@@ -618,10 +634,46 @@ class Daemon:
         self._selectable = None
         x.backoff_s = 0.0
         x.down_reason = ""
+        x.opens += 1
         if self.stats["bus_opens"] > len(self.links):
             log.info("bus %s reopened", x.name)
+        if x.name == self.cfg.output_channel and x.opens > 1:  # the J1939 node claims again when the link is back
+            t = self.wall_clock() if self.opt.stamps_on_wall_clock else math.nan
+            self._node_start(t, "link back")
         self.notifier.status(self._status_text())
         return True
+
+    def _node_start(self, t: float, why: str) -> None:
+        """The J1939 node's address claim at frame time ``t`` when the output link is back or the
+        controller restarted after a bus-off. At the start the core claims by itself, at the first
+        frame (or the first idle step on a silent bus): at the time a replay of the same frames
+        claims, and before anything else goes out."""
+        if self.monitor.node is None or not math.isfinite(t):
+            return
+        try:
+            out = self.monitor.start(t, why)
+        except Exception:
+            self._internal_error()
+            return
+        self._send(out)
+        self._node_news()
+
+    def _node_news(self) -> None:
+        """The node's claim events since the last call: into the journal and the state directory's
+        node file (which ``cmcan uplink`` puts into its health messages)."""
+        node = self.monitor.node
+        c = node.claim if node is not None else None
+        if c is None or (c.n_events == self._node_seen[1] and c is self._node_seen[0]):
+            return
+        seen = self._node_seen[1] if c is self._node_seen[0] else 0
+        for e in c.events[-min(c.n_events - seen, len(c.events)) :]:
+            _log_claim(e, c.name_value)
+        self._node_seen = (c, c.n_events)
+        if self.store is not None:
+            try:
+                write_node_status(self.store.dir, node.describe() | {"t_s": c.events[-1].t_s})  # type: ignore[union-attr]
+            except OSError as exc:
+                self.ratelog(logging.WARNING, "node-file", "cannot write the J1939 node file: %s", exc)
 
     def _close(self, x: Link) -> None:
         if x.bus is not None:
@@ -699,6 +751,10 @@ class Daemon:
             for k in ("checksum", "counter_frozen", "counter_jump", "timeout", "bad_fd", "unknown_channel")
             if c[k]
         )
+        node = self.monitor.node
+        if node is not None and node.claim is not None:
+            a = node.address
+            bus += f", J1939 {node.state}" + (f" 0x{a:02X}" if a is not None else "")
         return (
             f"{s['level']} ({s['reason']}), ratio {ratio}, {s['warning_count']} warnings, {bus}; "
             f"frames {c['frames_total']} (inputs {c['accepted']}, bad length {c['bad_length']}, "
@@ -739,6 +795,23 @@ class Daemon:
             self.stats["tx_frames"],
             self.stats["tx_dropped"],
         )
+
+
+def _log_claim(e: Any, mine: int) -> None:
+    """One J1939 address-claim event in the journal: a loss is a warning (cmcan goes silent)."""
+    addr = f"0x{e.address:02X}" if e.address is not None else "none"
+    if e.state == "lost":
+        log.warning(
+            "J1939: cannot claim an address (%s; NAME %s won, cmcan's is 0x%016X): Cannot Claim sent, cmcan sends "
+            "nothing more until its link comes back or it restarts",
+            e.detail,
+            f"0x{e.by_name:016X}" if e.by_name is not None else "?",
+            mine,
+        )
+    elif e.state == "claiming":
+        log.info("J1939: claiming address %s with NAME 0x%016X (%s)", addr, mine, e.detail)
+    else:
+        log.info("J1939: address %s claimed (%s)", addr, e.detail)
 
 
 def _is_transport(f: Frame) -> bool:

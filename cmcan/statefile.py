@@ -18,6 +18,7 @@ from cmcan.monitor.totals import StateError, Totals
 log = logging.getLogger("cmcan.state")
 STATE_FILE = "state.json"
 LOCK_FILE = "cmcan.lock"
+NODE_FILE = "j1939-node.json"  # the J1939 node's address claim as the daemon last saw it (uplink health)
 
 
 class StateStore:
@@ -93,6 +94,25 @@ class StateStore:
             os.fsync(dfd)
         finally:
             os.close(dfd)
+
+
+def write_node_status(directory: str | Path, status: dict[str, object]) -> None:
+    """The J1939 node's state (claimed, lost, its address) in the state directory, replaced
+    atomically, for ``cmcan uplink``'s health messages and ``cmcan check --state``."""
+    d = Path(directory)
+    tmp = d / f".{NODE_FILE}.tmp"
+    tmp.write_text(json.dumps(status, indent=1, default=str), encoding="utf-8")
+    os.replace(tmp, d / NODE_FILE)
+
+
+def read_node_status(directory: str | Path) -> dict[str, object] | None:
+    """What :func:`write_node_status` wrote (None: no file, or not one it wrote)."""
+    try:
+        raw = _read_regular(Path(directory) / NODE_FILE)
+        doc = json.loads(raw.decode("utf-8")) if raw is not None else None
+    except (OSError, ValueError):
+        return None
+    return doc if isinstance(doc, dict) else None
 
 
 class StateAccessError(CmcanError):

@@ -49,9 +49,10 @@ LAYERS: list[tuple[str, ...]] = [
         "cmcan.uplink.setup",
     ),
     ("cmcan.gap", "cmcan.config"),
-    ("cmcan.assemble", "cmcan.preflight"),
+    ("cmcan.assemble", "cmcan.preflight", "cmcan.drives"),
     (
         "cmcan.daemon",
+        "cmcan.claimprobe",  # check --channel-check asks the bus who holds cmcan's J1939 address
         "cmcan.replay",
         "cmcan.demo",
         "cmcan.rebuild_default",

@@ -12,12 +12,13 @@ from cmcan.cli.common import Subparsers
 from cmcan.cli.errors import exit_code
 from cmcan.cli.jsonout import print_json
 from cmcan.config import Config
-from cmcan.errors import CmcanError
+from cmcan.drives import config_files, conflicts
+from cmcan.errors import CmcanError, Kind
 from cmcan.j1939 import ids
 from cmcan.monitor.totals import StateError
 from cmcan.preflight import check_channel, load_config, prepare
 from cmcan.roles import UNITS
-from cmcan.statefile import StateLock
+from cmcan.statefile import StateLock, read_node_status
 
 
 def add_subparser(sub: Subparsers) -> None:
@@ -30,8 +31,11 @@ def add_subparser(sub: Subparsers) -> None:
     )
     p.add_argument(
         "--config",
+        action="append",
         help="configuration (default: the one shipped with cmcan, which cmcan run uses without --config; "
-        "the file checked is printed)",
+        "the file checked is printed); given more than once, or a directory of *.yaml files, the drives of "
+        "one gateway: each checked, and refused when two would send the same identifier, claim the same "
+        "J1939 address or NAME, or share a state directory",
     )
     p.add_argument("--channel-check", action="store_true", help="also check the bus channel exists on this machine")
     p.add_argument(
@@ -44,6 +48,61 @@ def add_subparser(sub: Subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    files = config_files(args.config or [])
+    if len(files) > 1:
+        return run_drives(args, files)
+    args.config = files[0] if files else None
+    return run_one(args)
+
+
+def run_drives(args: argparse.Namespace, files: list[str]) -> int:
+    """Several drives of one gateway: each as ``cmcan check`` checks one, then what they would share."""
+    parts = []
+    for f in files:
+        try:
+            cfg = load_config(f)
+            prep = prepare(cfg, need_state=False, read_only=True)
+        except CmcanError as exc:
+            if args.json:
+                print_json({"ok": False, "error": str(exc), "exit_code": exit_code(exc), "config": f})
+                return exit_code(exc)
+            raise
+        parts.append(prep.parts)
+    problems = conflicts(parts)
+    if problems:
+        text = "; ".join(problems)
+        if args.json:
+            err = CmcanError(text, Kind.CONFIG)
+            print_json({"ok": False, "error": text, "exit_code": exit_code(err), "configs": files})
+            return exit_code(err)
+        raise CmcanError(f"the drives cannot run on one gateway: {text}", Kind.CONFIG)
+    drives = [_drive_summary(p) for p in parts]
+    if args.json:
+        print_json({"ok": True, "drives": drives})
+    else:
+        print(f"ok: {len(drives)} drives on one gateway, nothing shared")
+        for d in drives:
+            print(f"  {d['config']}: sends {', '.join(d['sends'])} on {d['channel']}{d['j1939']}; state {d['state']}")
+    return 0
+
+
+def _drive_summary(parts: Any) -> dict[str, Any]:
+    cfg, out = parts.cfg, parts.monitor.outputs
+    ids_ = [f"0x{m.frame_id:0{8 if m.extended else 3}X}" for m in (out.ratio, out.quantity, out.warning)]
+    j = cfg.j1939
+    jt = ""
+    if j.enabled:
+        jt = f", J1939 address 0x{j.source_address:02X}" + (f" NAME {j.name.hex()}" if j.name is not None else "")
+    return {
+        "config": cfg.source,
+        "sends": ids_,
+        "channel": cfg.output_channel,
+        "j1939": jt,
+        "state": str(cfg.state.directory),
+    }
+
+
+def run_one(args: argparse.Namespace) -> int:
     passed: list[str] = []  # what was checked before a failure, said with it
     try:
         cfg = load_config(args.config)
@@ -58,8 +117,10 @@ def run(args: argparse.Namespace) -> int:
         except StateError as exc:
             raise StateError(f"{exc} (cmcan run would keep it aside and start with fresh totals)") from None
         passed.append(f"model {prep.parts.model.path}")
+        node = None
         if args.channel_check:
             check_channel(cfg)
+            node = probe_node(cfg)
         check_uplink(cfg)
     except CmcanError as exc:
         if args.json:
@@ -108,6 +169,9 @@ def run(args: argparse.Namespace) -> int:
             else None
         ),
     }
+    if result["j1939"] is not None and cfg.j1939.name is not None:
+        result["j1939"]["name"] = cfg.j1939.name.hex()
+        result["j1939"]["bus"] = node  # who holds the address now (--channel-check)
     if prep.store is not None:
         t = prep.parts.monitor.totals
         result["state"] = {
@@ -117,6 +181,8 @@ def run(args: argparse.Namespace) -> int:
             "condition": t.condition,
             "evaluated_h": t.evaluated_s / 3600.0,
             "locked_by_pid": StateLock(prep.store.dir).holder(),
+            "j1939_node": read_node_status(prep.store.dir),
+            "dtc_clears": t.dtc_clears[-5:],
         }
     if args.json:
         print_json(result)
@@ -160,7 +226,10 @@ def run(args: argparse.Namespace) -> int:
         if j is not None:
             dm = j["dm1"]
             dm_text = f"DM1 SPN {dm['spn']} (drive) and {dm['input_spn']} (inputs)" if dm else "no DM1"
-            print(f"  j1939  source address 0x{j['source_address']:02X}, {dm_text}")
+            named = f", NAME {j['name']} (claims its address)" if j.get("name") else ", no NAME (no address claim)"
+            print(f"  j1939  source address 0x{j['source_address']:02X}{named}, {dm_text}")
+            if j.get("bus"):
+                print(f"  j1939  on the bus: {j['bus']['state']}: {j['bus']['text']}")
         for m in result["input_messages"]:
             print(f"  {m['message']:<18} {m['match']} on {m['channel']}; {m['health']}")
         for r, tm in result["timing"].items():
@@ -174,7 +243,25 @@ def run(args: argparse.Namespace) -> int:
             )
             held = f"; in use by the daemon (pid {st['locked_by_pid']})" if st["locked_by_pid"] else ""
             print(f"  state  {st['file']} ({saved}{held})")
+            nd = st["j1939_node"]
+            if nd:
+                a = f"0x{nd['address']:02X}" if isinstance(nd.get("address"), int) else "no address"
+                print(f"  state  J1939 node as the daemon last saw it: {nd.get('state')}, {a}")
     return 0
+
+
+def probe_node(cfg: Config) -> dict[str, Any] | None:
+    """On a J1939 machine with a NAME and a SocketCAN bus: who holds cmcan's address now."""
+    if not cfg.j1939.enabled or cfg.j1939.name is None or cfg.bus.interface != "socketcan":
+        return None
+    from cmcan.claimprobe import probe
+
+    try:
+        return probe(cfg)
+    except OSError as exc:
+        raise CmcanError(
+            f"{cfg.source}: cannot ask {cfg.output_channel} who holds the J1939 address: {exc}", Kind.UNAVAILABLE
+        ) from None
 
 
 def check_uplink(cfg: Config) -> None:

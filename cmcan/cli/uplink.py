@@ -6,6 +6,7 @@ import argparse
 import logging
 import signal
 import sys
+from pathlib import Path
 from types import FrameType
 from typing import TYPE_CHECKING
 
@@ -82,18 +83,25 @@ def run(args: argparse.Namespace) -> int:
     # the running uplink's session from it.
     lock = OutboxLock(settings.outbox.path).acquire()
     try:
-        return _publish(args, settings, open_for_uplink(settings.outbox.path, source=cfg.source), password, tls)
+        box = open_for_uplink(settings.outbox.path, source=cfg.source)
+        return _publish(args, settings, box, password, tls, cfg.state.directory)
     finally:
         lock.release()
 
 
 def _publish(
-    args: argparse.Namespace, settings: UplinkSettings, box: Outbox, password: str | None, tls: ssl.SSLContext | None
+    args: argparse.Namespace,
+    settings: UplinkSettings,
+    box: Outbox,
+    password: str | None,
+    tls: ssl.SSLContext | None,
+    state_dir: Path | None = None,
 ) -> int:
     from cmcan.uplink.publisher import Publisher
 
     notifier = Notifier() if not args.check else Notifier(env={})
     pub = Publisher(settings, box, password=password, tls=tls, notifier=notifier)
+    pub.node_dir = state_dir  # the daemon's J1939 node file, for the health messages
     if args.check:
         try:
             print(f"ok: {pub.check_connection()}; outbox {box.path} holds {box.usage().entries} entries")

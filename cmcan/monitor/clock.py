@@ -128,6 +128,24 @@ class TickClock:
         self.last_frame_t = max(self.last_frame_t, t)  # the newest time seen: a step back is measured from it
         return ks
 
+    def passing(self, t: float) -> list[int]:
+        """A frame that is no input passes at ``t`` (a J1939 node's request or claim, answered at its
+        time): the ticks before it, as an input frame at ``t`` completes them, so what cmcan sends
+        stays in order of time. It neither starts the clock nor is counted late nor moves the time
+        base; after a gap in the inputs only the ticks up to the last input frame (those the next input
+        frame would evaluate in any case)."""
+        if self.next_k is None or not math.isfinite(t) or t <= self._due_t:
+            return []
+        if t - self.last_frame_t > self.max_gap_s:
+            return self.flush()
+        ks = []
+        k = self.next_k
+        while k * self.period < t - TIME_EPS_S:
+            ks.append(k)
+            k += 1
+        self._set_next(k)
+        return ks
+
     def flush(self) -> list[int]:
         """The ticks up to the last frame (the end of a replayed log)."""
         if self.next_k is None:

@@ -63,7 +63,8 @@ from cmcan.monitor.diagnostics import Dm1Params, Dm1Producer
 from cmcan.monitor.filter import RatioFilter
 from cmcan.monitor.gating import Gate, GateLimits, gate_columns, gate_point
 from cmcan.monitor.health import NOT_AVAILABLE, OK, OUT_OF_RANGE, Health, Stream
-from cmcan.monitor.inputs import Channels, InputMessage, Router, payload_rows
+from cmcan.monitor.inputs import NODE, Channels, InputMessage, Router, payload_rows
+from cmcan.monitor.node import Clear, Node, NodeParams
 from cmcan.monitor.payloads import Outputs, Payloads
 from cmcan.monitor.ratio import Point, Points, Predictor, Ratio
 from cmcan.monitor.release import OutputQueue
@@ -97,6 +98,7 @@ COUNTERS = (
     "other_sender",
     "error_code",
     "not_available",
+    "node_frames",
 )
 _CONDITION = {
     "ok": (Level.OK, Reason.NONE),
@@ -141,6 +143,16 @@ class Slot:
         self.add = windows.adder(spec.roles)
 
 
+class NodeSlot:
+    """What the router hands back for a frame of cmcan's J1939 node (a Request, an Address Claimed)."""
+
+    index = -1
+    length = 0
+
+
+NODE_SLOT = NodeSlot()
+
+
 class Monitor:
     def __init__(
         self,
@@ -152,6 +164,7 @@ class Monitor:
         channels: Channels | None = None,
         dm1: Dm1Params | None = None,
         own_address: int | None = None,
+        node: NodeParams | None = None,
     ) -> None:
         p = self.params = params
         self.inputs = tuple(inputs)
@@ -175,7 +188,9 @@ class Monitor:
         self.slots = tuple(
             Slot(i, m, s, self.windows) for i, (m, s) in enumerate(zip(self.inputs, self.health.streams, strict=True))
         )
-        self.router = Router(self.inputs, self.channels, self.slots, own_address)
+        # cmcan as a J1939 node where configured: the router hands it its frames (:mod:`.node`)
+        self.node = Node(node) if node is not None else None
+        self.router = Router(self.inputs, self.channels, self.slots, own_address, *_node_route(node, self.channels))
         self.ratio = Ratio(model, p.limits, p.lpm_per_unit)
         self.queue = OutputQueue()
         self.dm1_producer = Dm1Producer(dm1, self.totals) if dm1 is not None else None
@@ -208,6 +223,7 @@ class Monitor:
         """What happened to the frames and ticks so far (:data:`COUNTERS`), from each stage's counts."""
         c = {**self.router.counts, **self.health.counts(), **self.clock.counts, **self.ratio.counts}
         c.update(accepted=self.accepted, ticks=self.n_ticks)
+        c["node_frames"] = self.node.counts["node_frames"] if self.node is not None else 0
         return {k: c[k] for k in COUNTERS}
 
     @property
@@ -219,8 +235,69 @@ class Monitor:
 
     def feed(self, frame: Frame) -> list[Frame]:
         """Take one received frame; returns the output frames due by its time (see the module)."""
+        if self.node is not None:
+            return self._feed_node(frame)
         slot = self.router.route(frame)
         return [] if slot is None else self.take(slot, frame)
+
+    def _feed_node(self, frame: Frame) -> list[Frame]:
+        """:meth:`feed` on a J1939 node: it starts (claims) at the first frame with a time, takes its
+        own frames, and gates what goes out."""
+        node = self.node
+        assert node is not None
+        pre = self.start(frame[0]) if not node.started and math.isfinite(frame[0]) else []
+        slot = self.router.route(frame)
+        if slot is None:
+            out = []
+        elif slot is NODE_SLOT:
+            out = self._node_frame(frame)
+        else:
+            out = node.outgoing(self.take(slot, frame))
+        return pre + out if pre else out
+
+    def start(self, t: float, why: str = "start") -> list[Frame]:
+        """The node's start at ``t``: its address claim (the daemon calls it when a link comes up, at
+        its start and after a bus-off; a replay at the log's first frame)."""
+        if self.node is None:
+            return []
+        return self.node.outgoing(self.node.start(t, why))
+
+    def _node_frame(self, frame: Frame) -> list[Frame]:
+        """A Request or Address Claimed for cmcan's node: the ticks before it first (so its answers
+        follow them in time), then the answers; a DM3 or DM11 is carried out before its ACK."""
+        node = self.node
+        assert node is not None
+        t = frame[0]
+        out: list[Frame] = []
+        if math.isfinite(t):
+            for k in self.clock.passing(t):
+                out += self._evaluate(k)
+            if self.queue.later:
+                out = self.queue.release(out, t)
+        out = node.outgoing(out)
+        answers, clear = node.handle(frame, self.dm1_producer)
+        if clear is not None:
+            self._clear(clear)
+        now: list[Frame] = []
+        self.queue.queue(answers, t, now)  # later ones (a delayed Cannot Claim, BAM packets) wait
+        return out + node.outgoing(now)
+
+    def _clear(self, c: Clear) -> None:
+        """DM3 (previously active DTCs) or DM11 (active ones: the warning state too, so a condition
+        still there is found again, with its debounce, and becomes active again), recorded with who
+        asked and when."""
+        dm = self.dm1_producer
+        assert dm is not None
+        if c.kind == "dm11":
+            keys = dm.clear_active()
+            old = self.machine.level
+            self.machine = WarningMachine(self.params.thresholds)
+            if old != Level.OK:
+                self._record(Transition(c.t_s, old, Level.OK, Reason.NONE, None))
+            self.totals.condition = LEVEL_NAMES[self.machine.condition]
+        else:
+            keys = dm.clear_previous()
+        self.totals.record_clear(c.kind, c.t_s, c.t_s + self.run_shift_s, c.by_address, c.by_name, keys)
 
     def take(self, slot: Slot, frame: Frame) -> list[Frame]:
         """A routed frame of ``slot``'s message: the ticks it completes, its checks, its samples."""
@@ -254,14 +331,19 @@ class Monitor:
 
     def advance(self, t: float) -> list[Frame]:
         """Time passes without frames (the daemon's idle timer): evaluate up to ``t``."""
+        pre = self.start(t) if self.node is not None and not self.node.started and math.isfinite(t) else []
         out: list[Frame] = []
         for k in self.clock.advance(t):
             out += self._evaluate(k)
-        return self.queue.release(out, t) if self.queue.later else out
+        return pre + self._gate(self.queue.release(out, t) if self.queue.later else out)
 
     def due(self, t: float) -> list[Frame]:
         """The pending transport packets due by ``t``, without evaluating (the daemon's timer)."""
-        return self.queue.release([], t) if self.queue.later else []
+        return self._gate(self.queue.release([], t)) if self.queue.later else []
+
+    def _gate(self, frames: list[Frame]) -> list[Frame]:
+        """Output frames through the J1939 node's gate (where there is a node)."""
+        return self.node.outgoing(frames) if self.node is not None and frames else frames
 
     @property
     def next_due_t(self) -> float:
@@ -273,7 +355,7 @@ class Monitor:
         out: list[Frame] = []
         for k in self.clock.flush():
             out += self._evaluate(k)
-        return self.queue.release(out, math.inf)
+        return self._gate(self.queue.release(out, math.inf))
 
     def shift_time(self, delta_s: float) -> None:
         """The wall clock stepped by ``delta_s``: move the windows and the tick clock onto the new
@@ -358,9 +440,42 @@ class Monitor:
         one piece (None when none, or when ``frames`` is False: the ticks are all the caller wants)."""
         out = _Out(frames)
         which = self.router.route_columns(cols)
-        idx = np.flatnonzero(which >= 0)
+        if self.node is not None:
+            return self._feed_columns_node(cols, which, out)
+        self._feed_routed(cols, which, 0, len(cols), out)
+        return out.result()
+
+    def _feed_columns_node(self, cols: FrameColumns, which: NDArray[np.int64], out: _Out) -> FrameColumns | None:
+        """:meth:`feed_columns` on a J1939 node: the chunk in pieces between the node's own frames
+        (each on the per-frame path) and its start, each piece's output through the node's gate."""
+        node = self.node
+        assert node is not None
+        rows = set(np.flatnonzero(which == NODE).tolist())
+        start = None
+        if not node.started:
+            finite = np.flatnonzero(np.isfinite(cols.timestamp_s))
+            start = int(finite[0]) if len(finite) else None
+        lo = 0
+        for r in sorted({*rows, *([start] if start is not None else [])}):
+            piece = _Out(out.wanted)
+            self._feed_routed(cols, which, lo, r, piece)
+            out.add_columns(node.outgoing_columns(piece.result()))
+            lo = r
+            if r == start:
+                out.add_frames(self.start(float(cols.timestamp_s[r])))
+            if r in rows:
+                out.add_frames(self._node_frame(cols.frame(r)))
+                lo = r + 1
+        piece = _Out(out.wanted)
+        self._feed_routed(cols, which, lo, len(cols), piece)
+        out.add_columns(node.outgoing_columns(piece.result()))
+        return out.result()
+
+    def _feed_routed(self, cols: FrameColumns, which: NDArray[np.int64], lo: int, hi: int, out: _Out) -> None:
+        """The routed input frames among rows ``lo`` to ``hi`` of a chunk, in regular stretches."""
+        idx = np.flatnonzero(which[lo:hi] >= 0) + lo
         if not len(idx):
-            return out.result()
+            return
         t = cols.timestamp_s[idx]
         groups = _groups(which[idx], len(self.slots))
         del which
@@ -375,7 +490,6 @@ class Monitor:
                 pos += 1
             else:
                 pos = end
-        return out.result()
 
     def _decode(self, cols: FrameColumns, idx: NDArray[np.int64], groups: list[NDArray[np.int64]]) -> _Decoded:
         """Per input message the raw values of its frames, the DBC range check per frame, each frame's
@@ -531,6 +645,8 @@ class Monitor:
         if self.dm1 is not None:
             same_dm1 = old.dm1_producer is not None and self.dm1 == old.dm1
             self.dm1_producer = old.dm1_producer if same_dm1 else Dm1Producer(self.dm1, self.totals)
+        if self.node is not None and old.node is not None and self.node.p == old.node.p:
+            self.node = old.node  # the claim stands: a node claims again only with another NAME or address
         return self._take_inputs(old)
 
     def _take_inputs(self, old: Monitor) -> list[str]:
@@ -584,6 +700,7 @@ class Monitor:
                 for (ch, fid, ext), n in self.router.busiest_unknown()
             ],
             "dtcs_active": list(self.totals.dtc_active),
+            **({"j1939_node": self.node.describe()} if self.node is not None else {}),
         }
 
     def _input_counts(self, s: Slot) -> dict[str, Any]:
@@ -635,6 +752,13 @@ class _Out:
         if not self.pieces:
             return None
         return self.pieces[0] if len(self.pieces) == 1 else FrameColumns.concat(self.pieces)
+
+
+def _node_route(node: NodeParams | None, channels: Channels) -> tuple[NodeSlot | None, int]:
+    """What the router hands the node's frames back as, and the node's channel (its index)."""
+    if node is None:
+        return None, 0
+    return NODE_SLOT, channels.index(node.channel) if node.channel in channels.names else 0
 
 
 def _j1939_fields(fid: int, extended: bool) -> dict[str, Any]:

@@ -157,6 +157,44 @@ class Dm1Producer:
         self.busy_until = frames[-1].timestamp_s
         return frames
 
+    # -- answers to requests and clears (DM1, DM2, DM3, DM11) ----------------------------------------
+
+    def answer(self, pgn: int, t: float) -> list[Frame]:
+        """The frames answering a request at ``t`` for DM1 (the active DTCs as DM1 would send them now)
+        or DM2 (the previously active ones: an occurrence count, not active now), the lamps as they are
+        now; longer than 8 bytes by BAM, after any BAM of this node in progress (one at a time)."""
+        p = self.p
+        payload = dm_payload(p, self.active, self.totals.dtc_occurrences, pgn)
+        fid = ids.make_id(p.priority, pgn, p.source)
+        if len(payload) <= 8:
+            return [Frame(t, p.channel, fid, True, False, False, False, payload)]
+        t0 = t if t > self.busy_until else self.busy_until + p.bam_gap_s
+        frames = transport.bam_frames(t0, p.bam_gap_s, pgn, payload, p.source, p.channel)
+        self.busy_until = frames[-1].timestamp_s
+        return frames
+
+    def clear_previous(self) -> list[str]:
+        """DM3: forget the previously active DTCs (their occurrence counts); the keys forgotten."""
+        counts = self.totals.dtc_occurrences
+        gone = sorted((k for k in counts if k not in self.active), key=dtc_order)
+        for k in gone:
+            del counts[k]
+        return gone
+
+    def clear_active(self) -> list[str]:
+        """DM11: forget the active DTCs and their counts; a condition still present makes its DTC
+        active again (occurrence count 1) when the monitor finds it again. The keys forgotten."""
+        gone = list(self.active)
+        for k in gone:
+            self.totals.dtc_occurrences.pop(k, None)
+        self.active = []
+        self.totals.dtc_active = []
+        self.low_severe = self.high_severe = False
+        self._last = None
+        self._payload = None
+        self.changed = True  # the cleared DM1 goes out at the next tick
+        return gone
+
     # -- a stretch of ticks ------------------------------------------------------------------------
 
     def run_columns(
@@ -281,3 +319,21 @@ class Dm1Producer:
         if len(parts) > 1:
             cols = cols.take(np.argsort(np.concatenate(at), kind="stable"))
         return cols
+
+
+def dtc_order(key: str) -> tuple[int, int]:
+    """A DTC key ("SPN:FMI") as numbers, for sorting."""
+    spn, fmi = key.split(":")
+    return int(spn), int(fmi)
+
+
+def dm_payload(p: Dm1Params, active: list[str], counts: dict[str, int], pgn: int) -> bytes:
+    """DM1's payload (``pgn`` 65226: the active DTCs) or DM2's (65227: the previously active ones, by
+    SPN and FMI), each DTC with its occurrence count; the amber lamp on while a condition DTC is active."""
+    if pgn == dm1.PGN_DM1:
+        keys = list(active)
+    else:
+        keys = sorted((k for k, n in counts.items() if n and k not in active), key=dtc_order)
+    amber = any(dtc_order(k)[0] == p.spn for k in active)
+    dtcs = [Dtc(*dtc_order(k), counts.get(k, 0)) for k in keys]
+    return dm1.encode(Lamps(amber_warning=Lamp.ON if amber else Lamp.OFF), dtcs)

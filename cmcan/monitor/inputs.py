@@ -36,6 +36,8 @@ MEMO_MAX = 1 << 16  # identifiers remembered per channel (a flood of random ones
 # why a frame is no input (:class:`Router`); 0 and up: the input message's index
 UNKNOWN_ID, UNKNOWN_CHANNEL, BAD_FD, NOT_DATA = -1, -2, -3, -4
 OWN_ADDRESS = -6  # a J1939 frame claiming cmcan's own source address
+NODE = -7  # a J1939 Request or Address Claimed on the output channel: for cmcan's node
+NODE_PFS = frozenset((0xEA, 0xEE))  # the PDU formats of Request (PGN 59904) and Address Claimed (60928)
 # the router's counters: every frame, and each reason a frame is no input
 ROUTED = (
     "frames_total",
@@ -247,9 +249,18 @@ class Router(Generic[S]):
     channel name, identifier, format and FD flag, remembered per combination."""
 
     def __init__(
-        self, inputs: Sequence[InputMessage], channels: Channels, slots: Sequence[S], own_address: int | None = None
+        self,
+        inputs: Sequence[InputMessage],
+        channels: Channels,
+        slots: Sequence[S],
+        own_address: int | None = None,
+        node_slot: Any = None,
+        node_channel: int = 0,
     ) -> None:
         self.inputs = tuple(inputs)
+        # J1939 network management on the output channel goes to cmcan's node: routed to ``node_slot``
+        self.node_slot = node_slot
+        self.node_channel = node_channel
         self.channels = channels
         self.slots = tuple(slots)
         self.own_address = own_address  # cmcan's J1939 source address: frames from it are no input
@@ -285,7 +296,7 @@ class Router(Generic[S]):
         slot = (ch.slot_ext if extended else ch.slot_std).get(fid, _MISS)
         if slot is _MISS:
             i = self._lookup(ch, fid, extended)
-            slot = self.slots[i] if i >= 0 else i
+            slot = self.slots[i] if i >= 0 else (self.node_slot if i == NODE else i)
         if slot.__class__ is int:  # no input: an unknown identifier, or cmcan's own address
             c[_REASON[slot]] += 1
             if slot == UNKNOWN_ID:
@@ -305,8 +316,12 @@ class Router(Generic[S]):
         return ch
 
     def _lookup(self, ch: _Channel, fid: int, extended: bool) -> int:
-        spec = self.matcher.match(ch.index, fid, extended)
-        if spec is None:
+        node = self.node_slot is not None and extended and ch.index == self.node_channel
+        node = node and ids.pdu_format(fid) in NODE_PFS
+        spec = None if node else self.matcher.match(ch.index, fid, extended)
+        if node:
+            i = NODE
+        elif spec is None:
             i = UNKNOWN_ID
         elif spec.pgn is not None and ids.source_address(fid) == self.own_address:
             i = OWN_ADDRESS  # a frame claiming to come from cmcan itself is never an input
@@ -315,7 +330,7 @@ class Router(Generic[S]):
         memo, slots = (ch.ext, ch.slot_ext) if extended else (ch.std, ch.slot_std)
         if len(memo) < MEMO_MAX:
             memo[fid] = i
-            slots[fid] = self.slots[i] if i >= 0 else i
+            slots[fid] = self.slots[i] if i >= 0 else (self.node_slot if i == NODE else i)
         return i
 
     def note_unknown(self, channel: str, fid: int, extended: bool, n: int) -> None:

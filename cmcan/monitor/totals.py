@@ -15,6 +15,7 @@ from cmcan.monitor.tick import LEVEL_NAMES
 from cmcan.monitor.warnings import Level, Reason, Transition, add_repeat
 
 HISTORY_MAX = 1000
+CLEARS_MAX = 100
 FORMAT = "cmcan-state/1"
 
 
@@ -39,6 +40,8 @@ class Totals:
     # J1939 DM1: occurrence count per DTC ("SPN:FMI") and the DTCs active at the last save
     dtc_occurrences: dict[str, int] = field(default_factory=dict)
     dtc_active: list[str] = field(default_factory=list)
+    # J1939-73 DM3 and DM11: each clear, with who asked (address, NAME where known) and when
+    dtc_clears: list[dict[str, Any]] = field(default_factory=list)  # newest last, at most CLEARS_MAX
 
     def record(self, tr: Transition, run_shift_s: float) -> None:
         """A level change, with its time on the run's continuous time base (``Monitor.run_shift_s``)."""
@@ -53,6 +56,22 @@ class Totals:
             }
         )
         del self.history[:-HISTORY_MAX]
+
+    def record_clear(
+        self, kind: str, t_s: float, t_run_s: float, by_address: int, by_name: int | None, cleared: list[str]
+    ) -> None:
+        """A DM3 or DM11 carried out at ``t_s``: what it cleared and who asked."""
+        self.dtc_clears.append(
+            {
+                "t_s": t_s,
+                "t_run_s": t_run_s,
+                "kind": kind,
+                "by_address": by_address,
+                "by_name": None if by_name is None else f"0x{by_name:016X}",
+                "cleared": list(cleared),
+            }
+        )
+        del self.dtc_clears[:-CLEARS_MAX]
 
     def tick(self, level: Level, evaluated: bool, period_s: float) -> None:
         """One tick's time: in its level, and evaluated or not."""
@@ -113,7 +132,33 @@ class Totals:
             _dtc_key(key)
         t.dtc_occurrences = {str(k): int(v) for k, v in occ.items()}
         t.dtc_active = [str(k) for k in active]
+        t.dtc_clears = _clears(d.get("dtc_clears", []))  # absent before J1939 clears were kept
         return t
+
+
+def _clears(v: Any) -> list[dict[str, Any]]:
+    """The DM3/DM11 records as :meth:`Totals.record_clear` writes them."""
+    if not isinstance(v, list):
+        raise StateError(f"field 'dtc_clears': expected a list, got {v!r:.60}")
+    out = []
+    for i, c in enumerate(v[-CLEARS_MAX:]):
+        ok = (
+            isinstance(c, dict)
+            and c.get("kind") in ("dm3", "dm11")
+            and _is_number(c.get("t_s"))
+            and _is_number(c.get("t_run_s"))
+            and isinstance(c.get("by_address"), int)
+            and not isinstance(c.get("by_address"), bool)
+            and 0 <= c["by_address"] <= 255
+            and (c.get("by_name") is None or isinstance(c.get("by_name"), str))
+            and isinstance(c.get("cleared"), list)
+        )
+        if not ok:
+            raise StateError(f"field 'dtc_clears[{i}]': not a DM3/DM11 record: {c!r:.80}")
+        for key in c["cleared"]:
+            _dtc_key(key)
+        out.append(dict(c))
+    return out
 
 
 def _dtc_key(key: Any) -> None:

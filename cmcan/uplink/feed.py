@@ -16,7 +16,15 @@ from typing import Any
 from cmcan.monitor.tick import Tick, TickColumns
 from cmcan.ratelog import RateLimitedLog
 from cmcan.uplink.config import UplinkSettings
-from cmcan.uplink.records import Cumulative, SummaryBuilder, TickSample, new_history, transition_entry
+from cmcan.uplink.records import (
+    Cumulative,
+    SummaryBuilder,
+    TickSample,
+    claim_entry,
+    clear_entry,
+    new_history,
+    transition_entry,
+)
 from cmcan.uplink.writer import OutboxWriter
 
 log = logging.getLogger("cmcan.uplink.feed")
@@ -31,6 +39,9 @@ class UplinkFeed:
         self.source: Callable[[], tuple[Any, dict[str, int]]] = lambda: (monitor, {})
         history = monitor.totals.history
         self._last_seen = history[-1] if history else None  # transitions before this start are old news
+        clears = monitor.totals.dtc_clears
+        self._last_clear = clears[-1] if clears else None  # so are DM3/DM11 clears
+        self._last_claim: Any = None  # the J1939 claim's events: all of them are news (it starts with the daemon)
         self.summaries = SummaryBuilder(
             summary_every_s, self._cumulative(monitor, {}), quantity=monitor.params.output_role
         )
@@ -59,11 +70,28 @@ class UplinkFeed:
                 for h in new:
                     leak = sample.extra_leak_lpm if h["t_s"] == sample.t_s else None
                     entries.append(transition_entry(h, tot.warning_count, tot.fault_count, leak))
+            entries += self._node_entries(monitor)
             for e in entries:
                 self.writer.submit(e)
         except Exception:  # the uplink must never take the daemon down
             self.errors += 1
             self.ratelog(logging.ERROR, "uplink-feed", "uplink: cannot build an outbox entry", exc_info=True)
+
+    def _node_entries(self, monitor: Any) -> list[Any]:
+        """DM3/DM11 clears and address-claim changes since the last tick, as events."""
+        out = []
+        new = new_history(monitor.totals.dtc_clears, self._last_clear)
+        if new:
+            self._last_clear = new[-1]
+            out += [clear_entry(c) for c in new]
+        node = getattr(monitor, "node", None)
+        claim = node.claim if node is not None else None
+        if claim is not None:
+            new = new_history(claim.events, self._last_claim)
+            if new:
+                self._last_claim = new[-1]
+                out += [claim_entry(e, claim.name_value) for e in new]
+        return out
 
     def ticks(self, chunk: TickColumns) -> None:
         for i in range(len(chunk)):

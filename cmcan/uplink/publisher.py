@@ -24,6 +24,7 @@ import time
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import paho.mqtt.client as mqtt
@@ -32,6 +33,7 @@ from paho.mqtt.enums import CallbackAPIVersion
 from cmcan import __version__
 from cmcan.ratelog import RateLimitedLog
 from cmcan.sdnotify import Notifier
+from cmcan.statefile import read_node_status
 from cmcan.uplink.config import UplinkSettings
 from cmcan.uplink.outbox import Outbox, OutboxError, describe, is_corruption, open_outbox, record_corrupt, set_aside
 from cmcan.uplink.records import SCHEMA_VERSION, dumps, envelope, iso_utc
@@ -117,6 +119,7 @@ class Publisher:
         self.sleep = sleep or self.stop_event.wait
         self.client_factory = client_factory or self._client
         self.next_watchdog = self.next_status = self.next_health = self.next_delete = self.started
+        self.node_dir: Path | None = None  # the daemon's state directory: its J1939 node file goes into health
 
     # -- the client ----------------------------------------------------------------------------------
 
@@ -222,6 +225,8 @@ class Publisher:
             "stream_id": self.box.stream_id,
             "counters": self.stats.as_dict(),
             "version": __version__,
+            # the daemon's J1939 address claim (state, address, NAME) as it last wrote it; None: no file
+            "j1939_node": read_node_status(self.node_dir) if self.node_dir is not None else None,
         }
 
     # -- the loop ------------------------------------------------------------------------------------

@@ -102,7 +102,38 @@ def transition_entry(
     )
 
 
-def new_history(history: list[dict[str, Any]], last_seen: dict[str, Any] | None) -> list[dict[str, Any]]:
+def clear_entry(c: dict[str, Any]) -> Entry:
+    """A J1939-73 DM3 or DM11 the monitor carried out (``Totals.dtc_clears``): what, who asked, when."""
+    return Entry(
+        EVENT,
+        float(c["t_s"]),
+        {
+            "type": "dtc_clear",
+            "kind": c["kind"],
+            "by_address": int(c["by_address"]),
+            "by_name": c.get("by_name"),
+            "cleared": list(c["cleared"]),
+        },
+    )
+
+
+def claim_entry(e: Any, name: int) -> Entry:
+    """A change of the J1939 address claim (:class:`cmcan.j1939.claim.Event`): claiming, claimed, lost."""
+    return Entry(
+        EVENT,
+        float(e.t_s),
+        {
+            "type": "address_claim",
+            "state": e.state,
+            "address": e.address,
+            "name": f"0x{name:016X}",
+            "detail": e.detail,
+            "by_name": None if e.by_name is None else f"0x{e.by_name:016X}",
+        },
+    )
+
+
+def new_history(history: list[Any], last_seen: Any) -> list[Any]:
     """The entries appended to ``history`` after ``last_seen`` (found by identity, newest last; the
     list is trimmed at its front, so indices shift but the objects stay the same)."""
     out: list[dict[str, Any]] = []
