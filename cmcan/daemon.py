@@ -663,8 +663,8 @@ class Daemon:
         node file (which ``cmcan uplink`` puts into its health messages)."""
         node = self.monitor.node
         c = node.claim if node is not None else None
-        if c is None or (c.n_events == self._node_seen[1] and c is self._node_seen[0]):
-            return
+        if c is None or not c.events or (c.n_events == self._node_seen[1] and c is self._node_seen[0]):
+            return  # no claim yet (no NAME, or before the first frame), or nothing new
         seen = self._node_seen[1] if c is self._node_seen[0] else 0
         for e in c.events[-min(c.n_events - seen, len(c.events)) :]:
             _log_claim(e, c.name_value)

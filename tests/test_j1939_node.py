@@ -4,9 +4,15 @@ and an independent decoder (pretty_j1939) reading what cmcan sends."""
 
 from __future__ import annotations
 
+import json
+import signal
+import subprocess
+import sys
+import time
 from dataclasses import replace
 
 import pytest
+import yaml
 from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
@@ -20,6 +26,7 @@ from cmcan.j1939.name import Name
 from cmcan.monitor.totals import StateError, Totals
 from cmcan.replay import FrameCollector, TimelineCollector, replay, replay_columns
 from cmcan.schema import SchemaError
+from tests.conftest import ROOT
 from tests.test_columnar import assert_same
 from tests.test_j1939 import pretty
 from tests.test_monitor_j1939 import j1939_cfg, machine_frames
@@ -485,3 +492,36 @@ def test_clears_and_claim_changes_become_uplink_events():
     bodies = [claim_entry(x, m.name_value).body for x in m.events]
     assert [(b["state"], b["address"]) for b in bodies] == [("claiming", SA), ("lost", None)]
     assert bodies[-1]["by_name"] == f"0x{OURS.value - 1:016X}"
+
+
+def test_the_daemon_claims_on_a_silent_bus_and_writes_its_node_file(tmp_path):
+    """The real ``cmcan run`` of the J1939 example machine on a bus nobody else sends on: it claims at
+    its first idle step, says so in the journal and the node file. Before: its first idle step, with
+    no claim made yet, ended the daemon with an internal error."""
+    raw = yaml.safe_load((ROOT / "config" / "j1939-example.yaml").read_text())
+    raw["dbc"] = str(ROOT / "dbc" / "j1939-example.dbc")
+    raw["bus"].update(interface="virtual", channel="silent-j1939")
+    raw["state"]["directory"] = str(tmp_path)
+    cfg = tmp_path / "j.yaml"
+    cfg.write_text(yaml.safe_dump(raw, sort_keys=False))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cmcan", "-v", "run", "--config", str(cfg)],
+        cwd=ROOT, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    node_file = tmp_path / "j1939-node.json"
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and proc.poll() is None and '"claimed"' not in read_if_there(node_file):
+        time.sleep(0.1)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    assert "internal error" not in err and "address 0x8C claimed" in err, err
+    node = json.loads(node_file.read_text())
+    assert node["state"] == "claimed" and node["address"] == SA, node
+
+
+def read_if_there(path) -> str:
+    try:
+        return path.read_text()
+    except FileNotFoundError:
+        return ""
