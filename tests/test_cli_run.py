@@ -104,7 +104,8 @@ def test_an_unwritable_state_directory(tmp_path):
     assert "(--state-dir)" in res.stderr and "state.directory in" not in res.stderr  # named by who gave it
 
 
-def test_systemd_unit_verifies():
+@pytest.mark.parametrize("unit_name", ["cmcan.service", "cmcan@.service"])
+def test_systemd_unit_verifies(unit_name):
     if shutil.which("systemd-analyze") is None:
         pytest.fail("systemd-analyze is not installed (the CI installs the systemd package)")
     import subprocess
@@ -113,7 +114,7 @@ def test_systemd_unit_verifies():
     beside = Path(sys.executable).parent / "cmcan"
     exe = str(beside) if beside.exists() else shutil.which("cmcan")
     assert exe, "the cmcan entry point must be installed"
-    unit = (ROOT / "systemd" / "cmcan.service").read_text().replace("/usr/local/bin/cmcan", exe)
+    unit = (ROOT / "systemd" / unit_name).read_text().replace("/usr/local/bin/cmcan", exe)
     for key in (
         "Type=notify",
         "WatchdogSec=",
@@ -133,11 +134,28 @@ def test_systemd_unit_verifies():
     import tempfile
 
     with tempfile.TemporaryDirectory() as d:
-        p = Path(d) / "cmcan.service"
+        p = Path(d) / unit_name.replace("@", "@left-travel")  # a template verifies as an instance
         p.write_text(unit)
         res = subprocess.run(["systemd-analyze", "verify", str(p)], capture_output=True, text=True, timeout=60)
     assert res.returncode == 0, res.stderr
     assert "Unknown" not in res.stderr and "ignoring" not in res.stderr.lower(), res.stderr
+
+
+def test_the_per_drive_template_is_the_single_unit_but_for_its_instance():
+    """cmcan@.service differs from cmcan.service only where the instance enters (its configuration,
+    state directory, description): a hardening added to one and not the other fails here."""
+
+    def settings(name: str) -> list[str]:
+        lines = (ROOT / "systemd" / name).read_text().splitlines()
+        return [x for x in lines if x.strip() and not x.startswith("#") and not x.startswith(PER_INSTANCE)]
+
+    assert settings("cmcan@.service") == settings("cmcan.service")
+    template = (ROOT / "systemd" / "cmcan@.service").read_text()
+    assert "--config /etc/cmcan/drives/%i.yaml --state-dir /var/lib/cmcan/%i" in template
+    assert "StateDirectory=cmcan/%i" in template
+
+
+PER_INSTANCE = ("Description=", "ExecStart=", "StateDirectory=")
 
 
 def test_systemd_security_exposure_is_at_most_1_3():
