@@ -359,7 +359,8 @@ class Daemon:
         now = self.clock()
         timeout = min(self.opt.recv_timeout_s, self._until_watchdog(now))
         if self._tp_waiting:
-            timeout = max(0.0, min(timeout, self._tp_last_sent + self._tp_gap_s - now))
+            timeout = min(timeout, self._tp_last_sent + self._tp_gap_s - now)
+        timeout = max(0.0, timeout)  # a ping already due (a loop that fell behind): look, do not wait
         if len(live) > 1:
             return self._receive(live, timeout)
         x = live[0]  # one bus: as it comes

@@ -437,6 +437,22 @@ def test_the_watchdog_keeps_its_interval_while_every_link_is_down():
     assert d.links_down == ["can0"] and d.stats["bus_errors"] == len(tries) and d.stats["bus_opens"] == 0
 
 
+def test_an_overdue_watchdog_ping_is_no_negative_receive_timeout():
+    """A guest that falls behind (an emulated one under load) reaches the receive step after its ping
+    was due: the wait is zero, not negative. Before, the bus refused the negative timeout, the daemon
+    took that for a failed link and reopened it (losing what it held, and a J1939 node claimed again)."""
+    ft = FakeTime()
+    bus = can.Bus(interface="virtual", channel="overdue-ping", receive_own_messages=False)
+    notifier = RecordingNotifier(ft.clock, watchdog_interval_s=1.0)
+    d = Daemon(cfgmod.load(), monitor(), None, lambda: bus, notifier, DaemonOptions(), clock=ft.clock, sleep=ft.sleep)
+    try:
+        live = d.links_up(ft.clock())
+        d.loop.next_wd = ft.clock() - 0.3  # the ping is 0.3 s overdue when the loop comes to receive
+        assert d.receive(live) == () and d.stats["bus_errors"] == 0 and d.links_down == []
+    finally:
+        bus.shutdown()
+
+
 def test_the_sleep_is_injectable_and_ends_by_the_next_ping_with_a_fast_watchdog():
     """A watchdog faster than the first back-off step (WatchdogSec=0.4s): no wait of the loop outlasts
     its interval, whatever the back-off says."""
