@@ -170,9 +170,10 @@ class Daemon:
         return said - t0, gone
 
 
-def candump(out: Path) -> subprocess.Popen:
-    """Record cmcan's output frames (0x3A0-0x3AF) in candump -L format."""
-    return subprocess.Popen(["candump", "-L", f"{IFACE},3A0:7F0"], stdout=open(out, "w"), stderr=subprocess.DEVNULL)
+def candump(out: Path, also: tuple[int, ...] = ()) -> subprocess.Popen:
+    """Record cmcan's output frames (0x3A0-0x3AF), and the 11-bit identifiers ``also``, in candump -L format."""
+    filters = ",".join(["3A0:7F0", *(f"{i:03X}:7FF" for i in also)])
+    return subprocess.Popen(["candump", "-L", f"{IFACE},{filters}"], stdout=open(out, "w"), stderr=subprocess.DEVNULL)
 
 
 def stop(proc: subprocess.Popen) -> None:
@@ -244,7 +245,8 @@ def test_ready_and_watchdog_over_the_notify_socket(daemon):
 @pytest.mark.vcan
 def test_canplayer_log_gives_the_frames_replay_computes(daemon, work):
     tmp = work["tmp"]
-    rec = candump(tmp / "out.log")
+    first_input = next(iter_frames(work["leak_log"])).arbitration_id  # when the log began, on the bus
+    rec = candump(tmp / "out.log", also=(first_input,))
     time.sleep(0.5)
     player = play(work["leak_log"])
     assert player.wait(timeout=120) == 0, player.stderr.read()
@@ -263,8 +265,7 @@ def test_canplayer_log_gives_the_frames_replay_computes(daemon, work):
     # frame's time is the number of CM frames since the log began before it. On the wall clock the
     # comparison would measure how far an emulated guest's daemon runs behind the bus (in CI by over
     # 0.5 s), not what it computed. The idle daemon's frames before the log are left out.
-    inputs = {f.arbitration_id for f in iter_frames(work["leak_log"])}
-    begun = next(t for t, i, _ in live if i in inputs)
+    begun = next(t for t, i, _ in live if i == first_input)
     live_t, off_t = on_ticks(live, begun), on_ticks(offline, offline[0][0])
     tr_live, tr_off = transitions(db, live_t), transitions(db, off_t)
     assert [lvl for _, lvl in tr_live] == [lvl for _, lvl in tr_off] == [0, 1]
