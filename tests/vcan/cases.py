@@ -610,6 +610,7 @@ def test_dm1_reaches_the_kernel_j1939_stack_single_frame_and_bam(j1939_run):
     tp = [f for f in _outputs(run["bus"]) if ids.pgn(f.arbitration_id) in (0xEC00, 0xEB00)]
     cm = [i for i, f in enumerate(tp) if ids.pgn(f.arbitration_id) == 0xEC00]
     assert cm
+    paced: list[float] = []
     for i in cm:
         session = tp[i : i + 3]
         if len(session) < 3 and i == cm[-1]:
@@ -617,7 +618,11 @@ def test_dm1_reaches_the_kernel_j1939_stack_single_frame_and_bam(j1939_run):
 
         assert [ids.pgn(f.arbitration_id) for f in session] == [0xEC00, 0xEB00, 0xEB00]
         gaps = np.diff([f.timestamp_s for f in session])
-        assert np.all((gaps >= 0.05) & (gaps <= 0.2)), gaps
+        # never faster than 50 ms (what the daemon paces); later than J1939-21's 200 ms only by a
+        # guest's scheduling (in the emulated guest, 0.23 s once), within a receiver's T1 of 750 ms
+        assert np.all((gaps >= 0.05) & (gaps <= 0.75)), gaps
+        paced.extend(gaps)
+    assert 0.05 <= np.median(paced) <= 0.2, paced
 
 
 @pytest.mark.vcan

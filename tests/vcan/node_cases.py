@@ -346,14 +346,27 @@ def two_drives(work):
         time.sleep(1.0)
         player = subprocess.Popen(["canplayer", "-I", str(log), f"{IFACE}=can0"], stderr=subprocess.PIPE, text=True)
         assert player.wait(timeout=180) == 0, player.stderr.read()
-        time.sleep(2.0)
-        status = (dl.notify.status(), dr.notify.status())
+        status = (settled(dl), settled(dr))
     finally:
         stop(rec)
         bus_log.close()
         dl.stop()
         dr.stop()
     return {"left": left, "right": right, "log": log, "bus": list(iter_frames(tmp / "two-bus.log")), "status": status}
+
+
+def settled(daemon, timeout_s: float = 60.0) -> str:
+    """The daemon's status line once it has taken every frame of the log: two reports in a row (2 s
+    apart) with the same frame count. An emulated guest's daemon may still be working through the
+    log when the player ends."""
+    deadline = time.monotonic() + timeout_s
+    last = daemon.fresh_status()["frames_total"]
+    while time.monotonic() < deadline:
+        now = daemon.fresh_status()["frames_total"]
+        if now == last:
+            return daemon.notify.status()
+        last = now
+    raise AssertionError(f"the daemon was still taking frames after {timeout_s} s: {daemon.notify.status()}")
 
 
 @pytest.mark.vcan
