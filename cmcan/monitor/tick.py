@@ -156,17 +156,3 @@ class TickBuffer:
             chunk = TickColumns.from_ticks(self.pending)
             self.pending = []
             self.to.ticks(chunk)
-
-
-class OneByOne:
-    """Adapts a per-tick consumer (``tick`` only) to a listener: columns become single ticks."""
-
-    def __init__(self, to: Any) -> None:
-        self.to = to
-
-    def tick(self, tick: Tick) -> None:
-        self.to.tick(tick)
-
-    def ticks(self, chunk: TickColumns) -> None:
-        for i in range(len(chunk)):
-            self.to.tick(chunk.tick(i))
