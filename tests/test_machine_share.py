@@ -12,17 +12,17 @@ from tests.machine_share import machine_share
 
 def _hold(where: str, exclusive: bool, started, release, log) -> None:
     with machine_share(exclusive, Path(where)):
-        log.put(("in", exclusive))
+        log.put((time.monotonic(), "in", exclusive))
         started.set()
         release.wait(30)
-        log.put(("out", exclusive))
+        log.put((time.monotonic(), "out", exclusive))
 
 
-def _drain(q) -> list:
-    out = []
-    while not q.empty():
-        out.append(q.get())
-    return out
+def _drain(q, n: int) -> list[tuple[str, bool]]:
+    """The ``n`` events in the order they happened: a queue fed by several processes may deliver them
+    in another (each process's feeder thread flushes on its own)."""
+    got = sorted(q.get(timeout=20) for _ in range(n))
+    return [(what, exclusive) for _, what, exclusive in got]
 
 
 def test_shared_holders_run_together_and_an_exclusive_one_waits_for_them(tmp_path):
@@ -55,7 +55,7 @@ def test_shared_holders_run_together_and_an_exclusive_one_waits_for_them(tmp_pat
     for p in [*procs, late]:
         p.join(20)
         assert p.exitcode == 0
-    events = _drain(log)
+    events = _drain(log, 8)
     excl_in = events.index(("in", True))
     assert events[excl_in - 2 : excl_in].count(("out", False)) == 2  # both shared left first
     assert events[excl_in + 1] == ("out", True)  # nobody came in while it ran
