@@ -16,6 +16,7 @@ from hypothesis import strategies as st
 from cmcan import checksums, codec
 from cmcan.assemble import dbc_for
 from cmcan.j1939 import ids, values
+from cmcan.monitor.health import ERROR_CODE, NOT_AVAILABLE
 from cmcan.monitor.inputs import j1939_decoder
 from cmcan.sim.frames import Frames
 from tests.test_columnar import assert_same
@@ -206,13 +207,72 @@ def test_the_reserved_codes_one_by_one_and_as_arrays(length, signed, data):
     assert values.classify(top, t) == values.NOT_AVAILABLE and values.classify(t[1], t) == values.ERROR
 
 
+def _byte(k: int) -> codec.Layout:
+    return codec.Layout(f"v{k}", 8 * k, 8, False, False, 1.0, 0.0, 0.0, 255.0)
+
+
 def test_the_decoder_takes_the_first_verdict_in_its_order():
     t8 = values.thresholds(8, False)
-    dec = j1939_decoder(lambda d: tuple(d), ((0, 250), (0, 100)), (t8, t8))
+    dec = j1939_decoder((_byte(0), _byte(1)), 2, ((0, 250), (0, 100)), (t8, t8))
     assert dec(bytes([10, 20])) == (10, 20)
-    assert dec(bytes([0xFF, 20])) == 7  # not available
+    assert dec(bytes([0xFF, 20])) == NOT_AVAILABLE
     assert dec(bytes([0xFF, 200])) is None  # out of range wins over not available
-    assert dec(bytes([0xFE, 200])) == 6  # the error indicator wins over both
+    assert dec(bytes([0xFE, 200])) == ERROR_CODE  # the error indicator wins over both
+    assert dec(bytes([10])) == (10, 0)  # a short frame read as zero-filled
+
+
+@st.composite
+def j1939_frames(draw):
+    """A message of 1-4 values of any width, order and sign, its bounds, and frames some of whose
+    values sit in the reserved codes."""
+    size = draw(st.integers(1, 8))
+    lays, bounds, reserved = [], [], []
+    for k in range(draw(st.integers(1, 4))):
+        length = draw(st.integers(1, 8 * size))
+        signed = draw(st.booleans())
+        lay = codec.Layout(
+            f"v{k}", draw(st.integers(0, 8 * size - length)), length, signed, draw(st.booleans()), 1.0, 0.0, 0.0, 0.0
+        )
+        lo_r = -(1 << (length - 1)) if signed else 0
+        hi_r = (1 << (length - 1)) - 1 if signed else lay.mask
+        lays.append(lay)
+        if draw(st.integers(0, 3)):  # mostly the whole range: the reserved codes decide
+            bounds.append((lo_r, hi_r))
+        else:
+            lo = draw(st.integers(lo_r, hi_r))
+            bounds.append((lo, draw(st.integers(lo - 1, hi_r))))
+        reserved.append(values.thresholds(length, signed))
+    near_top = st.binary(min_size=size, max_size=size).map(lambda b: bytes(x | 0xF0 for x in b))
+    data = draw(st.lists(st.one_of(st.binary(min_size=0, max_size=8), near_top), min_size=1, max_size=20))
+    return tuple(lays), size, tuple(bounds), tuple(reserved), data
+
+
+@given(j1939_frames())
+def test_the_decoder_equals_reading_then_classifying(case):
+    """The per-frame decoder inlines the bits' reading and the codes' classes; the same verdict as
+    :func:`codec.raw_decoder` read first and :func:`values.classify` applied in the documented order."""
+    lays, size, bounds, reserved, frames = case
+    fast, read = j1939_decoder(lays, size, bounds, reserved), codec.raw_decoder(lays, size)
+    for data in frames:
+        raws = read(data)
+        kinds = [values.classify(r, t) if t is not None else values.VALID for r, t in zip(raws, reserved, strict=True)]
+        outside = any(
+            k == values.VALID and not lo <= r <= hi for r, k, (lo, hi) in zip(raws, kinds, bounds, strict=True)
+        )
+        if values.ERROR in kinds:
+            want = ERROR_CODE
+        elif outside:
+            want = None
+        elif values.NOT_AVAILABLE in kinds:
+            want = NOT_AVAILABLE
+        else:
+            want = raws
+        assert fast(data) == want
+        event(
+            {ERROR_CODE: "error", NOT_AVAILABLE: "not available"}.get(want, "values")
+            if want is not None
+            else "out of range"
+        )
 
 
 def test_the_kernel_filter_of_a_pdu1_input_lets_any_destination_through_unless_told():

@@ -27,7 +27,7 @@ from typing import Any, Generic, Protocol, TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
-from cmcan.codec import Layout, checked_decoder, extract_all, raw_bounds, raw_decoder
+from cmcan.codec import Layout, checked_decoder, extract_all, raw_bounds
 from cmcan.frame import Frame, FrameColumns
 from cmcan.j1939 import ids, values
 from cmcan.monitor.health import ERROR_CODE, NOT_AVAILABLE, OK, OUT_OF_RANGE, HealthSpec
@@ -82,7 +82,7 @@ class InputMessage:
         object.__setattr__(self, "bounds", bounds)
         object.__setattr__(self, "reserved", reserved)
         if any(r is not None for r in reserved):
-            decode = j1939_decoder(raw_decoder(self.layouts, self.size), bounds, reserved)
+            decode = j1939_decoder(self.layouts, self.size, bounds, reserved)
         else:
             decode = checked_decoder(self.layouts, self.size)
         object.__setattr__(self, "decode", decode)
@@ -127,27 +127,44 @@ class InputMessage:
 
 
 def j1939_decoder(
-    raw: Callable[[bytes], tuple[int, ...]],
+    lays: Sequence[Layout],
+    size: int,
     bounds: tuple[tuple[int, int], ...],
     reserved: tuple[tuple[int, int, int] | None, ...],
 ) -> Callable[[bytes], tuple[int, ...] | int | None]:
-    """One frame of a J1939 message: its raw values, or ``ERROR_CODE`` (a value carries the error
-    indicator), None (a value outside its DBC range), ``NOT_AVAILABLE`` (a value not available), the
-    first that applies in that order."""
-    checks = tuple(zip(bounds, reserved, strict=True))
+    """One frame of a J1939 message (read as ``size`` bytes): its raw values, or ``ERROR_CODE`` (a value
+    carries the error indicator), None (a value outside its DBC range), ``NOT_AVAILABLE`` (a value not
+    available), the first that applies in that order. The bits are read with :func:`codec.extract`'s
+    arithmetic and the codes classified as :func:`values.classify` does, inline: this is the monitor's
+    per-frame path (a test holds it to those two)."""
+    never = 1 << 65  # above any raw value: a value without reserved codes
+    specs = tuple(
+        (x.shift, x.mask, 1 << (x.length - 1) if x.signed else 0, x.big_endian, lo, hi, *(t or (never, never, never)))
+        for x, (lo, hi), t in zip(lays, bounds, reserved, strict=True)
+    )
+    need_be = any(x.big_endian for x in lays)
+    from_bytes = int.from_bytes
 
     def decode(data: bytes) -> tuple[int, ...] | int | None:
-        raws = raw(data)
+        if len(data) != size:
+            data = bytes(data[:size]).ljust(size, b"\0")
+        le = from_bytes(data, "little")
+        be = from_bytes(data, "big") if need_be else 0
+        out = []
         verdict: int | None = OK
-        for r, ((lo, hi), t) in zip(raws, checks, strict=True):
-            if t is not None and r >= t[0]:
-                if values.classify(r, t) == values.ERROR:
+        for shift, mask, sign, big, lo, hi, first_reserved, error, na in specs:
+            raw = ((be if big else le) >> shift) & mask
+            if raw & sign:
+                raw -= sign << 1
+            if raw >= first_reserved:
+                if error <= raw < na:
                     return ERROR_CODE
                 if verdict == OK:
                     verdict = NOT_AVAILABLE
-            elif not lo <= r <= hi:
+            elif not lo <= raw <= hi:
                 verdict = None
-        return raws if verdict == OK else verdict
+            out.append(raw)
+        return tuple(out) if verdict == OK else verdict
 
     return decode
 
