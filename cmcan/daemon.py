@@ -102,7 +102,9 @@ class DaemonOptions:
     stamps_on_wall_clock: bool = True
 
 
-DRAIN = 256  # frames read from one bus before the others get their turn
+# frames read from one bus in one go (the loop's other steps run once per batch), before the others
+# get their turn
+DRAIN = 256
 MAX_BATCH = 4096  # several buses: frames read before some go on
 J1939_PGN_MASK = 0x03FFFF00  # EDP, DP, PF, PS: the priority and the source address left out
 # A filter no real frame matches: a channel that only carries cmcan's outputs receives nothing.
@@ -363,13 +365,20 @@ class Daemon:
         timeout = max(0.0, timeout)  # a ping already due (a loop that fell behind): look, do not wait
         if len(live) > 1:
             return self._receive(live, timeout)
-        x = live[0]  # one bus: as it comes
+        x = live[0]  # one bus: as it comes, and what has already arrived behind it in one go
+        bus = x.bus
+        batch: list[tuple[Link, can.Message]] = []
         try:
-            msg = x.bus.recv(timeout=timeout)  # type: ignore[union-attr]
+            msg = bus.recv(timeout=timeout)  # type: ignore[union-attr]
+            while msg is not None:
+                batch.append((x, msg))
+                if len(batch) >= DRAIN:
+                    break
+                msg = bus.recv(timeout=0)  # type: ignore[union-attr]
         except (can.CanError, OSError, ValueError) as exc:
             self._bus_failed(x, "receive", exc)
-            return None
-        return ((x, msg),) if msg is not None else ()
+            return batch or None  # the frames read before the failure are still handled
+        return batch
 
     def handle_frames(self, batch: Sequence[tuple[Link, can.Message]]) -> None:
         """Each frame to the core, what it returns onto the buses. A frame the core cannot handle is

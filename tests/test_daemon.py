@@ -448,8 +448,46 @@ def test_an_overdue_watchdog_ping_is_no_negative_receive_timeout():
     try:
         live = d.links_up(ft.clock())
         d.loop.next_wd = ft.clock() - 0.3  # the ping is 0.3 s overdue when the loop comes to receive
-        assert d.receive(live) == () and d.stats["bus_errors"] == 0 and d.links_down == []
+        got = d.receive(live)
+        assert got is not None and len(got) == 0 and d.stats["bus_errors"] == 0 and d.links_down == []
     finally:
+        bus.shutdown()
+
+
+def test_one_bus_hands_its_backlog_over_in_batches_and_keeps_what_it_read_before_a_failure():
+    """What has arrived behind the first frame is read in one go (the loop's other steps then run once
+    per batch, not per frame), at most DRAIN frames; a bus failing in the middle of a batch loses none
+    of the frames read before it."""
+    from cmcan.daemon import DRAIN
+
+    ft = FakeTime()
+    bus = can.Bus(interface="virtual", channel="backlog", receive_own_messages=False)
+    peer = can.Bus(interface="virtual", channel="backlog")
+    d = Daemon(
+        cfgmod.load(), monitor(), None, lambda: bus, RecordingNotifier(ft.clock), DaemonOptions(), clock=ft.clock
+    )
+    try:
+        live = d.links_up(ft.clock())
+        for i in range(DRAIN + 5):
+            peer.send(can.Message(arbitration_id=0x100, data=bytes([i % 256]), is_extended_id=False))
+        first, rest = d.receive(live), d.receive(live)
+        assert len(first) == DRAIN and len(rest) == 5
+        assert [m.data[0] for _, m in first + rest] == [i % 256 for i in range(DRAIN + 5)]
+        for i in range(3):
+            peer.send(can.Message(arbitration_id=0x100, data=bytes([i]), is_extended_id=False))
+        real_recv, calls = bus.recv, []
+
+        def failing_recv(timeout=None):
+            calls.append(timeout)
+            if len(calls) == 3:
+                raise can.CanOperationError("the adapter went away")
+            return real_recv(timeout)
+
+        bus.recv = failing_recv
+        got = d.receive(live)
+        assert [m.data[0] for _, m in got] == [0, 1] and d.stats["bus_errors"] == 1
+    finally:
+        peer.shutdown()
         bus.shutdown()
 
 
