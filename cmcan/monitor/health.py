@@ -320,7 +320,7 @@ class Health:
     def __init__(self, specs: Sequence[HealthSpec]) -> None:
         self.streams = tuple(Stream(s) for s in specs)
         self.base = dict.fromkeys(COUNTED, 0)
-        self._passing: list[tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]] | None] = []
+        self._passing: list[tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64], int | None] | None] = []
 
     def counts(self) -> dict[str, int]:
         """Rejections and timeouts over all streams."""
@@ -380,11 +380,14 @@ class Health:
             passed = cs_ok[mine]
             out[mine[~passed]] = CHECKSUM
             p = mine[passed & ~absent[mine]]
+            ref = st.last_sa
             if st.spec.senders and len(p):  # frames from the address of the frame before pass
-                other = np.flatnonzero(sa[p] != (st.last_sa if st.last_sa is not None else -1))
+                if ref is None:  # the stream's first frame: nobody sent before it, it passes
+                    ref = int(sa[p[0]])
+                other = np.flatnonzero(sa[p] != ref)
                 if len(other):
                     until = min(until, int(p[other[0]]))
-            self._passing.append((p, ctr[p], t[p]))
+            self._passing.append((p, ctr[p], t[p], ref))
             if len(p) and st.has_counter:
                 out[p] = _counter_verdicts(st, ctr[p], t[p])
         return out, until
@@ -395,13 +398,14 @@ class Health:
         for st, passing in zip(self.streams, self._passing, strict=True):
             if passing is None:
                 continue
-            p, c, tp = passing
+            p, c, tp, ref = passing
             n = int(np.searchsorted(p, stop))
             if n and st.has_counter:
                 st.prev = int(c[n - 1])
                 st.prev_t = float(tp[n - 1])
             if n and st.spec.senders:
-                st.seen[st.last_sa] = float(tp[n - 1])  # type: ignore[index]
+                st.last_sa = ref
+                st.seen[ref] = float(tp[n - 1])
         self._passing = []
 
     def tick_columns(
