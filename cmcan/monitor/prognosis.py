@@ -66,6 +66,9 @@ class PrognosisParams:
     # The wear law is an assumption: a field curve is no exact power law, and onset and shape are
     # picked from a grid. Hours to a threshold carry this relative error (lognormal) on top of the fit's.
     model_rel: float = 0.1
+    # The measured wear leakage swings by about this share of itself with the oil's temperature
+    # (viscosity: some 3 %/K) and the duty's pressure; the fit weighs its points accordingly.
+    level_rel: float = 0.1
     seed: int = 20260  # fixed: the same history gives the same interval
 
     def __post_init__(self) -> None:
@@ -281,7 +284,17 @@ def estimate(
     base = Estimate(at_h=T, rise_lpm=c, t_stat=t_stat, onset_h=t0s[g], shape_k=ks[g], noise_lpm=sigma)
     if not (c > 0 and t_stat >= p.t_min and c >= max(p.min_rise_lpm, p.rise_sigmas * sigma)):
         return base
-    cell, bs, cs = _draws(p, f, n, max(sigma, p.sigma_floor_lpm) ** 2 * tau)
+    # The estimate weighs each point by its noise: a floor (as before the onset) plus a share of the
+    # wear leakage, which swings with the oil's viscosity and the duty's pressure as it grows.
+    before = basis[g] == 0.0
+    floor = float(np.sqrt(np.mean(resid[before] ** 2))) if np.count_nonzero(before) >= 4 else 0.0
+    floor = max(floor, p.sigma_floor_lpm)
+    w = 1.0 / (floor**2 + (p.level_rel * c * basis[g]) ** 2)
+    f = _fit(basis, leak, w)
+    gw = int(np.argmin(f.sse))
+    resid_w = (leak - (f.b[gw] + f.c[gw] * basis[gw])) * np.sqrt(w)
+    s2 = float(f.sse[gw]) / max(n - 4, 1) * _inflation(resid_w)
+    cell, bs, cs = _draws(p, f, s2)
     low_y, eol_y = _leak_thresholds(p, leak, ratio)
     t0a, ka = np.array(t0s)[cell], np.array(ks)[cell]
     spread = np.exp(np.random.default_rng(p.seed + 1).normal(0.0, p.model_rel, len(cell)))
@@ -301,6 +314,7 @@ class _Fits:
     suu: NDArray[np.float64]  # the basis' sum of squares about its mean: var(c) = sigma^2 / suu
     u_mean: NDArray[np.float64]
     y_mean: float
+    w_sum: float  # var(level at the basis' mean) = sigma^2 / w_sum
 
 
 def _grid(p: PrognosisParams, h: NDArray[np.float64]) -> tuple[list[float], list[float], NDArray[np.float64]]:
@@ -319,17 +333,19 @@ def _grid(p: PrognosisParams, h: NDArray[np.float64]) -> tuple[list[float], list
     return t0s, ks, np.array(rows)
 
 
-def _fit(basis: NDArray[np.float64], y: NDArray[np.float64]) -> _Fits:
-    """Every cell's fit; a falling one is the flat one (``c = 0``): wear does not heal."""
-    u_mean = basis.mean(axis=1)
+def _fit(basis: NDArray[np.float64], y: NDArray[np.float64], w: NDArray[np.float64] | None = None) -> _Fits:
+    """Every cell's (weighted) fit; a falling one is the flat one (``c = 0``): wear does not heal."""
+    w = np.ones(len(y)) if w is None else w
+    wsum = float(w.sum())
+    u_mean = basis @ w / wsum
     uc = basis - u_mean[:, None]
-    suu = np.einsum("gi,gi->g", uc, uc)
-    y_mean = float(y.mean())
+    suu = (uc * uc) @ w
+    y_mean = float(y @ w) / wsum
     yc = y - y_mean
-    suy = uc @ yc
+    suy = uc @ (w * yc)
     c = np.where(suy > 0, suy / np.where(suu > 0, suu, np.inf), 0.0)
-    sse = float(yc @ yc) - c * suy
-    return _Fits(y_mean - c * u_mean, c, np.maximum(sse, 0.0), suu, u_mean, y_mean)
+    sse = float(yc @ (w * yc)) - c * suy
+    return _Fits(y_mean - c * u_mean, c, np.maximum(sse, 0.0), suu, u_mean, y_mean, wsum)
 
 
 def _inflation(r: NDArray[np.float64]) -> float:
@@ -343,7 +359,7 @@ def _inflation(r: NDArray[np.float64]) -> float:
 
 
 def _draws(
-    p: PrognosisParams, f: _Fits, n: int, s2: float
+    p: PrognosisParams, f: _Fits, s2: float
 ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
     """Curves drawn from the fit's posterior: a cell (onset and shape) by its likelihood
     exp(-(SSE - SSE_min) / 2 s2), then its level and rise from their normal distributions (flat
@@ -354,7 +370,7 @@ def _draws(
     w = np.exp(logw - logw.max())
     w[f.c <= 0] = 0.0
     cell = rng.choice(len(w), size=p.draws, p=w / w.sum())
-    level = f.y_mean + rng.normal(0.0, math.sqrt(s2 / n), p.draws)
+    level = f.y_mean + rng.normal(0.0, math.sqrt(s2 / f.w_sum), p.draws)
     cs = f.c[cell] + rng.normal(0.0, 1.0, p.draws) * np.sqrt(s2 / f.suu[cell])
     return cell, level - cs * f.u_mean[cell], cs
 
