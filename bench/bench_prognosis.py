@@ -9,8 +9,9 @@ with a valid filter are fed to the prognosis; an estimate is taken every operati
 
 End of life is the machine's, as its configuration would give it: the leakage at loss of function
 (the scenario's ``fail_extra_lpm`` at 480 bar and 60 C) as the monitor sees it on that machine's duty
-and oil, i.e. scaled by the simulated truth's mean ratio of leakage at the operating point to
-leakage at the reference point over the worn stretch. Truth is the scenario's failure hour.
+and oil, i.e. scaled by the simulated truth's mean ratio of leakage at the evaluated operating points
+to leakage at the reference point over the worn stretch (an oracle for the level, not for the time).
+Truth is the scenario's failure hour.
 
 Metrics (alpha = 20 %), over estimates from the first trend reported until failure:
 - alpha-lambda: at lambda = 0.5 and 0.75 of the way from the first estimate to failure, the median
@@ -191,7 +192,7 @@ def run_case(case: Case) -> Result:
     h, leak, ratio, ok = sink.arrays(run.start_epoch_s)
 
     res = Result(case)
-    res.eol_lpm = eol_lpm_for(case, run) if case.fail_h is not None else 40.0
+    res.eol_lpm = eol_lpm_for(case, run, h[ok]) if case.fail_h is not None else 40.0
     params = PrognosisParams(eol_kind="leak_lpm", eol_value=res.eol_lpm, low_pct=cfg.thresholds.low_pct)
     prog = Prognosis(params)
     lows = [w["operating_h"] for w in summary.warnings if w["to"] == "low"]
@@ -261,16 +262,16 @@ class _Ticks:
         return (t - start_epoch_s) / 3600.0, lk, r, ok
 
 
-def eol_lpm_for(case: Case, run: Any) -> float:
-    """The machine's end of life as the monitor sees it: F scaled by the duty's and oil's mean ratio of
-    leakage at the operating point to leakage at the reference point, over the worn stretch."""
+def eol_lpm_for(case: Case, run: Any, tick_h: np.ndarray) -> float:
+    """The machine's end of life as the monitor sees it: F scaled by the mean ratio of the true
+    leakage at the evaluated operating points (the monitor's ticks: its duty, its oil) to the leakage
+    at the reference point, over the worn stretch."""
     ev = case.doc["events"][0]
-    t_h = run["operating_h"]
-    s = np.clip((t_h - ev["start_h"]) / (ev["fail_h"] - ev["start_h"]), 0.0, 1.0)
+    s = np.clip((tick_h - ev["start_h"]) / (ev["fail_h"] - ev["start_h"]), 0.0, 1.0)
     x_ref = ev["fail_extra_lpm"] * s ** ev["shape"]
-    worn = (s >= 0.3) & (t_h < ev["fail_h"])
-    factor = float(np.sum(run["true_extra_leak_lpm"][worn]) / np.sum(x_ref[worn]))
-    return ev["fail_extra_lpm"] * factor
+    worn = (s >= 0.3) & (tick_h < ev["fail_h"])
+    true_lpm = np.interp(tick_h[worn], run["operating_h"], run["true_extra_leak_lpm"])
+    return float(ev["fail_extra_lpm"] * np.sum(true_lpm) / np.sum(x_ref[worn]))
 
 
 # -- metrics -----------------------------------------------------------------------------------------

@@ -69,6 +69,8 @@ class PrognosisParams:
     # The measured wear leakage swings by about this share of itself with the oil's temperature
     # (viscosity: some 3 %/K) and the duty's pressure; the fit weighs its points accordingly.
     level_rel: float = 0.1
+    pool_h: float = 6.0  # the estimate pools those of the last 6 h ...
+    pool_every_h: float = 2.0  # ... taken every 2 h
     seed: int = 20260  # fixed: the same history gives the same interval
 
     def __post_init__(self) -> None:
@@ -272,36 +274,90 @@ def estimate(
     if n < p.min_points + 2 or not h[-1] > h[0]:
         return Estimate(at_h=float(h[-1]) if n else math.nan)
     T = float(h[-1])
+    d = _detect(p, h, leak)
+    base = Estimate(at_h=T, rise_lpm=d.c, t_stat=d.t_stat, onset_h=d.onset_h, shape_k=d.shape_k, noise_lpm=d.sigma)
+    if not d.trend:
+        return base
+    low_y, eol_y = _leak_thresholds(p, leak, ratio)
+    # Pooled with the estimates of the last few hours (each less the hours since): one taken on a
+    # warm or a cold stretch of the oil's cycle no longer decides alone.
+    lows, eols = [], []
+    for i, lag in enumerate(np.arange(0.0, p.pool_h + 1e-9, p.pool_every_h).tolist()):
+        m = int(np.searchsorted(h, T - lag, side="right"))
+        if m < p.min_points + 2:
+            break
+        di = d if i == 0 else _detect(p, h[:m], leak[:m])
+        if not di.trend:
+            continue
+        tl, te = _draw_hours(p, di, h[:m], leak[:m], (low_y, eol_y), p.seed + i)
+        since = T - float(h[m - 1])
+        lows.append(np.where(tl < _NEVER_H, np.maximum(tl - since, 0.0), tl))
+        eols.append(np.where(te < _NEVER_H, np.maximum(te - since, 0.0), te))
+    q_low, q_eol = _quantiles(np.concatenate(lows)), _quantiles(np.concatenate(eols))
+    state = IMMINENT if q_eol[0] <= p.imminent_h else TREND
+    return Estimate(state, T, q_low, q_eol, d.c, d.t_stat, d.onset_h, d.shape_k, d.sigma)
+
+
+@dataclass(frozen=True)
+class _Detected:
+    """The least-squares fit of the grid's best cell and whether its rise is a trend."""
+
+    trend: bool
+    c: float
+    t_stat: float
+    onset_h: float
+    shape_k: float
+    sigma: float
+    g: int
+    t0s: list[float]
+    ks: list[float]
+    basis: NDArray[np.float64]
+    resid: NDArray[np.float64]
+
+
+def _detect(p: PrognosisParams, h: NDArray[np.float64], leak: NDArray[np.float64]) -> _Detected:
+    n = len(h)
     t0s, ks, basis = _grid(p, h)
     f = _fit(basis, leak)
     g = int(np.argmin(f.sse))
-    b, c = float(f.b[g]), float(f.c[g])
-    resid = leak - (b + c * basis[g])
+    c = float(f.c[g])
+    resid = leak - (f.b[g] + c * basis[g])
     sigma = float(np.sqrt(f.sse[g] / max(n - 4, 1)))
-    tau = _inflation(resid)
-    se = sigma * math.sqrt(tau / f.suu[g]) if f.suu[g] > 0 else math.inf
+    se = sigma * math.sqrt(_inflation(resid) / f.suu[g]) if f.suu[g] > 0 else math.inf
     t_stat = c / se if se > 0 else (math.inf if c > 0 else 0.0)
-    base = Estimate(at_h=T, rise_lpm=c, t_stat=t_stat, onset_h=t0s[g], shape_k=ks[g], noise_lpm=sigma)
-    if not (c > 0 and t_stat >= p.t_min and c >= max(p.min_rise_lpm, p.rise_sigmas * sigma)):
-        return base
-    # The estimate weighs each point by its noise: a floor (as before the onset) plus a share of the
-    # wear leakage, which swings with the oil's viscosity and the duty's pressure as it grows.
-    before = basis[g] == 0.0
-    floor = float(np.sqrt(np.mean(resid[before] ** 2))) if np.count_nonzero(before) >= 4 else 0.0
+    trend = c > 0 and t_stat >= p.t_min and c >= max(p.min_rise_lpm, p.rise_sigmas * sigma)
+    return _Detected(trend, c, t_stat, t0s[g], ks[g], sigma, g, t0s, ks, basis, resid)
+
+
+def _draw_hours(
+    p: PrognosisParams,
+    d: _Detected,
+    h: NDArray[np.float64],
+    leak: NDArray[np.float64],
+    ys: tuple[float, float],
+    seed: int,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Hours from the last point until each drawn curve reaches each of ``ys`` (with the model's
+    relative error). The fit weighs each point by its noise: a floor (as before the onset) plus a
+    share of the wear leakage, which swings with the oil's viscosity and the duty's pressure."""
+    n, T = len(h), float(h[-1])
+    before = d.basis[d.g] == 0.0
+    floor = float(np.sqrt(np.mean(d.resid[before] ** 2))) if np.count_nonzero(before) >= 4 else 0.0
     floor = max(floor, p.sigma_floor_lpm)
-    w = 1.0 / (floor**2 + (p.level_rel * c * basis[g]) ** 2)
-    f = _fit(basis, leak, w)
+    w = 1.0 / (floor**2 + (p.level_rel * d.c * d.basis[d.g]) ** 2)
+    f = _fit(d.basis, leak, w)
     gw = int(np.argmin(f.sse))
-    resid_w = (leak - (f.b[gw] + f.c[gw] * basis[gw])) * np.sqrt(w)
+    resid_w = (leak - (f.b[gw] + f.c[gw] * d.basis[gw])) * np.sqrt(w)
     s2 = float(f.sse[gw]) / max(n - 4, 1) * _inflation(resid_w)
-    cell, bs, cs = _draws(p, f, s2)
-    low_y, eol_y = _leak_thresholds(p, leak, ratio)
-    t0a, ka = np.array(t0s)[cell], np.array(ks)[cell]
-    spread = np.exp(np.random.default_rng(p.seed + 1).normal(0.0, p.model_rel, len(cell)))
-    q_low = _quantiles(_hours_to(low_y, bs, cs, t0a, ka, T), spread)
-    q_eol = _quantiles(_hours_to(eol_y, bs, cs, t0a, ka, T), spread)
-    state = IMMINENT if q_eol[0] <= p.imminent_h else TREND
-    return Estimate(state, T, q_low, q_eol, c, t_stat, t0s[g], ks[g], sigma)
+    rng = np.random.default_rng(seed)
+    cell, bs, cs = _draws(p, f, s2, rng)
+    t0a, ka = np.array(d.t0s)[cell], np.array(d.ks)[cell]
+    spread = np.exp(rng.normal(0.0, p.model_rel, len(cell)))
+    out = []
+    for y in ys:
+        t = _hours_to(y, bs, cs, t0a, ka, T)
+        out.append(np.where(t < _NEVER_H, t * spread, t))
+    return out[0], out[1]
 
 
 @dataclass(frozen=True)
@@ -359,13 +415,12 @@ def _inflation(r: NDArray[np.float64]) -> float:
 
 
 def _draws(
-    p: PrognosisParams, f: _Fits, s2: float
+    p: PrognosisParams, f: _Fits, s2: float, rng: np.random.Generator
 ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
     """Curves drawn from the fit's posterior: a cell (onset and shape) by its likelihood
     exp(-(SSE - SSE_min) / 2 s2), then its level and rise from their normal distributions (flat
     priors; level at the basis' mean and rise are independent). The onset and shape the data do not
     tell apart are all drawn: that is most of the uncertainty of an extrapolation."""
-    rng = np.random.default_rng(p.seed)
     logw = -(f.sse - f.sse.min()) / (2.0 * s2)
     w = np.exp(logw - logw.max())
     w[f.c <= 0] = 0.0
@@ -404,11 +459,9 @@ def _hours_to(
     return np.clip(np.nan_to_num(t, nan=_NEVER_H, posinf=_NEVER_H), 0.0, _NEVER_H)
 
 
-def _quantiles(t: NDArray[np.float64], spread: NDArray[np.float64]) -> Triple:
-    """p10, p50, p90 of the hours, each spread by the model's error (never stays never)."""
+def _quantiles(t: NDArray[np.float64]) -> Triple:
     if not len(t) or np.isnan(t).any():
         return _NAN3
-    t = np.where(t < _NEVER_H, t * spread, _NEVER_H)
     q = np.quantile(t, (0.1, 0.5, 0.9))
     a, b, c = (math.inf if x >= _NEVER_H else float(x) for x in q.tolist())
     return (a, b, c)
