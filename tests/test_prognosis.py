@@ -197,21 +197,23 @@ def test_power_law_wear_gives_intervals_that_hold_the_truth(k, seed):
 
 def test_hours_to_the_low_warning_follow_the_ratio():
     """The low warning (ratio 98 %) is 4.68 l/min of extra leakage at 234 l/min: with x = 40 s^3 from
-    40 h to 160 h, reached at 98.7 h. At 85 h the estimate's interval holds the 13.7 h left, and
-    once past it the hours to it are 0."""
-    h = np.arange(0.0, 120.0, 0.01)
-    wear = 40.0 * np.clip((h - 40) / 120, 0, 1) ** 3
-    h, lk, r, ok = ticks(h, wear, seed=7)
+    40 h to 160 h, reached at 98.7 h. At 85 h, over ten noise draws, the interval of the hours to it
+    holds the 13.7 h left at least seven times (an 80 % interval), and once past it the hours are 0."""
     truth_h = 40 + 120 * (0.02 * FLOW_LPM / 40.0) ** (1 / 3)
-    p = Prognosis()
-    upto = int(np.searchsorted(h, 85.0))
-    p.add_columns(h[:upto], lk[:upto], r[:upto], ok[:upto])
-    e = p.estimate()
-    assert e.state == TREND
-    lo, _, hi = e.to_low_h
-    assert lo <= truth_h - e.at_h <= hi, (e, truth_h)
-    p.add_columns(h[upto:], lk[upto:], r[upto:], ok[upto:])
-    assert p.estimate().to_low_h[1] == 0.0
+    inside = 0
+    for seed in range(10):
+        h = np.arange(0.0, 120.0, 0.01)
+        h, lk, r, ok = ticks(h, 40.0 * np.clip((h - 40) / 120, 0, 1) ** 3, seed=seed)
+        p = Prognosis()
+        upto = int(np.searchsorted(h, 85.0))
+        p.add_columns(h[:upto], lk[:upto], r[:upto], ok[:upto])
+        e = p.estimate()
+        assert e.state == TREND
+        lo, _, hi = e.to_low_h
+        inside += lo <= truth_h - e.at_h <= hi
+        p.add_columns(h[upto:], lk[upto:], r[upto:], ok[upto:])
+        assert p.estimate().to_low_h[1] == 0.0
+    assert inside >= 7, inside
 
 
 def test_the_estimate_is_the_same_every_time():

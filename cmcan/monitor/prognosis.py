@@ -69,7 +69,7 @@ class PrognosisParams:
     # The measured wear leakage swings by about this share of itself with the oil's temperature
     # (viscosity: some 3 %/K) and the duty's pressure; the fit weighs its points accordingly.
     level_rel: float = 0.1
-    pool_h: float = 6.0  # the estimate pools those of the last 6 h ...
+    pool_h: float = 6.0  # the estimate pools those of the last 6 h (at most a quarter of the hours left) ...
     pool_every_h: float = 2.0  # ... taken every 2 h
     seed: int = 20260  # fixed: the same history gives the same interval
 
@@ -280,13 +280,16 @@ def estimate(
         return base
     low_y, eol_y = _leak_thresholds(p, leak, ratio)
     # Pooled with the estimates of the last few hours (each less the hours since): one taken on a
-    # warm or a cold stretch of the oil's cycle no longer decides alone.
-    lows, eols = [], []
-    for i, lag in enumerate(np.arange(0.0, p.pool_h + 1e-9, p.pool_every_h).tolist()):
+    # warm or a cold stretch of the oil's cycle no longer decides alone. Near the end the pool
+    # shrinks (to a quarter of the hours left): older estimates lag an accelerating wear.
+    tl, te = _draw_hours(p, d, h, leak, (low_y, eol_y), p.seed)
+    lows, eols = [tl], [te]
+    pool_h = min(p.pool_h, 0.25 * float(np.median(te)))
+    for i, lag in enumerate(np.arange(p.pool_every_h, pool_h + 1e-9, p.pool_every_h).tolist(), start=1):
         m = int(np.searchsorted(h, T - lag, side="right"))
         if m < p.min_points + 2:
             break
-        di = d if i == 0 else _detect(p, h[:m], leak[:m])
+        di = _detect(p, h[:m], leak[:m])
         if not di.trend:
             continue
         tl, te = _draw_hours(p, di, h[:m], leak[:m], (low_y, eol_y), p.seed + i)
