@@ -3,22 +3,30 @@
 The time base is operating hours. Evaluated ticks with a valid filter go into a decimated history:
 one point per ``bin_h`` of operating time (the mean hour, extra leakage and ratio of its ticks);
 when it holds more than ``max_points``, adjacent points of its older half are merged in pairs down
-to three quarters of that, so the recent stretch keeps its resolution and the state stays bounded. One tick at a time
-(:meth:`Prognosis.add`) or a stretch of ticks as arrays (:meth:`Prognosis.add_columns`): the same
-bins with the same float additions in the same order, so both leave an identical state.
-:meth:`Prognosis.restart` begins a new history (a replaced unit, a reset baseline);
-:meth:`Prognosis.to_dict` / :meth:`Prognosis.from_dict` carry it across restarts.
+to three quarters of that: the recent stretch keeps its resolution, the state stays bounded. One
+tick at a time (:meth:`Prognosis.add`) or a stretch of ticks as arrays
+(:meth:`Prognosis.add_columns`): the same bins with the same float additions in the same order, so
+both leave an identical state. :meth:`Prognosis.restart` begins a new history (a replaced unit, a
+reset baseline); :meth:`Prognosis.to_dict` / :meth:`Prognosis.from_dict` carry it across restarts.
 
 The estimate (:func:`estimate`) fits the extra leakage ``y`` (l/min) over the history with a
 baseline and a power law from an onset: ``y = b + c * ((h - t0) / (T - t0))^k`` for ``h > t0``
 (``T`` the last point, so ``c`` is the rise from the onset until now). Wear grows slowly, then
-faster; onset ``t0`` and shape ``k`` are picked from a grid by least squares, ``b`` and ``c`` are
-linear. A trend is reported only when the rise is significant (``c`` over its standard error,
-inflated for the residuals' lag-1 autocorrelation, at least ``t_min``) and larger than both
-``min_rise_lpm`` and ``rise_sigmas`` times the residuals' spread (the noise floor: filter noise, oil
-temperature cycles the model does not follow). Its uncertainty is a moving-block residual bootstrap
-(fixed seed) that refits onset, shape and both coefficients per replicate; each replicate's curve is
-followed to the thresholds, and the 10/50/90 % quantiles of the hours are reported.
+faster; onset ``t0`` and shape ``k`` come from a grid, ``b`` and ``c`` (``c >= 0``) by least squares.
+
+- No trend unless the best cell's rise is significant (``c`` over its standard error, inflated for
+  the residuals' lag-1 autocorrelation, at least ``t_min``: the grid search and correlated points
+  make 2 far too lax) and larger than both ``min_rise_lpm`` and ``rise_sigmas`` times the residuals'
+  spread (the noise floor).
+- The interval: the points weighed by their noise (a floor plus ``level_rel`` of the wear leakage,
+  which swings with oil viscosity and pressure), curves are drawn from the fit's posterior (a cell by
+  its likelihood, so every onset and shape the data do not rule out is drawn; its level and rise
+  from their normal distributions; flat priors) and followed to each threshold, each time spread by
+  ``model_rel`` (the law is an assumption). The draws of the estimates of the last ``pool_h`` hours
+  (at most a quarter of the hours left), less the hours since, are pooled with the current one's,
+  so a warm or cold stretch of the oil's cycle does not decide alone. Reported: p10, p50, p90.
+- State: ``none`` without a trend, ``imminent`` when p10 to end of life is within ``imminent_h``,
+  ``trend`` otherwise.
 
 Ratio thresholds (the low warning, an end of life given as a ratio) are mapped to an extra leakage by
 the least-squares line of the ratio's deficit (100 - ratio) on the leakage over the history: on one
@@ -40,7 +48,7 @@ from numpy.typing import NDArray
 FORMAT = "cmcan-prognosis/1"
 NONE, TREND, IMMINENT = "none", "trend", "imminent"
 EOL_KINDS = ("leak_lpm", "ratio_pct")
-_NEVER_H = 1e6  # a replicate whose curve never reaches a threshold; reported as inf
+_NEVER_H = 1e6  # a drawn curve that never reaches a threshold; reported as inf
 _SHAPES = (1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 5.0, 6.0, 8.0)  # power-law exponents tried
 
 
@@ -50,9 +58,10 @@ class PrognosisParams:
     max_points: int = 256  # history bound (at least 64 h at full resolution; older merged in pairs)
     min_ticks: int = 10  # a bin with fewer valid ticks is too short to average and is dropped
     low_pct: float = 98.0  # the low warning's ratio (Thresholds.low_pct)
-    # End of life. Default: the ratio at 90 %, i.e. 10 % of the delivered flow lost to extra
-    # leakage beyond a new unit's, the volumetric-efficiency loss at which hydrostatic units are
-    # commonly replaced. A machine whose loss of function is known configures it (l/min or ratio).
+    # End of life. Default: the ratio at 90 %, 10 % of the delivered flow lost to extra leakage beyond
+    # a new unit's, a volumetric-efficiency loss at which hydrostatic units are commonly replaced (a
+    # rule of thumb, short of loss of function: the simulated rig loses function at some 17 %). A
+    # machine whose end of life is known configures it (l/min, or a ratio).
     eol_kind: str = "ratio_pct"
     eol_value: float = 90.0
     imminent_h: float = 24.0  # p10 to end of life within this: imminent (service within a few shifts)
@@ -69,7 +78,7 @@ class PrognosisParams:
     # The measured wear leakage swings by about this share of itself with the oil's temperature
     # (viscosity: some 3 %/K) and the duty's pressure; the fit weighs its points accordingly.
     level_rel: float = 0.1
-    pool_h: float = 6.0  # the estimate pools those of the last 6 h (at most a quarter of the hours left) ...
+    pool_h: float = 6.0  # the estimate pools those of the last 6 h (at most a quarter of the hours left)
     pool_every_h: float = 2.0  # ... taken every 2 h
     seed: int = 20260  # fixed: the same history gives the same interval
 
