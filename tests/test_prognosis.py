@@ -34,7 +34,7 @@ def same(a: Prognosis, b: Prognosis) -> None:
 # -- per-tick and array forms -------------------------------------------------------------------------
 
 tick = st.tuples(
-    st.floats(0.0, 0.2),  # hours since the tick before
+    st.sampled_from([0.0, 0.01, 0.04]) | st.floats(0.0, 0.3),  # hours since the tick before
     st.booleans() | st.just(True),  # valid (mostly)
     st.floats(-2.0, 30.0),
     st.floats(85.0, 101.0),
@@ -42,8 +42,8 @@ tick = st.tuples(
 )
 
 
-@settings(max_examples=300, deadline=None, derandomize=True)
-@given(st.lists(tick, min_size=1, max_size=300), st.lists(st.integers(1, 60), min_size=1, max_size=20), st.data())
+@settings(max_examples=200, deadline=None, derandomize=True)
+@given(st.lists(tick, min_size=30, max_size=400), st.lists(st.integers(1, 60), min_size=1, max_size=20), st.data())
 def test_per_tick_and_array_forms_leave_the_same_state(rows, cuts, data):
     hours, h = [], 0.0
     for dh, _, _, _, back in rows:
