@@ -1,0 +1,479 @@
+"""Prognosis: operating hours until the low warning and until end of life, each as p10/p50/p90.
+
+The time base is operating hours. Evaluated ticks with a valid filter go into a decimated history:
+one point per ``bin_h`` of operating time (the mean hour, extra leakage and ratio of its ticks);
+when it holds more than ``max_points``, adjacent points of its older half are merged in pairs down
+to three quarters of that: the recent stretch keeps its resolution, the state stays bounded. One
+tick at a time (:meth:`Prognosis.add`) or a stretch of ticks as arrays
+(:meth:`Prognosis.add_columns`): the same bins with the same float additions in the same order, so
+both leave an identical state. :meth:`Prognosis.restart` begins a new history (a replaced unit, a
+reset baseline); :meth:`Prognosis.to_dict` / :meth:`Prognosis.from_dict` carry it across restarts.
+
+The estimate (:func:`estimate`) fits the extra leakage ``y`` (l/min) over the history with a
+baseline and a power law from an onset: ``y = b + c * ((h - t0) / (T - t0))^k`` for ``h > t0``
+(``T`` the last point, so ``c`` is the rise from the onset until now). Wear grows slowly, then
+faster; onset ``t0`` and shape ``k`` come from a grid, ``b`` and ``c`` (``c >= 0``) by least squares.
+
+- No trend unless the best cell's rise is significant (``c`` over its standard error, inflated for
+  the residuals' lag-1 autocorrelation, at least ``t_min``: the grid search and correlated points
+  make 2 far too lax) and larger than both ``min_rise_lpm`` and ``rise_sigmas`` times the residuals'
+  spread (the noise floor).
+- The interval: the points weighed by their noise (a floor plus ``level_rel`` of the wear leakage,
+  which swings with oil viscosity and pressure), curves are drawn from the fit's posterior (a cell by
+  its likelihood, so every onset and shape the data do not rule out is drawn; its level and rise
+  from their normal distributions; flat priors) and followed to each threshold, each time spread by
+  ``model_rel`` (the law is an assumption). The draws of the estimates of the last ``pool_h`` hours
+  (at most a quarter of the hours left), less the hours since, are pooled with the current one's,
+  so a warm or cold stretch of the oil's cycle does not decide alone. Reported: p10, p50, p90.
+- State: ``none`` without a trend, ``imminent`` when p10 to end of life is within ``imminent_h``,
+  ``trend`` otherwise.
+
+Ratio thresholds (the low warning, an end of life given as a ratio) are mapped to an extra leakage by
+the least-squares line of the ratio's deficit (100 - ratio) on the leakage over the history: on one
+machine both move together, the ratio also through the flow it is a share of.
+
+Nothing here reads a clock; float64 throughout; the same history gives the same estimate.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+FORMAT = "cmcan-prognosis/1"
+NONE, TREND, IMMINENT = "none", "trend", "imminent"
+EOL_KINDS = ("leak_lpm", "ratio_pct")
+_NEVER_H = 1e6  # a drawn curve that never reaches a threshold; reported as inf
+_SHAPES = (1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 5.0, 6.0, 8.0)  # power-law exponents tried
+
+
+@dataclass(frozen=True)
+class PrognosisParams:
+    bin_h: float = 0.5  # one history point per half operating hour
+    max_points: int = 256  # history bound (at least 64 h at full resolution; older merged in pairs)
+    min_ticks: int = 10  # a bin with fewer valid ticks is too short to average and is dropped
+    low_pct: float = 98.0  # the low warning's ratio (Thresholds.low_pct)
+    # End of life. Default: the ratio at 90 %, 10 % of the delivered flow lost to extra leakage beyond
+    # a new unit's, a volumetric-efficiency loss at which hydrostatic units are commonly replaced (a
+    # rule of thumb, short of loss of function: the simulated rig loses function at some 17 %). A
+    # machine whose end of life is known configures it (l/min, or a ratio).
+    eol_kind: str = "ratio_pct"
+    eol_value: float = 90.0
+    imminent_h: float = 24.0  # p10 to end of life within this: imminent (service within a few shifts)
+    min_points: int = 12  # the rising stretch must hold at least this many points (6 h)
+    onsets: int = 24  # onset candidates on the grid
+    t_min: float = 6.0  # significance of the rise (grid search and autocorrelation make 2 too lax)
+    min_rise_lpm: float = 1.5  # the smallest rise reported as a trend
+    rise_sigmas: float = 5.0  # ... and at least this many times the residuals' spread
+    draws: int = 400  # curves drawn for the interval
+    sigma_floor_lpm: float = 0.05  # the noise assumed at least (a history smoother than the filter's)
+    # The wear law is an assumption: a field curve is no exact power law, and onset and shape are
+    # picked from a grid. Hours to a threshold carry this relative error (lognormal) on top of the fit's.
+    model_rel: float = 0.1
+    # The measured wear leakage swings by about this share of itself with the oil's temperature
+    # (viscosity: some 3 %/K) and the duty's pressure; the fit weighs its points accordingly.
+    level_rel: float = 0.1
+    pool_h: float = 6.0  # the estimate pools those of the last 6 h (at most a quarter of the hours left)
+    pool_every_h: float = 2.0  # ... taken every 2 h
+    seed: int = 20260  # fixed: the same history gives the same interval
+
+    def __post_init__(self) -> None:
+        if self.eol_kind not in EOL_KINDS:
+            raise ValueError(f"eol_kind {self.eol_kind!r} is not one of {', '.join(EOL_KINDS)}")
+        if not self.bin_h > 0 or self.max_points < 2 * self.min_points:
+            raise ValueError("bin_h must be positive and max_points at least twice min_points")
+
+
+Triple = tuple[float, float, float]
+Point = tuple[float, float, float, int]  # a history point: mean hour, leakage (l/min), ratio (%), ticks
+_NAN3: Triple = (math.nan, math.nan, math.nan)
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """State (none / trend / imminent), hours until the low warning and until end of life as
+    (p10, p50, p90) (NaN without a trend, inf where the curve never gets there), and the fit."""
+
+    state: str = NONE
+    at_h: float = math.nan  # the last history point's operating hour
+    to_low_h: Triple = _NAN3
+    to_eol_h: Triple = _NAN3
+    rise_lpm: float = 0.0  # the fitted rise from the onset until now
+    t_stat: float = 0.0
+    onset_h: float = math.nan
+    shape_k: float = math.nan
+    noise_lpm: float = 0.0  # the residuals' spread
+
+
+@dataclass
+class Prognosis:
+    """The history and its open bin. ``points``: (hour, leak l/min, ratio %, ticks) per bin."""
+
+    params: PrognosisParams = field(default_factory=PrognosisParams)
+    points: list[Point] = field(default_factory=list)
+    open_bin: int | None = None  # index floor(hour / bin_h) of the bin being filled
+    open_n: int = 0
+    open_sum_h: float = 0.0
+    open_sum_leak: float = 0.0
+    open_sum_ratio: float = 0.0
+
+    # -- one tick ------------------------------------------------------------------------------------
+
+    def add(self, hour: float, leak_lpm: float, ratio_pct: float, valid: bool) -> None:
+        """One evaluated tick. Ticks without a valid filter (or a non-finite value) are skipped."""
+        if not (valid and math.isfinite(hour) and math.isfinite(leak_lpm) and math.isfinite(ratio_pct)):
+            return
+        b = math.floor(hour / self.params.bin_h)
+        if self.open_bin is None or b > self.open_bin:  # an earlier hour (clock back) stays in the open bin
+            self._close()
+            self.open_bin = b
+        self.open_n += 1
+        self.open_sum_h += hour
+        self.open_sum_leak += leak_lpm
+        self.open_sum_ratio += ratio_pct
+
+    # -- a stretch of ticks --------------------------------------------------------------------------
+
+    def add_columns(
+        self,
+        hours: NDArray[np.float64],
+        leak_lpm: NDArray[np.float64],
+        ratio_pct: NDArray[np.float64],
+        valid: NDArray[np.bool_],
+    ) -> None:
+        """:meth:`add` for every tick of a stretch: the same bins, the same additions in order."""
+        hours, leak_lpm, ratio_pct = (np.asarray(x, dtype=np.float64) for x in (hours, leak_lpm, ratio_pct))
+        keep = np.asarray(valid, dtype=bool) & np.isfinite(hours) & np.isfinite(leak_lpm) & np.isfinite(ratio_pct)
+        h, lk, r = hours[keep], leak_lpm[keep], ratio_pct[keep]
+        if not len(h):
+            return
+        bins = np.floor(h / self.params.bin_h)
+        start = -np.inf if self.open_bin is None else float(self.open_bin)
+        eff = np.maximum.accumulate(np.maximum(bins, start))  # as add: never back to an earlier bin
+        cuts = np.flatnonzero(np.diff(eff)) + 1
+        edges = [0, *cuts.tolist(), len(h)]
+        for a, z in itertools.pairwise(edges):
+            b = int(eff[a])
+            if self.open_bin is None or b > self.open_bin:
+                self._close()
+                self.open_bin = b
+            self.open_n += z - a
+            self.open_sum_h = _add_in_order(self.open_sum_h, h[a:z])
+            self.open_sum_leak = _add_in_order(self.open_sum_leak, lk[a:z])
+            self.open_sum_ratio = _add_in_order(self.open_sum_ratio, r[a:z])
+
+    # -- history -------------------------------------------------------------------------------------
+
+    def _close(self) -> None:
+        """The open bin becomes a point (when it holds enough ticks); the history thinned if full."""
+        n = self.open_n
+        if n >= self.params.min_ticks:
+            self.points.append((self.open_sum_h / n, self.open_sum_leak / n, self.open_sum_ratio / n, n))
+            if len(self.points) > self.params.max_points:
+                self.points = _thin(self.points, self.params.max_points - self.params.max_points // 4)
+        self.open_bin = None
+        self.open_n = 0
+        self.open_sum_h = self.open_sum_leak = self.open_sum_ratio = 0.0
+
+    def restart(self) -> None:
+        """A replaced unit or a reset baseline: the wear history so far no longer applies."""
+        self.points = []
+        self.open_bin = None
+        self.open_n = 0
+        self.open_sum_h = self.open_sum_leak = self.open_sum_ratio = 0.0
+
+    def arrays(self) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """The closed points' hours, leakage and ratio (the open bin is not yet a point)."""
+        if not self.points:
+            e = np.empty(0)
+            return e, e.copy(), e.copy()
+        p = np.array(self.points, dtype=np.float64)
+        return p[:, 0].copy(), p[:, 1].copy(), p[:, 2].copy()
+
+    def estimate(self) -> Estimate:
+        h, leak, ratio = self.arrays()
+        return estimate(self.params, h, leak, ratio)
+
+    # -- state file ----------------------------------------------------------------------------------
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "format": FORMAT,
+            "bin_h": self.params.bin_h,
+            "points": [list(p) for p in self.points],
+            "open": None
+            if self.open_bin is None
+            else [self.open_bin, self.open_n, self.open_sum_h, self.open_sum_leak, self.open_sum_ratio],
+        }
+
+    @classmethod
+    def from_dict(cls, d: Any, params: PrognosisParams | None = None) -> Prognosis:
+        """A saved history, checked; one saved with another bin width is not this history (ValueError)."""
+        params = params or PrognosisParams()
+        if not isinstance(d, dict) or d.get("format") != FORMAT:
+            raise ValueError(f"not a {FORMAT} document")
+        if d.get("bin_h") != params.bin_h:
+            raise ValueError(f"history binned by {d.get('bin_h')!r} h, not {params.bin_h} h")
+        pts = d.get("points")
+        if not isinstance(pts, list):
+            raise ValueError("field 'points': expected a list")
+        out = cls(params)
+        for i, p in enumerate(pts):
+            ok = isinstance(p, list) and len(p) == 4 and all(_finite(x) for x in p[:3]) and _count(p[3])
+            if not ok:
+                raise ValueError(f"field 'points[{i}]': expected [hour, leak, ratio, ticks], got {p!r:.60}")
+            out.points.append((float(p[0]), float(p[1]), float(p[2]), int(p[3])))
+        out.points = out.points[-params.max_points :]
+        op = d.get("open")
+        if op is not None:
+            ok = isinstance(op, list) and len(op) == 5 and _integer(op[0]) and _count(op[1])
+            if not (ok and all(_finite(x) for x in op[2:])):
+                raise ValueError(f"field 'open': expected [bin, ticks, sum_h, sum_leak, sum_ratio], got {op!r:.60}")
+            out.open_bin, out.open_n = int(op[0]), int(op[1])
+            out.open_sum_h, out.open_sum_leak, out.open_sum_ratio = (float(x) for x in op[2:])
+        return out
+
+
+def _finite(x: Any) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def _integer(x: Any) -> bool:
+    return isinstance(x, int) and not isinstance(x, bool)
+
+
+def _count(x: Any) -> bool:
+    return _integer(x) and x >= 0
+
+
+def _add_in_order(start: float, xs: NDArray[np.float64]) -> float:
+    """``start + xs[0] + xs[1] + ...`` one addition after the other (cumsum adds in order, sum pairwise)."""
+    return float(np.cumsum(np.concatenate(([start], xs)))[-1])
+
+
+def _thin(points: list[Point], keep: int) -> list[Point]:
+    """Down to ``keep`` points by merging, in the older half, the adjacent pair of fewest ticks (the
+    oldest of equals) into their tick-weighted mean, again and again: the older stretch evens out at
+    a coarser resolution, the recent one keeps its own."""
+    pts = list(points)
+    half = len(pts) // 2
+    while len(pts) > keep and half >= 2:
+        w = [pts[i][3] + pts[i + 1][3] for i in range(half - 1)]
+        i = w.index(min(w))
+        (h1, l1, r1, n1), (h2, l2, r2, n2) = pts[i], pts[i + 1]
+        n = n1 + n2
+        pts[i : i + 2] = [((h1 * n1 + h2 * n2) / n, (l1 * n1 + l2 * n2) / n, (r1 * n1 + r2 * n2) / n, n)]
+        half -= 1
+    return pts
+
+
+# -- the estimate -----------------------------------------------------------------------------------
+
+
+def estimate(
+    p: PrognosisParams, h: NDArray[np.float64], leak: NDArray[np.float64], ratio: NDArray[np.float64]
+) -> Estimate:
+    """The prognosis from a history (hours increasing): see the module's description."""
+    n = len(h)
+    if n < p.min_points + 2 or not h[-1] > h[0]:
+        return Estimate(at_h=float(h[-1]) if n else math.nan)
+    T = float(h[-1])
+    d = _detect(p, h, leak)
+    base = Estimate(at_h=T, rise_lpm=d.c, t_stat=d.t_stat, onset_h=d.onset_h, shape_k=d.shape_k, noise_lpm=d.sigma)
+    if not d.trend:
+        return base
+    low_y, eol_y = _leak_thresholds(p, leak, ratio)
+    # Pooled with the estimates of the last few hours (each less the hours since): one taken on a
+    # warm or a cold stretch of the oil's cycle no longer decides alone. Near the end the pool
+    # shrinks (to a quarter of the hours left): older estimates lag an accelerating wear.
+    tl, te = _draw_hours(p, d, h, leak, (low_y, eol_y), p.seed)
+    lows, eols = [tl], [te]
+    pool_h = min(p.pool_h, 0.25 * float(np.median(te)))
+    for i, lag in enumerate(np.arange(p.pool_every_h, pool_h + 1e-9, p.pool_every_h).tolist(), start=1):
+        m = int(np.searchsorted(h, T - lag, side="right"))
+        if m < p.min_points + 2:
+            break
+        di = _detect(p, h[:m], leak[:m])
+        if not di.trend:
+            continue
+        tl, te = _draw_hours(p, di, h[:m], leak[:m], (low_y, eol_y), p.seed + i)
+        since = T - float(h[m - 1])
+        lows.append(np.where(tl < _NEVER_H, np.maximum(tl - since, 0.0), tl))
+        eols.append(np.where(te < _NEVER_H, np.maximum(te - since, 0.0), te))
+    q_low, q_eol = _quantiles(np.concatenate(lows)), _quantiles(np.concatenate(eols))
+    state = IMMINENT if q_eol[0] <= p.imminent_h else TREND
+    return Estimate(state, T, q_low, q_eol, d.c, d.t_stat, d.onset_h, d.shape_k, d.sigma)
+
+
+@dataclass(frozen=True)
+class _Detected:
+    """The least-squares fit of the grid's best cell and whether its rise is a trend."""
+
+    trend: bool
+    c: float
+    t_stat: float
+    onset_h: float
+    shape_k: float
+    sigma: float
+    g: int
+    t0s: list[float]
+    ks: list[float]
+    basis: NDArray[np.float64]
+    resid: NDArray[np.float64]
+
+
+def _detect(p: PrognosisParams, h: NDArray[np.float64], leak: NDArray[np.float64]) -> _Detected:
+    n = len(h)
+    t0s, ks, basis = _grid(p, h)
+    f = _fit(basis, leak)
+    g = int(np.argmin(f.sse))
+    c = float(f.c[g])
+    resid = leak - (f.b[g] + c * basis[g])
+    sigma = float(np.sqrt(f.sse[g] / max(n - 4, 1)))
+    se = sigma * math.sqrt(_inflation(resid) / f.suu[g]) if f.suu[g] > 0 else math.inf
+    t_stat = c / se if se > 0 else (math.inf if c > 0 else 0.0)
+    trend = c > 0 and t_stat >= p.t_min and c >= max(p.min_rise_lpm, p.rise_sigmas * sigma)
+    return _Detected(trend, c, t_stat, t0s[g], ks[g], sigma, g, t0s, ks, basis, resid)
+
+
+def _draw_hours(
+    p: PrognosisParams,
+    d: _Detected,
+    h: NDArray[np.float64],
+    leak: NDArray[np.float64],
+    ys: tuple[float, float],
+    seed: int,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Hours from the last point until each drawn curve reaches each of ``ys`` (with the model's
+    relative error). The fit weighs each point by its noise: a floor (as before the onset) plus a
+    share of the wear leakage, which swings with the oil's viscosity and the duty's pressure."""
+    n, T = len(h), float(h[-1])
+    before = d.basis[d.g] == 0.0
+    floor = float(np.sqrt(np.mean(d.resid[before] ** 2))) if np.count_nonzero(before) >= 4 else 0.0
+    floor = max(floor, p.sigma_floor_lpm)
+    w = 1.0 / (floor**2 + (p.level_rel * d.c * d.basis[d.g]) ** 2)
+    f = _fit(d.basis, leak, w)
+    gw = int(np.argmin(f.sse))
+    resid_w = (leak - (f.b[gw] + f.c[gw] * d.basis[gw])) * np.sqrt(w)
+    s2 = float(f.sse[gw]) / max(n - 4, 1) * _inflation(resid_w)
+    rng = np.random.default_rng(seed)
+    cell, bs, cs = _draws(p, f, s2, rng)
+    t0a, ka = np.array(d.t0s)[cell], np.array(d.ks)[cell]
+    spread = np.exp(rng.normal(0.0, p.model_rel, len(cell)))
+    out = []
+    for y in ys:
+        t = _hours_to(y, bs, cs, t0a, ka, T)
+        out.append(np.where(t < _NEVER_H, t * spread, t))
+    return out[0], out[1]
+
+
+@dataclass(frozen=True)
+class _Fits:
+    """Least squares of ``y = b + c * basis[g]`` in every cell ``g`` of the grid (``c >= 0``)."""
+
+    b: NDArray[np.float64]
+    c: NDArray[np.float64]
+    sse: NDArray[np.float64]  # residual sum of squares
+    suu: NDArray[np.float64]  # the basis' sum of squares about its mean: var(c) = sigma^2 / suu
+    u_mean: NDArray[np.float64]
+    y_mean: float
+    w_sum: float  # var(level at the basis' mean) = sigma^2 / w_sum
+
+
+def _grid(p: PrognosisParams, h: NDArray[np.float64]) -> tuple[list[float], list[float], NDArray[np.float64]]:
+    """Onsets x shapes, and each cell's basis ((h - t0) / (T - t0))^k, 0 before the onset."""
+    n = len(h)
+    T = float(h[-1])
+    idx = np.unique(np.round(np.linspace(0, n - p.min_points, p.onsets)).astype(np.int64))
+    t0s, ks, rows = [], [], []
+    for i in idx.tolist():
+        t0 = float(h[i])
+        s = np.clip((h - t0) / max(T - t0, 1e-9), 0.0, 1.0)
+        for k in _SHAPES:
+            t0s.append(t0)
+            ks.append(k)
+            rows.append(s**k)
+    return t0s, ks, np.array(rows)
+
+
+def _fit(basis: NDArray[np.float64], y: NDArray[np.float64], w: NDArray[np.float64] | None = None) -> _Fits:
+    """Every cell's (weighted) fit; a falling one is the flat one (``c = 0``): wear does not heal."""
+    w = np.ones(len(y)) if w is None else w
+    wsum = float(w.sum())
+    u_mean = basis @ w / wsum
+    uc = basis - u_mean[:, None]
+    suu = (uc * uc) @ w
+    y_mean = float(y @ w) / wsum
+    yc = y - y_mean
+    suy = uc @ (w * yc)
+    c = np.where(suy > 0, suy / np.where(suu > 0, suu, np.inf), 0.0)
+    sse = float(yc @ (w * yc)) - c * suy
+    return _Fits(y_mean - c * u_mean, c, np.maximum(sse, 0.0), suu, u_mean, y_mean, wsum)
+
+
+def _inflation(r: NDArray[np.float64]) -> float:
+    """(1 + rho) / (1 - rho) for the residuals' lag-1 autocorrelation rho (in [0, 0.9]): how much
+    less a correlated point tells than an independent one."""
+    d = r - r.mean()
+    den = float(d @ d)
+    rho = float(d[1:] @ d[:-1]) / den if den > 0 else 0.0
+    rho = min(max(rho, 0.0), 0.9)
+    return (1 + rho) / (1 - rho)
+
+
+def _draws(
+    p: PrognosisParams, f: _Fits, s2: float, rng: np.random.Generator
+) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
+    """Curves drawn from the fit's posterior: a cell (onset and shape) by its likelihood
+    exp(-(SSE - SSE_min) / 2 s2), then its level and rise from their normal distributions (flat
+    priors; level at the basis' mean and rise are independent). The onset and shape the data do not
+    tell apart are all drawn: that is most of the uncertainty of an extrapolation."""
+    logw = -(f.sse - f.sse.min()) / (2.0 * s2)
+    w = np.exp(logw - logw.max())
+    w[f.c <= 0] = 0.0
+    cell = rng.choice(len(w), size=p.draws, p=w / w.sum())
+    level = f.y_mean + rng.normal(0.0, math.sqrt(s2 / f.w_sum), p.draws)
+    cs = f.c[cell] + rng.normal(0.0, 1.0, p.draws) * np.sqrt(s2 / f.suu[cell])
+    return cell, level - cs * f.u_mean[cell], cs
+
+
+def _leak_thresholds(p: PrognosisParams, leak: NDArray[np.float64], ratio: NDArray[np.float64]) -> tuple[float, float]:
+    """The low warning and end of life as extra leakage (l/min): ratios through the line of the
+    deficit on the leakage (NaN where that line does not rise)."""
+    d = 100.0 - ratio
+    lc = leak - leak.mean()
+    var = float(lc @ lc)
+    gain = float(lc @ (d - d.mean())) / var if var > 0 else 0.0
+    icpt = float(d.mean()) - gain * float(leak.mean())
+
+    def from_ratio(pct: float) -> float:
+        return (100.0 - pct - icpt) / gain if gain > 0 else math.nan
+
+    eol = p.eol_value if p.eol_kind == "leak_lpm" else from_ratio(p.eol_value)
+    return from_ratio(p.low_pct), eol
+
+
+def _hours_to(
+    y: float, b: NDArray[np.float64], c: NDArray[np.float64], t0: NDArray[np.float64], k: NDArray[np.float64], T: float
+) -> NDArray[np.float64]:
+    """Per drawn curve, operating hours from ``T`` until it reaches ``y`` (0: reached already)."""
+    if not math.isfinite(y):
+        return np.full(len(b), math.nan)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        frac = (y - b) / c  # the curve's value at T is b + c
+        t = t0 + (T - t0) * np.power(np.maximum(frac, 0.0), 1.0 / k) - T
+    t = np.where(c > 0, t, _NEVER_H)
+    return np.clip(np.nan_to_num(t, nan=_NEVER_H, posinf=_NEVER_H), 0.0, _NEVER_H)
+
+
+def _quantiles(t: NDArray[np.float64]) -> Triple:
+    if not len(t) or np.isnan(t).any():
+        return _NAN3
+    q = np.quantile(t, (0.1, 0.5, 0.9))
+    a, b, c = (math.inf if x >= _NEVER_H else float(x) for x in q.tolist())
+    return (a, b, c)
