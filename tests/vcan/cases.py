@@ -15,7 +15,6 @@ import signal
 import socket
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -30,6 +29,7 @@ from cmcan.replay import FrameCollector, replay
 from cmcan.sim import scenario as scn
 from cmcan.sim.frames import frames_from_run
 from cmcan.sim.run import simulate
+from tests.vcan.support import SocketListener
 
 ROOT = Path(__file__).resolve().parents[2]
 IFACE = "vcan0"
@@ -81,24 +81,17 @@ def make_config(tmp: Path, counters: bool = True) -> Path:
     return p
 
 
-class Notifications:
-    def __init__(self, path: Path) -> None:
-        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-        self.sock.bind(str(path))
-        self.sock.settimeout(0.2)
-        self.path = path
-        self.got: list[tuple[float, str]] = []
-        self.stop = False
-        self.thread = threading.Thread(target=self._loop, daemon=True)
-        self.thread.start()
+class Notifications(SocketListener):
+    """What the daemon says over its sd_notify socket: (time, text)."""
 
-    def _loop(self) -> None:
-        while not self.stop:
-            try:
-                text = self.sock.recv(4096).decode()
-            except (TimeoutError, OSError):
-                continue
-            self.got.append((time.monotonic(), text))  # stamped on arrival, not when the wait began
+    def __init__(self, path: Path) -> None:
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        sock.bind(str(path))
+        self.path = path
+        super().__init__(sock)
+
+    def read(self) -> tuple[str]:
+        return (self.sock.recv(4096).decode(),)
 
     def status(self) -> str:
         texts = [m for _, m in self.got if "STATUS=" in m]
@@ -461,32 +454,20 @@ def make_j1939_log(path: Path, cfg_path: Path) -> Path:
     return path
 
 
-class J1939Listener:
+class J1939Listener(SocketListener):
     """A J1939 peer through the kernel's stack (module can-j1939): every broadcast parameter group
-    it receives on the interface, transport protocol reassembled by the kernel."""
+    it receives on the interface, transport protocol reassembled by the kernel: (time, PGN, source
+    address, data)."""
 
     def __init__(self, iface: str) -> None:
-        self.sock = socket.socket(socket.PF_CAN, socket.SOCK_DGRAM, socket.CAN_J1939)
-        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
-        self.sock.bind((iface, socket.J1939_NO_NAME, socket.J1939_NO_PGN, socket.J1939_NO_ADDR))
-        self.sock.settimeout(0.2)
-        self.got: list[tuple[float, int, int, bytes]] = []  # (time, PGN, source address, data)
-        self.stop = False
-        self.thread = threading.Thread(target=self._loop, daemon=True)
-        self.thread.start()
+        sock = socket.socket(socket.PF_CAN, socket.SOCK_DGRAM, socket.CAN_J1939)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
+        sock.bind((iface, socket.J1939_NO_NAME, socket.J1939_NO_PGN, socket.J1939_NO_ADDR))
+        super().__init__(sock)
 
-    def _loop(self) -> None:
-        while not self.stop:
-            try:
-                data, addr = self.sock.recvfrom(2048)
-            except (TimeoutError, OSError):
-                continue
-            self.got.append((time.monotonic(), addr[2], addr[3], data))
-
-    def close(self) -> None:
-        self.stop = True
-        self.thread.join(2)
-        self.sock.close()
+    def read(self) -> tuple[int, int, bytes]:
+        data, addr = self.sock.recvfrom(2048)
+        return addr[2], addr[3], data
 
 
 @pytest.fixture(scope="module")

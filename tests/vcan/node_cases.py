@@ -10,8 +10,9 @@ import json
 import socket
 import subprocess
 import sys
-import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +29,7 @@ from cmcan.replay import FrameCollector, replay
 from cmcan.sim.frames import frames_from_run, with_source_address
 from cmcan.sim.run import simulate
 from cmcan.statefile import StateStore
+from tests.vcan.support import SocketListener
 
 ROOT = Path(__file__).resolve().parents[2]
 IFACE = "vcan0"
@@ -87,29 +89,21 @@ def write_log(path: Path, *parts) -> Path:
     return path
 
 
-class Tool:
+class Tool(SocketListener):
     """A service tool on the kernel's J1939 stack: a CAN_J1939 socket at address 0xF9 that sends
     requests and keeps what it receives (PGN, source, destination from the kernel's SCM_J1939_DEST_ADDR,
     data; the transport protocol reassembled by the kernel)."""
 
     def __init__(self) -> None:
-        self.sock = socket.socket(socket.PF_CAN, socket.SOCK_DGRAM, socket.CAN_J1939)
-        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
-        self.sock.bind((IFACE, socket.J1939_NO_NAME, socket.J1939_NO_PGN, TOOL))
-        self.sock.settimeout(0.2)
-        self.got: list[tuple[float, int, int, int, bytes]] = []  # (time, PGN, source, destination, data)
-        self.stop = False
-        self.thread = threading.Thread(target=self._loop, daemon=True)
-        self.thread.start()
+        sock = socket.socket(socket.PF_CAN, socket.SOCK_DGRAM, socket.CAN_J1939)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
+        sock.bind((IFACE, socket.J1939_NO_NAME, socket.J1939_NO_PGN, TOOL))
+        super().__init__(sock)
 
-    def _loop(self) -> None:
-        while not self.stop:
-            try:
-                data, anc, _, addr = self.sock.recvmsg(2048, 256)
-            except (TimeoutError, OSError):
-                continue
-            dest = next((c[2][0] for c in anc if c[0] == SOL_CAN_J1939 and c[1] == socket.SCM_J1939_DEST_ADDR), 255)
-            self.got.append((time.monotonic(), addr[2], addr[3], dest, data))
+    def read(self) -> tuple[int, int, int, bytes]:
+        data, anc, _, addr = self.sock.recvmsg(2048, 256)
+        dest = next((c[2][0] for c in anc if c[0] == SOL_CAN_J1939 and c[1] == socket.SCM_J1939_DEST_ADDR), 255)
+        return addr[2], addr[3], dest, data
 
     def request(self, pgn: int, dest: int) -> float:
         t = time.monotonic()
@@ -119,10 +113,17 @@ class Tool:
     def from_cmcan(self, pgn: int, after: float, source: int = SA) -> list[tuple[float, int, bytes]]:
         return [(t, d, data) for t, p, s, d, data in self.got if p == pgn and s == source and t >= after]
 
-    def close(self) -> None:
-        self.stop = True
-        self.thread.join(2)
-        self.sock.close()
+
+@contextmanager
+def j1939acd(address: int = SA) -> Iterator[None]:
+    """can-utils' address claiming daemon with a NAME lower than any cmcan NAME, claiming ``address``
+    for as long as the block runs."""
+    acd = subprocess.Popen(["j1939acd", "-r", f"0x{address:x}", f"{ACD_NAME:016x}", IFACE], stderr=subprocess.DEVNULL)
+    try:
+        yield
+    finally:
+        acd.terminate()
+        acd.wait(timeout=10)
 
 
 def cm_check(cfg: Path) -> dict:
@@ -151,7 +152,6 @@ def service_run(work):
     rec = subprocess.Popen(["candump", "-L", IFACE], stdout=bus_log, stderr=subprocess.DEVNULL)
     tool = Tool()
     d = Daemon(tmp, cfg, "node")
-    acd = None
     asked: dict[str, float] = {}
     try:
         time.sleep(2.0)  # the daemon claims at its first idle step on the silent bus
@@ -172,14 +172,11 @@ def service_run(work):
         assert player.wait(timeout=180) == 0, player.stderr.read()
         time.sleep(1.0)
         asked["acd"] = time.monotonic()
-        acd = subprocess.Popen(["j1939acd", "-r", "0x8c", f"{ACD_NAME:016x}", IFACE], stderr=subprocess.DEVNULL)
-        time.sleep(4.0)
-        probe = cm_check(cfg)
-        time.sleep(0.5)
+        with j1939acd():
+            time.sleep(4.0)
+            probe = cm_check(cfg)
+            time.sleep(0.5)
     finally:
-        if acd is not None:
-            acd.terminate()
-            acd.wait(timeout=10)
         stop(rec)
         bus_log.close()
         tool.close()
@@ -293,16 +290,12 @@ def arbitrary_run(work):
     bus_log = open(tmp / "arb-bus.log", "w")  # noqa: SIM115
     rec = subprocess.Popen(["candump", "-L", IFACE], stdout=bus_log, stderr=subprocess.DEVNULL)
     d = Daemon(tmp, cfg, "arb")
-    acd = None
     try:
         time.sleep(3.0)
-        acd = subprocess.Popen(["j1939acd", "-r", "0x8c", f"{ACD_NAME:016x}", IFACE], stderr=subprocess.DEVNULL)
-        time.sleep(5.0)
-        probe = cm_check(cfg)
+        with j1939acd():
+            time.sleep(5.0)
+            probe = cm_check(cfg)
     finally:
-        if acd is not None:
-            acd.terminate()
-            acd.wait(timeout=10)
         stop(rec)
         bus_log.close()
         d.stop()

@@ -7,11 +7,44 @@ import shutil
 import socket
 import subprocess
 import sys
+import threading
+import time
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from tests.vcan.vm import VmError, cache_dir, guest_script, run_in_vm
+
+
+class SocketListener:
+    """A thread that keeps what a socket receives, each item stamped on arrival (not when the wait
+    began); a subclass says how one item is read (:meth:`read`) and sets up what that needs before
+    calling this ``__init__``, which starts the thread."""
+
+    def __init__(self, sock: socket.socket) -> None:
+        self.sock = sock
+        sock.settimeout(0.2)
+        self.got: list = []
+        self.stop = False
+        self.thread = threading.Thread(target=self._loop, daemon=True)
+        self.thread.start()
+
+    def read(self) -> tuple:
+        raise NotImplementedError
+
+    def _loop(self) -> None:
+        while not self.stop:
+            try:
+                item = self.read()
+            except (TimeoutError, OSError):
+                continue
+            self.got.append((time.monotonic(), *item))
+
+    def close(self) -> None:
+        self.stop = True
+        self.thread.join(2)
+        self.sock.close()
+
 
 PROJECT = Path(__file__).resolve().parents[2]
 TEST_FILE = "tests/vcan/test_vcan.py"
