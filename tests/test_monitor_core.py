@@ -44,7 +44,8 @@ def test_same_input_same_output(short):
 
 
 def test_core_gates_equal_the_training_features(short, tmp_path):
-    """Training and the monitor share the gate: the same windows get the same verdicts."""
+    """Training and the monitor share the gate: the same windows get the same verdicts and the same
+    operating points."""
     _, frames = short
     cfg = cfgmod.load()
     mon = monitor()
@@ -67,6 +68,8 @@ def test_core_gates_equal_the_training_features(short, tmp_path):
     for tk, c, x, meas in matched:
         if tk.gate in EVALUATED and c == tk.gate:
             assert tk.measured == pytest.approx(meas, rel=1e-9)
+            # the tick's operating point is the training's: what a fleet's type model trains on
+            assert [tk.pump_speed_rpm, tk.pump_disp_cc, tk.dp_bar, tk.temp_c] == pytest.approx(x, rel=1e-9)
             assert tk.predicted == pytest.approx(mdl.predict(x[None, :])[0][0], rel=1e-6)
 
 

@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cmcan.monitor.gating import EVALUATED
-from cmcan.monitor.tick import TickColumns
+from cmcan.monitor.tick import OPERATING_POINT, TickColumns
 
 _EVALUATED = np.array(sorted(int(g) for g in EVALUATED), dtype=np.int8)  # a ratio, inside the envelope or not
 
@@ -48,6 +48,8 @@ REDUCTIONS: dict[str, tuple[str, str]] = {
     "level": ("warning_level", "max"),
     "reason": ("warning_reason", "last"),
     "time_below_s": ("time_below_threshold_s", "last"),
+    # the operating point of the evaluated ticks: what a type model trains on (``cmcan fleet train``)
+    **{role: (role, "mean_eval") for role in OPERATING_POINT},
 }
 
 

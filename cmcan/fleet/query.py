@@ -49,6 +49,10 @@ EMPTY: dict[str, dict[str, str]] = {
         "warning_level": _S,
         "warning_reason": _S,
         "time_below_threshold_s": _F,
+        "pump_speed_rpm": _F,
+        "pump_disp_cc": _F,
+        "dp_bar": _F,
+        "temp_c": _F,
         **_PROV,
     },
     "events": {

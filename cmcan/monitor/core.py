@@ -68,7 +68,7 @@ from cmcan.monitor.node import Clear, Node, NodeParams
 from cmcan.monitor.payloads import Outputs, Payloads
 from cmcan.monitor.ratio import Point, Points, Predictor, Ratio
 from cmcan.monitor.release import OutputQueue
-from cmcan.monitor.tick import LEVEL_NAMES, Tick, TickColumns, TickListener
+from cmcan.monitor.tick import LEVEL_NAMES, OPERATING_POINT, Tick, TickColumns, TickListener
 from cmcan.monitor.totals import Totals
 from cmcan.monitor.warnings import Level, Reason, Thresholds, Transition, WarningMachine, fault_raised, warning_raised
 from cmcan.monitor.windows import Affine, DpFromHighLow, Target, Windows
@@ -381,12 +381,12 @@ class Monitor:
         pt = self.ratio.point(mean, count, g)
         if pt.evaluated:
             self.filter.add(pt.ratio_raw_pct, pt.leak_lpm)
-        tick = self._judge(t, pt)
+        tick = self._judge(t, pt, mean)
         for listener in self.listeners:
             listener.tick(tick)
         return self._emit(k, tick)
 
-    def _judge(self, t: float, pt: Point) -> Tick:
+    def _judge(self, t: float, pt: Point, mean: Mapping[str, float]) -> Tick:
         """Steps 5 and 6 of a tick: the warning machine, the totals, the tick."""
         flt, m, tot = self.filter, self.machine, self.totals
         evaluated = pt.evaluated
@@ -414,6 +414,7 @@ class Monitor:
             reason=m.reason,
             time_below_s=m.time_below_s,
             run_shift_s=self.run_shift_s,
+            **{role: mean[role] for role in OPERATING_POINT},
         )
         return self.last_tick
 
@@ -564,7 +565,7 @@ class Monitor:
         filt, filt_leak, valid = self.filter.add_columns(
             pts.ratio_raw_pct[pts.evaluated], pts.leak_lpm, pts.evaluated, len(ks)
         )
-        self._judge_columns(ks, pts, filt, filt_leak, valid, out)
+        self._judge_columns(ks, pts, filt, filt_leak, valid, mean, out)
 
     def _judge_columns(
         self,
@@ -573,6 +574,7 @@ class Monitor:
         filt: NDArray[np.float64],
         filt_leak: NDArray[np.float64],
         valid: NDArray[np.bool_],
+        mean: Mapping[str, NDArray[np.float64]],
         out: _Out,
     ) -> None:
         """:meth:`_judge` and :meth:`_emit` at every tick of a stretch."""
@@ -607,6 +609,7 @@ class Monitor:
             reason=w.reason,
             time_below_s=w.time_below_s,
             run_shift_s=np.full(len(ks), self.run_shift_s),  # no clock step within a stretch
+            **{role: mean[role] for role in OPERATING_POINT},
         )
         self.last_tick = ticks.tick(len(ks) - 1)
         for listener in self.listeners:

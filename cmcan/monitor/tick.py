@@ -8,6 +8,7 @@ listen this way; nothing polls the monitor for its last tick.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -17,7 +18,10 @@ from numpy.typing import NDArray
 
 from cmcan.monitor.gating import Gate
 from cmcan.monitor.warnings import Level, Reason
+from cmcan.roles import MODEL_INPUTS
 
+# A tick's operating point: the model's inputs, each a field of :class:`Tick` under its role's name
+OPERATING_POINT: tuple[str, ...] = MODEL_INPUTS
 LEVEL_NAMES = {Level.OK: "ok", Level.LOW: "low", Level.HIGH: "high", Level.FAULT: "fault"}
 
 
@@ -38,6 +42,12 @@ class Tick:
     reason: Reason
     time_below_s: float
     run_shift_s: float = 0.0  # t_s + this: the tick on the run's continuous time base (Monitor.run_shift_s)
+    # The operating point: the window means of the model's inputs at the tick (NaN where a role had no
+    # sample in its window), what a fleet's type model trains on (:data:`OPERATING_POINT`)
+    pump_speed_rpm: float = math.nan
+    pump_disp_cc: float = math.nan
+    dp_bar: float = math.nan
+    temp_c: float = math.nan
 
 
 @dataclass(frozen=True)
@@ -59,10 +69,18 @@ class TickColumns:
     # t_s + this: each tick on the run's continuous time base (the wall clock's steps undone); zeros
     # when not given
     run_shift_s: NDArray[np.float64] = None  # type: ignore[assignment]
+    # the operating point (window means of the model's inputs; NaN when not given)
+    pump_speed_rpm: NDArray[np.float64] = None  # type: ignore[assignment]
+    pump_disp_cc: NDArray[np.float64] = None  # type: ignore[assignment]
+    dp_bar: NDArray[np.float64] = None  # type: ignore[assignment]
+    temp_c: NDArray[np.float64] = None  # type: ignore[assignment]
 
     def __post_init__(self) -> None:
         if self.run_shift_s is None:
             object.__setattr__(self, "run_shift_s", np.zeros(len(self.t_s)))
+        for name in OPERATING_POINT:
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, np.full(len(self.t_s), np.nan))
 
     def __len__(self) -> int:
         return len(self.t_s)
@@ -88,6 +106,7 @@ class TickColumns:
             reason=Reason(int(self.reason[i])),
             time_below_s=float(self.time_below_s[i]),
             run_shift_s=float(self.run_shift_s[i]),
+            **{name: float(getattr(self, name)[i]) for name in OPERATING_POINT},
         )
 
     @classmethod
@@ -109,6 +128,7 @@ class TickColumns:
             reason=col("reason", np.int8),
             time_below_s=col("time_below_s", np.float64),
             run_shift_s=col("run_shift_s", np.float64),
+            **{name: col(name, np.float64) for name in OPERATING_POINT},
         )
 
     @classmethod
