@@ -164,15 +164,15 @@ def test_arriving_leaks_from_hour_0_on_healthy_machines_only():
 
 
 def test_a_fleet_of_one_type_with_mixed_duty_and_oil_from_cold_to_hot():
-    oil = {"oil_temp_c": (50.0, 60.0), "oil_swing_c": (30.0, 40.0)}
+    oil = {"oil_temp_c": (55.0, 60.0), "oil_swing_c": (30.0, 35.0)}
     spec = sf.FleetSpec(machines=20, hours=150, seed=8, types=("mid",), **oil)
     plans = sf.plan_fleet(spec)
     assert {p.type.name for p in plans} == {"mid"}
     assert {p.truth["duty"] for p in plans} == set(sf.DUTIES)
     for p in plans:
         oil = p.scenario.oil
-        assert oil["model"] == "prescribed" and 50.0 <= oil["temp_c"] <= 60.0 and 30.0 <= oil["swing_c"] <= 40.0
-        assert oil["temp_c"] - oil["swing_c"] <= 30.0 and oil["temp_c"] + oil["swing_c"] >= 80.0
+        assert oil["model"] == "prescribed" and 55.0 <= oil["temp_c"] <= 60.0 and 30.0 <= oil["swing_c"] <= 35.0
+        assert 20.0 <= oil["temp_c"] - oil["swing_c"] <= 30.0 and 85.0 <= oil["temp_c"] + oil["swing_c"] <= 95.0
 
 
 @pytest.mark.parametrize(
@@ -182,6 +182,7 @@ def test_a_fleet_of_one_type_with_mixed_duty_and_oil_from_cold_to_hot():
         ({"types": ()}, "at least one machine type"),
         ({"oil_temp_c": (70.0, 45.0)}, "oil temperature range"),
         ({"oil_swing_c": (5.0, 60.0)}, "oil swing range"),
+        ({"oil_temp_c": (80.0, 90.0), "oil_swing_c": (20.0, 40.0)}, r"from 40 to 130 C, outside -30 \.\. 120 C"),
         ({"arriving_leaks": -1}, "arriving leaks"),
         ({"arriving_leak_pct": (0.0, 5.0)}, "arriving leak range"),
         ({"spread": replace(SPREAD, leak_sigma=-0.1)}, "leak_sigma must be a number >= 0"),

@@ -291,6 +291,9 @@ class FleetSpec:
         self._check_types()
         _check_range("oil temperature", self.oil_temp_c, -30.0, 120.0, "C")
         _check_range("oil swing", self.oil_swing_c, 0.0, 50.0, "C")
+        coldest, hottest = self.oil_temp_c[0] - self.oil_swing_c[1], self.oil_temp_c[1] + self.oil_swing_c[1]
+        if coldest < -30.0 or hottest > 120.0:
+            raise ValueError(f"oil would swing from {coldest:g} to {hottest:g} C, outside -30 .. 120 C")
         if self.spread is not None:
             self.spread.check()
         healthy = self.machines - self.degrading_count
