@@ -184,6 +184,7 @@ def test_a_fleet_of_one_type_with_mixed_duty_and_oil_from_cold_to_hot():
         ({"oil_swing_c": (5.0, 60.0)}, "oil swing range"),
         ({"oil_temp_c": (80.0, 90.0), "oil_swing_c": (20.0, 40.0)}, r"from 40 to 130 C, outside -30 \.\. 120 C"),
         ({"arriving_leaks": -1}, "arriving leaks"),
+        ({"arriving_leaks": 1.5}, "arriving leaks"),
         ({"arriving_leak_pct": (0.0, 5.0)}, "arriving leak range"),
         ({"spread": replace(SPREAD, leak_sigma=-0.1)}, "leak_sigma must be a number >= 0"),
         ({"spread": SPREAD.scaled(20.0)}, "pump_disp_pct must be at most 10"),

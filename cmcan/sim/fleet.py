@@ -297,7 +297,7 @@ class FleetSpec:
         if self.spread is not None:
             self.spread.check()
         healthy = self.machines - self.degrading_count
-        if not 0 <= self.arriving_leaks <= healthy:
+        if not (isinstance(self.arriving_leaks, int) and 0 <= self.arriving_leaks <= healthy):
             raise ValueError(
                 f"arriving leaks must be between 0 and the {healthy} healthy machines, got {self.arriving_leaks}"
             )
