@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from cmcan.cli.common import Subparsers
 from cmcan.cli.errors import ensure_writable
@@ -18,6 +20,9 @@ from cmcan.schema import SchemaError
 from cmcan.sim import scenario as scn
 from cmcan.sim.frames import frames_from_run
 from cmcan.sim.run import simulate
+
+if TYPE_CHECKING:
+    from cmcan.sim.fleet import FleetSpec
 
 _log = logging.getLogger("cmcan.simulate")
 
@@ -58,10 +63,37 @@ def add_subparser(sub: Subparsers) -> None:
     f.add_argument("--log-hours", type=float, default=24.0, help="operating hours per log file (24)")
     f.add_argument("--burst-s", type=float, default=10.0, help="time-lapse: seconds sampled per burst (10)")
     f.add_argument("--every-min", type=float, default=20.0, help="time-lapse: one burst every N minutes (20)")
+    f.add_argument("--types", metavar="T[,T...]", help="machine types in turn (compact, mid, large; default all three)")
+    f.add_argument("--oil-c", metavar="LO,HI", help="range of each machine's mean oil temperature, C (45,70)")
+    f.add_argument(
+        "--oil-swing-c", metavar="LO,HI", help="range of the swing of its oil temperature over 10 h, +- C (5,20)"
+    )
+    f.add_argument(
+        "--unit-spread",
+        type=float,
+        nargs="?",
+        const=1.0,
+        metavar="SCALE",
+        help="unit-to-unit variation: each machine its own displacements, healthy leakage and sensor errors "
+        "within datasheet tolerances, times SCALE (1; docs/simulator.md)",
+    )
+    f.add_argument("--arriving-leaks", type=int, metavar="N", help="N healthy machines arrive leaking from hour 0")
+    f.add_argument(
+        "--arriving-leak-pct", metavar="LO,HI", help="their leak, %% of the type's rated flow at 480 bar (4,8)"
+    )
     p.set_defaults(func=run)
 
 
-FLEET_ONLY = ("machines", "hours")
+FLEET_ONLY = (
+    "machines",
+    "hours",
+    "types",
+    "oil_c",
+    "oil_swing_c",
+    "unit_spread",
+    "arriving_leaks",
+    "arriving_leak_pct",
+)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -151,26 +183,13 @@ def run_fleet(args: argparse.Namespace) -> int:
     require_extra("train", "onnx")
     require_extra("train", "scipy")
     from cmcan.fleet.simfleet import remove_outputs, write_fleet
-    from cmcan.sim.fleet import FleetSpec
 
     if args.machines is None or args.hours is None:
         raise CmcanError("simulate fleet needs --machines N and --hours H", Kind.USAGE)
     for opt in ("candump", "dbc", "duration_h"):
         if getattr(args, opt) is not None:
             raise CmcanError(f"--{opt.replace('_', '-')} does not apply to `cmcan simulate fleet`", Kind.USAGE)
-    spec = FleetSpec(
-        machines=args.machines,
-        hours=args.hours,
-        seed=args.seed if args.seed is not None else 1,
-        degrading_share=args.degrading_share,
-        burst_s=args.burst_s,
-        every_min=args.every_min,
-        log_hours=args.log_hours,
-    )
-    try:
-        spec.check()
-    except ValueError as exc:
-        raise CmcanError(f"simulate fleet: {exc}", Kind.USAGE) from None
+    spec = fleet_spec(args)
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise CmcanError(f"{out}: exists and is not a folder", Kind.CANT_CREATE)
@@ -191,6 +210,54 @@ def run_fleet(args: argparse.Namespace) -> int:
             end="",
         )
     return 0
+
+
+def fleet_spec(args: argparse.Namespace) -> FleetSpec:
+    """The fleet the options ask for, checked (a usage error names what is wrong)."""
+    from cmcan.sim.fleet import FleetSpec, UnitSpread
+
+    extra: dict[str, Any] = {}
+    if args.types is not None:
+        extra["types"] = tuple(t.strip() for t in args.types.split(",") if t.strip())
+    for opt, key in (
+        ("oil_c", "oil_temp_c"),
+        ("oil_swing_c", "oil_swing_c"),
+        ("arriving_leak_pct", "arriving_leak_pct"),
+    ):
+        if getattr(args, opt) is not None:
+            extra[key] = _pair(f"--{opt.replace('_', '-')}", getattr(args, opt))
+    if args.unit_spread is not None:
+        if not (math.isfinite(args.unit_spread) and args.unit_spread >= 0):
+            raise CmcanError(f"simulate fleet: --unit-spread SCALE must be >= 0, got {args.unit_spread}", Kind.USAGE)
+        extra["spread"] = UnitSpread().scaled(args.unit_spread)
+    if args.arriving_leaks is not None:
+        extra["arriving_leaks"] = args.arriving_leaks
+    spec = FleetSpec(
+        machines=args.machines,
+        hours=args.hours,
+        seed=args.seed if args.seed is not None else 1,
+        degrading_share=args.degrading_share,
+        burst_s=args.burst_s,
+        every_min=args.every_min,
+        log_hours=args.log_hours,
+        **extra,
+    )
+    try:
+        spec.check()
+    except ValueError as exc:
+        raise CmcanError(f"simulate fleet: {exc}", Kind.USAGE) from None
+    return spec
+
+
+def _pair(opt: str, text: str) -> tuple[float, float]:
+    parts = text.split(",")
+    try:
+        lo, hi = (float(x) for x in parts)
+    except ValueError:
+        raise CmcanError(f"simulate fleet: {opt} expects LO,HI (two numbers), got {text!r}", Kind.USAGE) from None
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        raise CmcanError(f"simulate fleet: {opt} expects finite numbers, got {text!r}", Kind.USAGE)
+    return lo, hi
 
 
 def next_commands(out: Path) -> list[str]:

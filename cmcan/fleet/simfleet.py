@@ -8,6 +8,7 @@ Layout of ``OUT``::
     logs/<machine>/<machine>_<YYYYmmddTHHMM>.log   candump -l logs, one per ``log_hours`` of operation
     manifest.csv                       machine, log, config, model (paths relative to OUT)
     truth.json                         the ground truth: each machine's type, duty, oil and failures
+                                       (and, with unit-to-unit variation, its own draws: ``unit``)
 
 Every file is written to a temporary name and renamed; an existing ``OUT`` with files in it is
 refused unless ``force`` (then only the files above are replaced).
@@ -145,7 +146,12 @@ def write_fleet(
             logs.append({"log": rel, "from_h": a, "to_h": b, "frames": len(part)})
             n_frames += len(part)
         machines.append({**p.truth, "logs": logs})
-        say(f"{p.machine}: {p.type.name}, {p.truth['duty']}, {p.truth['degradation'] or 'healthy'}, {len(logs)} logs")
+        leak = p.truth.get("unit", {}).get("arriving_leak_lpm", 0.0)
+        say(
+            f"{p.machine}: {p.type.name}, {p.truth['duty']}, {p.truth['degradation'] or 'healthy'}"
+            + (f", arriving leak {leak:g} l/min" if leak else "")
+            + f", {len(logs)} logs"
+        )
 
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
@@ -155,7 +161,7 @@ def write_fleet(
     truth = {
         "format": TRUTH_FORMAT,
         "cmcan_version": __version__,
-        "spec": asdict(spec),
+        "spec": sf.spec_record(spec),
         "types": {n: {**asdict(sf.TYPES[n]), "model_d_tst": model_stats[n]} for n in used_types},
         "machines": machines,
     }
@@ -163,6 +169,7 @@ def write_fleet(
     return {
         "machines": len(plans),
         "degrading": sum(p.degrading for p in plans),
+        "arriving_leaks": spec.arriving_leaks,
         "logs": len(rows),
         "frames": n_frames,
         "types": used_types,

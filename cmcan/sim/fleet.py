@@ -7,17 +7,26 @@ files (logs, configurations, models, the sidecar) are written by :mod:`cmcan.fle
 The fleet is a time-lapse like the run-to-failure scenario: each machine is sampled in bursts
 (``burst_s`` every ``every_min`` minutes of operation), so hundreds of operating hours fit in a few
 hundred thousand frames; a burst's timestamps carry its true operating time.
+
+Unit-to-unit variation (issue 29), off by default: with a :class:`UnitSpread` every machine gets its
+own displacements, healthy leakage and sensor errors within the spread's tolerances, drawn from a
+stream of its own (``[seed, 29, ...]``), so switching it on changes nothing else the seed draws. Some
+healthy machines can arrive already leaking (``arriving_leaks``). The configuration and model of a
+type keep the nominal drive: the monitor does not know a machine's own draws, the truth sidecar does.
 """
 
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass
+import math
+from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any
 
 import numpy as np
 
 from cmcan.sim import scenario as scn
+from cmcan.sim.physics import DriveParams
+from cmcan.sim.sensors import SensorError
 
 
 @dataclass(frozen=True)
@@ -64,6 +73,177 @@ FAIL_SHARE_OF_RATED = 0.25
 TRAINING_HOURS = 0.6
 TRAINING_T_TRN_H = 0.4
 
+# Unit-to-unit variation draws from its own stream ([seed, SPREAD_STREAM, k]), never from the plan's.
+SPREAD_STREAM = 29
+# A lognormal leakage factor is cut at this many sigmas, so every draw lies within a stated bound.
+LEAK_CLIP_SIGMAS = 3.0
+# Arriving leaks are stated as an orifice's flow at this delta pressure (the leakage event's default).
+ARRIVING_LEAK_REF_DP_BAR = 480.0
+# Shares of a channel's accuracy given to its offset and to its gain: half each keeps the worst case
+# (offset and gain of the same sign at full scale) within the datasheet's figure.
+_OFFSET_SHARE = 0.5
+_GAIN_SHARE = 0.5
+
+
+@dataclass(frozen=True)
+class UnitSpread:
+    """Tolerances of one machine against its type: each a +- bound (a band, drawn uniformly inside it:
+    a datasheet states the band, not where in it the units lie), the leakage factor lognormal.
+
+    Defaults are typical datasheet figures for mobile axial piston units and their sensors:
+
+    - displacement +-1 %: the geometric displacement of series units (piston bores, pitch circle,
+      swash angle stops) scatters by about a percent around the catalogue's figure;
+    - healthy leakage factor, lognormal sigma 0.2 (cut at 3 sigma: 0.55 .. 1.82): gap flow goes with
+      the gap height cubed, so +-6 % on the few-micrometre gaps gives +-20 %; the volumetric efficiency
+      of new units of one series scatters by a few tenths of a percent, tens of percent of their
+      leakage (about 3 % of rated flow at 480 bar and 60 C for these drives). Pump and motor draw
+      their own factor (separate units); a unit's laminar and turbulent terms share it (same gaps);
+    - speed sensors +-0.2 % of reading (pulse pick-ups: the count is exact, the gate time and
+      the controller's filter are not), no offset (standstill reads 0);
+    - swash-plate angle sensor (pump displacement) +-1 % of full scale (Hall-effect angle sensors);
+    - pressure transducers +-0.5 % of full scale (thin-film mobile transducers, 600 bar on both
+      ports of a closed circuit: either side can be the high one);
+    - oil temperature +-1 K (Pt1000 class B is +-0.6 K at 60 C, with the transmitter about 1 K).
+
+    A channel's accuracy is split between its offset (half the band at full scale) and its gain (the
+    other half), so offset and gain together stay within it. The figures are parameters: nothing
+    depends on the defaults, and :meth:`scaled` widens or narrows them all at once.
+    """
+
+    pump_disp_pct: float = 1.0
+    motor_disp_pct: float = 1.0
+    leak_sigma: float = 0.2
+    speed_gain_pct: float = 0.2
+    disp_sensor_pct_fs: float = 1.0
+    pressure_pct_fs: float = 0.5
+    pressure_fs_bar: float = 600.0
+    temp_offset_c: float = 1.0
+
+    def scaled(self, k: float) -> UnitSpread:
+        """Every tolerance times ``k`` (the transducers' full scale stays)."""
+        return replace(self, **{f.name: getattr(self, f.name) * k for f in fields(self) if f.name != "pressure_fs_bar"})
+
+    def check(self) -> None:
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"unit spread: {f.name} must be a number >= 0, got {v!r}")
+        for key in ("pump_disp_pct", "motor_disp_pct", "speed_gain_pct", "disp_sensor_pct_fs", "pressure_pct_fs"):
+            if getattr(self, key) > 10.0:
+                raise ValueError(f"unit spread: {key} must be at most 10 %, got {getattr(self, key)}")
+        if self.leak_sigma > 1.0:
+            raise ValueError(f"unit spread: leak_sigma must be at most 1, got {self.leak_sigma}")
+        if not 10.0 <= self.pressure_fs_bar <= 1000.0:
+            raise ValueError(f"unit spread: pressure_fs_bar must be between 10 and 1000, got {self.pressure_fs_bar}")
+        if self.temp_offset_c > 10.0:
+            raise ValueError(f"unit spread: temp_offset_c must be at most 10 C, got {self.temp_offset_c}")
+
+    @property
+    def leak_factor_bounds(self) -> tuple[float, float]:
+        return math.exp(-LEAK_CLIP_SIGMAS * self.leak_sigma), math.exp(LEAK_CLIP_SIGMAS * self.leak_sigma)
+
+    def sensor_bounds(self, t: MachineType) -> dict[str, tuple[float, float]]:
+        """Each channel's (largest offset in the channel's unit, largest gain error in %)."""
+
+        def split(pct_fs: float, fs: float) -> tuple[float, float]:
+            return _OFFSET_SHARE * pct_fs / 100.0 * fs, _GAIN_SHARE * pct_fs
+
+        return {
+            "pump_speed_rpm": (0.0, self.speed_gain_pct),
+            "pump_disp_cc": split(self.disp_sensor_pct_fs, t.pump_disp_max_cc),
+            "high_pressure_bar": split(self.pressure_pct_fs, self.pressure_fs_bar),
+            "low_pressure_bar": split(self.pressure_pct_fs, self.pressure_fs_bar),
+            "temp_c": (self.temp_offset_c, 0.0),
+            "motor_speed_rpm": (0.0, self.speed_gain_pct),
+        }
+
+
+@dataclass(frozen=True)
+class Unit:
+    """One machine's own draws: its true largest displacements, its healthy leakage as factors on the
+    type's coefficients, its sensors' own offset and gain errors, and a leak it arrives with."""
+
+    pump_disp_max_cc: float
+    motor_disp_max_cc: float
+    pump_leak_factor: float = 1.0
+    motor_leak_factor: float = 1.0
+    sensors: dict[str, SensorError] = field(default_factory=dict)
+    arriving_leak_lpm: float = 0.0
+
+
+def nominal_unit(t: MachineType) -> Unit:
+    """A machine exactly as its type."""
+    return Unit(t.pump_disp_max_cc, t.motor_disp_max_cc, sensors={k: SensorError() for k in scn.SENSOR_CHANNELS})
+
+
+def _signed(x: float, bound: float, digits: int) -> float:
+    return round(bound * x, digits) + 0.0  # + 0.0: no -0.0 in the sidecar
+
+
+def draw_unit(t: MachineType, spread: UnitSpread, rng: np.random.Generator) -> Unit:
+    """A machine of type ``t`` within ``spread``. Always the same number of draws, whatever the
+    tolerances: a scaled spread moves the same machines the same way, only farther."""
+    e_disp = rng.uniform(-1.0, 1.0, 2)
+    z_leak = np.clip(rng.standard_normal(2), -LEAK_CLIP_SIGMAS, LEAK_CLIP_SIGMAS)
+    u_sensor = rng.uniform(-1.0, 1.0, (len(scn.SENSOR_CHANNELS), 2))
+    bounds = spread.sensor_bounds(t)
+    sensors = {
+        ch: SensorError(offset=_signed(u[0], bounds[ch][0], 4), gain_pct=_signed(u[1], bounds[ch][1], 4))
+        for ch, u in zip(scn.SENSOR_CHANNELS, u_sensor.tolist(), strict=True)
+    }
+    return Unit(
+        pump_disp_max_cc=round(t.pump_disp_max_cc * (1.0 + spread.pump_disp_pct / 100.0 * e_disp[0]), 4),
+        motor_disp_max_cc=round(t.motor_disp_max_cc * (1.0 + spread.motor_disp_pct / 100.0 * e_disp[1]), 4),
+        pump_leak_factor=round(math.exp(spread.leak_sigma * z_leak[0]), 4),
+        motor_leak_factor=round(math.exp(spread.leak_sigma * z_leak[1]), 4),
+        sensors=sensors,
+    )
+
+
+def apply_unit(raw: dict[str, Any], t: MachineType, unit: Unit) -> dict[str, Any]:
+    """The scenario document ``raw`` of a type-``t`` machine made this unit (a new document)."""
+    ref = DriveParams()
+    drive = {**raw["drive"], "pump_disp_max_cc": unit.pump_disp_max_cc, "motor_disp_max_cc": unit.motor_disp_max_cc}
+    losses = {
+        name: {"laminar": {"cs": base.laminar_cs * k}, "turbulent": {"ct": base.turbulent_ct * k}}
+        for name, base, k in (("pump", ref.pump, unit.pump_leak_factor), ("motor", ref.motor, unit.motor_leak_factor))
+    }
+    errors = {}
+    for ch, e in unit.sensors.items():
+        gain_pct = e.gain_pct
+        if ch == "pump_disp_cc":
+            # The angle sensor reads the swash angle, the controller scales it by the catalogue's
+            # displacement: the pump's own deviation never reaches the bus.
+            gain_pct = ((1.0 + gain_pct / 100.0) * t.pump_disp_max_cc / unit.pump_disp_max_cc - 1.0) * 100.0
+        errors[ch] = {"offset": e.offset, "gain_pct": gain_pct}
+    events = list(raw["events"])
+    if unit.arriving_leak_lpm > 0:
+        events.append(
+            {
+                "type": "leakage",
+                "component": "loop",
+                "start_h": 0.0,
+                "extra_lpm": unit.arriving_leak_lpm,
+                "ref_dp_bar": ARRIVING_LEAK_REF_DP_BAR,
+            }
+        )
+    sensors = {**raw.get("sensors", {}), "errors": errors}
+    return {**raw, "drive": drive, "losses": losses, "sensors": sensors, "events": events}
+
+
+def unit_truth(t: MachineType, unit: Unit) -> dict[str, Any]:
+    """The sidecar's ``unit`` entry: the machine's own draws, against the type's nominal figures."""
+    return {
+        "pump_disp_max_cc": unit.pump_disp_max_cc,
+        "motor_disp_max_cc": unit.motor_disp_max_cc,
+        "motor_disp_cc": round(unit.motor_disp_max_cc * t.motor_disp_setting, 4),  # the true V_M
+        "leak_factor": {"pump": unit.pump_leak_factor, "motor": unit.motor_leak_factor},
+        "sensors": {k: {"offset": e.offset, "gain_pct": e.gain_pct} for k, e in unit.sensors.items()},
+        "arriving_leak_lpm": unit.arriving_leak_lpm,
+        "arriving_leak_ref_dp_bar": ARRIVING_LEAK_REF_DP_BAR,
+    }
+
 
 @dataclass(frozen=True)
 class FleetSpec:
@@ -75,6 +255,27 @@ class FleetSpec:
     every_min: float = 20.0
     log_hours: float = 24.0
     start_epoch_s: float = 1767225600.0  # 2026-01-01 00:00 UTC
+    # Machine types in turn (None: every type of TYPES); e.g. ("mid",) for a fleet of one type.
+    types: tuple[str, ...] | None = None
+    # Each machine's oil: a mean drawn in oil_temp_c, swinging +- a value drawn in oil_swing_c over 10 h.
+    oil_temp_c: tuple[float, float] = (45.0, 70.0)
+    oil_swing_c: tuple[float, float] = (5.0, 20.0)
+    # Unit-to-unit variation (None: every machine an exact copy of its type).
+    spread: UnitSpread | None = None
+    # Healthy machines that arrive with a leak from hour 0, of a share of the type's rated flow (at
+    # 2000 rpm) drawn in arriving_leak_pct, at 480 bar. Healthy leakage of these drives is about 3 %
+    # of rated flow at 480 bar and 60 C, its spread (leak_sigma 0.2) about +-0.6 % (1 sigma): 4 to
+    # 8 % stands well clear of it and well below a worn unit's loss of function (25 %).
+    arriving_leaks: int = 0
+    arriving_leak_pct: tuple[float, float] = (4.0, 8.0)
+
+    @property
+    def type_names(self) -> tuple[str, ...]:
+        return tuple(TYPES) if self.types is None else tuple(self.types)
+
+    @property
+    def degrading_count(self) -> int:
+        return round(self.degrading_share * self.machines)
 
     def check(self) -> None:
         if self.machines < 1:
@@ -87,6 +288,45 @@ class FleetSpec:
             raise ValueError(f"log hours must be positive, got {self.log_hours}")
         if self.burst_s > self.every_min * 60.0:
             raise ValueError(f"a burst ({self.burst_s} s) must fit its interval ({self.every_min} min)")
+        self._check_types()
+        _check_range("oil temperature", self.oil_temp_c, -30.0, 120.0, "C")
+        _check_range("oil swing", self.oil_swing_c, 0.0, 50.0, "C")
+        coldest, hottest = self.oil_temp_c[0] - self.oil_swing_c[1], self.oil_temp_c[1] + self.oil_swing_c[1]
+        if coldest < -30.0 or hottest > 120.0:
+            raise ValueError(f"oil would swing from {coldest:g} to {hottest:g} C, outside -30 .. 120 C")
+        if self.spread is not None:
+            self.spread.check()
+        healthy = self.machines - self.degrading_count
+        if not (isinstance(self.arriving_leaks, int) and 0 <= self.arriving_leaks <= healthy):
+            raise ValueError(
+                f"arriving leaks must be between 0 and the {healthy} healthy machines, got {self.arriving_leaks}"
+            )
+        _check_range("arriving leak", self.arriving_leak_pct, 0.1, 50.0, "% of rated flow")
+
+    def _check_types(self) -> None:
+        if self.types is None:
+            return
+        if not self.types:
+            raise ValueError("types must name at least one machine type")
+        unknown = [t for t in self.types if t not in TYPES]
+        if unknown:
+            raise ValueError(f"unknown machine type {unknown[0]!r}; types: {', '.join(TYPES)}")
+
+
+def _check_range(what: str, lo_hi: tuple[float, float], lo: float, hi: float, unit: str) -> None:
+    if len(lo_hi) != 2 or not lo <= lo_hi[0] <= lo_hi[1] <= hi:
+        raise ValueError(f"{what} range must be (low, high) with {lo} <= low <= high <= {hi} {unit}, got {lo_hi}")
+
+
+# Fields that came with unit-to-unit variation: the sidecar states them only when they are not at
+# their defaults, so a fleet without them is written as before, byte for byte.
+_NEW_SPEC_FIELDS = ("types", "oil_temp_c", "oil_swing_c", "spread", "arriving_leaks", "arriving_leak_pct")
+
+
+def spec_record(spec: FleetSpec) -> dict[str, Any]:
+    """The spec as the sidecar states it."""
+    default = {f.name: f.default for f in fields(FleetSpec) if f.name in _NEW_SPEC_FIELDS}
+    return {k: v for k, v in asdict(spec).items() if k not in default or getattr(spec, k) != default[k]}
 
 
 @dataclass(frozen=True)
@@ -139,16 +379,18 @@ def plan_fleet(spec: FleetSpec) -> list[MachinePlan]:
     spec.check()
     rng = np.random.default_rng(spec.seed)
     n = spec.machines
-    types = list(TYPES.values())
-    degrading = set(rng.permutation(n)[: round(spec.degrading_share * n)].tolist())
+    types = [TYPES[t] for t in spec.type_names]
+    degrading = set(rng.permutation(n)[: spec.degrading_count].tolist())
+    units = plan_units(spec, [types[i % len(types)] for i in range(n)], degrading)
     plans = []
     k_deg = 0
     for i in range(n):
         mt = types[i % len(types)]
+        unit = units[i]
         name = f"m{i + 1:03d}"
         duty = DUTIES[int(rng.integers(len(DUTIES)))]
-        oil_c = round(float(rng.uniform(45.0, 70.0)), 1)
-        swing_c = round(float(rng.uniform(5.0, 20.0)), 1)
+        oil_c = round(float(rng.uniform(*spec.oil_temp_c)), 1)
+        swing_c = round(float(rng.uniform(*spec.oil_swing_c)), 1)
         start = spec.start_epoch_s + 86400.0 * int(rng.integers(0, 30))
         events: list[dict[str, Any]] = []
         kind = None
@@ -156,10 +398,12 @@ def plan_fleet(spec: FleetSpec) -> list[MachinePlan]:
             kind = DEGRADATIONS[k_deg % len(DEGRADATIONS)]
             k_deg += 1
             events = _degradation(kind, mt, spec.hours, rng)
+        leak = f", arriving with a {unit.arriving_leak_lpm:g} l/min leak" if unit and unit.arriving_leak_lpm else ""
         raw = {
             "name": f"fleet_{name}",
             "description": f"fleet machine {name}: {mt.name} drive, {duty}, "
-            + (f"{kind} failing at {events[0]['fail_h']} h" if events else "healthy"),
+            + (f"{kind} failing at {events[0]['fail_h']} h" if events else "healthy")
+            + leak,
             "seed": int(rng.integers(2**31)),
             "duration_h": spec.hours,
             "start_epoch_s": start,
@@ -173,6 +417,8 @@ def plan_fleet(spec: FleetSpec) -> list[MachinePlan]:
             },
             "events": events,
         }
+        if unit is not None:
+            raw = apply_unit(raw, mt, unit)
         s = scn.from_dict(raw, source=f"<fleet {name}>")
         failures = [{**f, "fail_epoch_s": start + f["fail_h"] * 3600.0} for f in _failures(events)]
         truth = {
@@ -189,8 +435,28 @@ def plan_fleet(spec: FleetSpec) -> list[MachinePlan]:
             "events": events,
             "failures": failures,
         }
+        if unit is not None:
+            truth["unit"] = unit_truth(mt, unit)
         plans.append(MachinePlan(name, mt, s, bool(events), truth))
     return plans
+
+
+def plan_units(spec: FleetSpec, machine_types: list[MachineType], degrading: set[int]) -> list[Unit | None]:
+    """Each machine's own draws (None for all when the spec asks for no variation and no leaks).
+
+    Two streams of their own: one for the units' draws, one for which healthy machines arrive leaking
+    and how much, so neither the plan's draws nor each other's move when one is switched on."""
+    if spec.spread is None and spec.arriving_leaks == 0:
+        return [None] * len(machine_types)
+    rng_unit = np.random.default_rng([spec.seed, SPREAD_STREAM, 0])
+    units = [draw_unit(t, spec.spread, rng_unit) if spec.spread else nominal_unit(t) for t in machine_types]
+    rng_leak = np.random.default_rng([spec.seed, SPREAD_STREAM, 1])
+    healthy = [i for i in range(len(machine_types)) if i not in degrading]
+    leaking = sorted(rng_leak.choice(healthy, size=spec.arriving_leaks, replace=False).tolist()) if healthy else []
+    for i in leaking:
+        pct = float(rng_leak.uniform(*spec.arriving_leak_pct))
+        units[i] = replace(units[i], arriving_leak_lpm=round(pct / 100.0 * machine_types[i].rated_flow_lpm(), 2))
+    return units
 
 
 def _failures(events: list[dict[str, Any]]) -> list[dict[str, Any]]:
