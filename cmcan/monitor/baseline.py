@@ -1,0 +1,399 @@
+"""The machine's own healthy baseline, learned on board: learning, monitoring, baseline_suspect.
+
+A gateway starts from its machine type's model. Every machine of a type differs a little from it
+(displacements within their tolerance, healthy leakage, sensor calibration), and over the first hours
+of steady operation the baseline learns by how much, as a correction of the type model's prediction in
+l/min:
+
+    c(x) = theta_0 + theta_1 * q_geo / 100 l/min + theta_2 * (dp / dp_ref) * (nu_ref / nu(T))
+
+three physical terms: an offset (sensor zero errors), a share of the geometric flow
+``q_geo = n_P V_P`` (displacement and speed-sensor tolerances, the motor's V_M), and a laminar leak at
+the reference pressure and viscosity (the unit's own healthy leakage). Three numbers can learn what
+differs between units of one type and cannot learn the shape of a wear curve; the ONNX graph stays the
+type's model, untouched and checksummed, and the correction is added to its prediction outside it (the
+gateway has no onnx package to build a graph with, and three numbers in the state file are easy to
+inspect, reset and keep in a history).
+
+Learning keeps, per bin of the envelope the configuration names (pump speed x dp x oil temperature),
+the sufficient statistics of the residual ``r = (measured - type prediction) * lpm_per_unit`` against
+the features: a few hundred numbers, whatever the hours. The fit is closed form (ridge-regularised
+normal equations, each covered bin weighted equally, so hours of idling at one point do not outweigh
+the rest of the envelope), float64, in microseconds: it runs at the tick that ends the learning, not
+on the receive path. Only ticks the gate passed inside the envelope (``EVALUATING``) are learned.
+
+Learning ends when ``coverage_pct`` of the bins hold ``min_points`` ticks each *and* ``min_hours`` of
+learned operation have passed, never after a fixed time alone. Then the guard: a bin whose mean
+residual lies further than ``suspect_lpm`` from the type model (a machine that arrived with a leak, a
+wrong sensor) makes the baseline ``baseline_suspect``: the type model stays the reference, the state
+says by how much (l/min). Otherwise the machine is ``monitoring`` against its own baseline.
+
+One tick at a time (:meth:`Baseline.learn`), or a stretch of ticks (:meth:`Baseline.learn_columns`)
+with the same additions in the same order: the same state bit for bit.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import IntEnum
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cmcan.oil import VG46, Oil
+from cmcan.roles import DP, MODEL_INPUTS, PUMP_DISP, PUMP_SPEED, TEMP
+
+FORMAT = "cmcan-baseline/1"
+N_FEATURES = 3
+FEATURES = ("offset_lpm", "geometric_per_100lpm", "laminar_leak_lpm")
+BIN_ROLES = (PUMP_SPEED, DP, TEMP)  # the envelope the coverage is counted over
+HISTORY_MAX = 16
+Q_SCALE_LPM = 100.0  # the geometric term per 100 l/min: its coefficient of the order of the others
+_IX = {r: MODEL_INPUTS.index(r) for r in MODEL_INPUTS}
+
+
+class Mode(IntEnum):
+    LEARNING = 1
+    MONITORING = 2
+    SUSPECT = 3
+
+
+MODE_NAMES = {Mode.LEARNING: "learning", Mode.MONITORING: "monitoring", Mode.SUSPECT: "baseline_suspect"}
+_MODE_OF = {v: k for k, v in MODE_NAMES.items()}
+
+
+class BaselineStateError(ValueError):
+    """A saved baseline that cannot be used; ``str()`` names the field."""
+
+
+@dataclass(frozen=True)
+class BaselineParams:
+    """What the configuration's ``baseline`` section says (see :mod:`cmcan.config`)."""
+
+    edges: tuple[tuple[float, ...], ...]  # bin edges along BIN_ROLES (ascending, >= 2 each)
+    min_points: int  # ticks a bin needs to count as covered
+    coverage_pct: float  # share of the bins that must be covered
+    min_hours: float  # learned operation (evaluated ticks) at least
+    suspect_lpm: float  # a bin's mean residual further than this from the type model: suspect
+    lpm_per_unit: float  # the output quantity's unit in l/min (V_M / 1000 for motor speed)
+    period_s: float  # one tick
+    oil: Oil = VG46
+    ref_dp_bar: float = 300.0
+    ref_temp_c: float = 50.0
+    ridge: float = 1e-3  # relative to the mean diagonal: keeps an unexcited term near the type model
+
+    @property
+    def n_bins(self) -> int:
+        return math.prod(len(e) - 1 for e in self.edges)
+
+    @property
+    def bins_needed(self) -> int:
+        return max(1, math.ceil(self.coverage_pct / 100.0 * self.n_bins - 1e-9))
+
+    def describe(self) -> dict[str, Any]:
+        """What must not change under saved statistics (a different envelope starts learning afresh)."""
+        return {"edges": [list(e) for e in self.edges], "roles": list(BIN_ROLES)}
+
+
+def features(p: BaselineParams, x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(n, 3) features of operating points ``x`` (n, 4) in the model's input order."""
+    x = np.asarray(x, dtype=np.float64)
+    q_geo = x[:, _IX[PUMP_SPEED]] * x[:, _IX[PUMP_DISP]] / 1000.0
+    nu_ref = p.oil.kinematic_viscosity_cst(np.array([p.ref_temp_c]))
+    fluidity = nu_ref / p.oil.kinematic_viscosity_cst(x[:, _IX[TEMP]])
+    out = np.empty((len(x), N_FEATURES))
+    out[:, 0] = 1.0
+    out[:, 1] = q_geo / Q_SCALE_LPM
+    out[:, 2] = x[:, _IX[DP]] / p.ref_dp_bar * fluidity
+    return out
+
+
+def bin_index(p: BaselineParams, x: NDArray[np.float64]) -> NDArray[np.int64]:
+    """Each point's envelope bin (row-major over BIN_ROLES), -1 outside the configured envelope."""
+    x = np.asarray(x, dtype=np.float64)
+    idx = np.zeros(len(x), dtype=np.int64)
+    inside = np.ones(len(x), dtype=bool)
+    for role, e in zip(BIN_ROLES, p.edges, strict=True):
+        v = x[:, _IX[role]]
+        k = np.searchsorted(np.asarray(e), v, side="right") - 1
+        k = np.where(v == e[-1], len(e) - 2, k)  # the upper edge belongs to the last bin
+        inside &= (k >= 0) & (k < len(e) - 1) & np.isfinite(v)
+        idx = idx * (len(e) - 1) + np.clip(k, 0, len(e) - 2)
+    return np.where(inside, idx, -1)
+
+
+@dataclass(frozen=True)
+class Fit:
+    theta: tuple[float, float, float]  # l/min per feature (FEATURES)
+    distance_lpm: float  # the covered bin's mean residual of largest magnitude (signed)
+    bins_covered: int
+
+
+def fit(
+    p: BaselineParams, n: NDArray[np.int64], sxx: NDArray[np.float64], sxy: NDArray[np.float64], sy: NDArray[np.float64]
+) -> Fit:
+    """The closed-form fit over the covered bins, each weighted equally."""
+    cov = n >= p.min_points
+    if not cov.any():
+        return Fit((0.0, 0.0, 0.0), 0.0, 0)
+    w = 1.0 / n[cov]
+    a = np.einsum("b,bij->ij", w, sxx[cov])
+    b = np.einsum("b,bi->i", w, sxy[cov])
+    lam = p.ridge * float(np.trace(a)) / N_FEATURES
+    theta = np.linalg.solve(a + lam * np.eye(N_FEATURES), b)
+    means = sy[cov] / n[cov]
+    far = int(np.argmax(np.abs(means)))
+    return Fit((float(theta[0]), float(theta[1]), float(theta[2])), float(means[far]), int(cov.sum()))
+
+
+class Baseline:
+    """The learning stage's state (see the module)."""
+
+    def __init__(self, p: BaselineParams) -> None:
+        self.p = p
+        self.mode = Mode.LEARNING
+        b = p.n_bins
+        self.n = np.zeros(b, dtype=np.int64)
+        self.sxx = np.zeros((b, N_FEATURES, N_FEATURES))
+        self.sxy = np.zeros((b, N_FEATURES))
+        self.sy = np.zeros(b)
+        self.covered = 0
+        self.learned_ticks = 0
+        self.theta = (0.0, 0.0, 0.0)
+        self.distance_lpm = 0.0
+        self.started_t_s: float | None = None  # frame time of the first learned tick
+        self.finished_t_s: float | None = None
+        self.history: list[dict[str, Any]] = []
+
+    # -- what it tells ------------------------------------------------------------------------------
+
+    @property
+    def learned_h(self) -> float:
+        return self.learned_ticks * self.p.period_s / 3600.0
+
+    @property
+    def coverage_pct(self) -> float:
+        return 100.0 * self.covered / self.p.n_bins
+
+    @property
+    def applies(self) -> bool:
+        """The correction is the reference (monitoring); learning and suspect judge on the type model."""
+        return self.mode == Mode.MONITORING
+
+    def correction_lpm(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The machine's correction of the type model at points ``x`` (l/min); zero unless monitoring."""
+        if not self.applies:
+            return np.zeros(len(x))
+        return features(self.p, x) @ np.asarray(self.theta)
+
+    def describe(self) -> dict[str, Any]:
+        return {
+            "state": MODE_NAMES[self.mode],
+            "learned_h": self.learned_h,
+            "coverage_pct": self.coverage_pct,
+            "bins_covered": self.covered,
+            "bins": self.p.n_bins,
+            "bins_needed": self.p.bins_needed,
+            "min_hours": self.p.min_hours,
+            "theta": dict(zip(FEATURES, self.theta, strict=True)),
+            "distance_lpm": self.distance_lpm,
+            "suspect_lpm": self.p.suspect_lpm,
+            "started_t_s": self.started_t_s,
+            "finished_t_s": self.finished_t_s,
+            "history": list(self.history),
+        }
+
+    # -- learning -----------------------------------------------------------------------------------
+
+    def _done(self) -> bool:
+        return self.covered >= self.p.bins_needed and self.learned_h >= self.p.min_hours - 1e-12
+
+    def learn(self, t_s: float, x: NDArray[np.float64], measured: float, predicted: float) -> bool:
+        """One tick the gate passed inside the envelope: learn it while learning. True when this tick
+        ended the learning (the correction applies from the next tick)."""
+        if self.mode != Mode.LEARNING:
+            return False
+        row = np.asarray(x, dtype=np.float64).reshape(1, -1)
+        b = int(bin_index(self.p, row)[0])
+        r = (measured - predicted) * self.p.lpm_per_unit
+        if b < 0 or not math.isfinite(r):
+            return False
+        phi = features(self.p, row)[0]
+        if not np.isfinite(phi).all():
+            return False
+        self.sxx[b] += np.outer(phi, phi)
+        self.sxy[b] += phi * r
+        self.sy[b] += r
+        self.n[b] += 1
+        self.covered += int(self.n[b] == self.p.min_points)
+        self.learned_ticks += 1
+        if self.started_t_s is None:
+            self.started_t_s = t_s
+        if self._done():
+            self._finish(t_s)
+            return True
+        return False
+
+    def learn_columns(
+        self,
+        t_s: NDArray[np.float64],
+        x: NDArray[np.float64],
+        measured: NDArray[np.float64],
+        predicted: NDArray[np.float64],
+    ) -> int:
+        """:meth:`learn` for ticks in order (all passed the gate): the same additions in the same order.
+        Returns the index of the tick that ended the learning, or -1."""
+        if self.mode != Mode.LEARNING or not len(t_s):
+            return -1
+        x = np.asarray(x, dtype=np.float64)
+        b = bin_index(self.p, x)
+        r = (np.asarray(measured) - np.asarray(predicted)) * self.p.lpm_per_unit
+        phi = features(self.p, x)
+        ok = (b >= 0) & np.isfinite(r) & np.isfinite(phi).all(axis=1)
+        pos = np.flatnonzero(ok)
+        if not len(pos):
+            return -1
+        b, r, phi = b[pos], r[pos], phi[pos]
+        # the tick that ends the learning: the first where both the coverage and the hours are reached
+        newly = np.zeros(len(pos), dtype=np.int64)
+        for bb in np.unique(b):  # a bin becomes covered at its (min_points - n)-th new tick
+            need = self.p.min_points - int(self.n[bb])
+            if need >= 1:
+                hits = np.flatnonzero(b == bb)
+                if len(hits) >= need:
+                    newly[hits[need - 1]] += 1
+        onehot_cum = self.covered + np.cumsum(newly)
+        ticks = self.learned_ticks + np.arange(1, len(pos) + 1)
+        hours_ok = ticks * self.p.period_s / 3600.0 >= self.p.min_hours - 1e-12
+        done = np.flatnonzero((onehot_cum >= self.p.bins_needed) & hours_ok)
+        end = int(done[0]) + 1 if len(done) else len(pos)
+        b, r, phi = b[:end], r[:end], phi[:end]
+        np.add.at(self.sxx, b, phi[:, :, None] * phi[:, None, :])
+        np.add.at(self.sxy, b, phi * r[:, None])
+        np.add.at(self.sy, b, r)
+        np.add.at(self.n, b, 1)
+        self.covered = int(onehot_cum[end - 1])
+        self.learned_ticks += end
+        if self.started_t_s is None:
+            self.started_t_s = float(t_s[pos[0]])
+        if len(done):
+            self._finish(float(t_s[pos[end - 1]]))
+            return int(pos[end - 1])
+        return -1
+
+    def _finish(self, t_s: float) -> None:
+        f = fit(self.p, self.n, self.sxx, self.sxy, self.sy)
+        self.theta, self.distance_lpm = f.theta, f.distance_lpm
+        self.finished_t_s = t_s
+        self.mode = Mode.SUSPECT if abs(f.distance_lpm) > self.p.suspect_lpm else Mode.MONITORING
+
+    # -- reset, persistence -------------------------------------------------------------------------
+
+    def reset(self, reason: str, at: str | None = None) -> None:
+        """Learn afresh (after service): the baseline so far goes into the history with why and when."""
+        self.history.append(
+            {
+                "state": MODE_NAMES[self.mode],
+                "theta": dict(zip(FEATURES, self.theta, strict=True)),
+                "distance_lpm": self.distance_lpm,
+                "learned_h": self.learned_h,
+                "coverage_pct": self.coverage_pct,
+                "started_t_s": self.started_t_s,
+                "finished_t_s": self.finished_t_s,
+                "reset_reason": reason,
+                "reset_at": at,
+            }
+        )
+        del self.history[:-HISTORY_MAX]
+        history = self.history
+        self.__init__(self.p)  # type: ignore[misc]
+        self.history = history
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "format": FORMAT,
+            "envelope": self.p.describe(),
+            "state": MODE_NAMES[self.mode],
+            "n": self.n.tolist(),
+            "sxx": self.sxx.reshape(len(self.n), -1).tolist(),
+            "sxy": self.sxy.tolist(),
+            "sy": self.sy.tolist(),
+            "learned_ticks": self.learned_ticks,
+            "theta": list(self.theta),
+            "distance_lpm": self.distance_lpm,
+            "started_t_s": self.started_t_s,
+            "finished_t_s": self.finished_t_s,
+            "history": self.history,
+        }
+
+    @classmethod
+    def from_dict(cls, d: Any, p: BaselineParams) -> tuple[Baseline, str | None]:
+        """The saved baseline under ``p``; a document of another envelope (the configuration changed)
+        starts learning afresh, its old baseline in the history: (baseline, why it restarted or None).
+        A document that is not a saved baseline raises :class:`BaselineStateError`."""
+        if not isinstance(d, dict) or d.get("format") != FORMAT:
+            raise BaselineStateError(f"baseline: not a {FORMAT} document")
+        bl = cls(p)
+        hist = d.get("history", [])
+        if not isinstance(hist, list) or not all(isinstance(h, dict) for h in hist):
+            raise BaselineStateError("baseline.history: expected a list of records")
+        state = d.get("state")
+        if state not in _MODE_OF:
+            raise BaselineStateError(f"baseline.state: {state!r:.40} is not one of {', '.join(_MODE_OF)}")
+        theta = _floats(d.get("theta"), "baseline.theta", N_FEATURES)
+        distance = _floats([d.get("distance_lpm")], "baseline.distance_lpm", 1)[0]
+        ticks = d.get("learned_ticks")
+        if isinstance(ticks, bool) or not isinstance(ticks, int) or ticks < 0:
+            raise BaselineStateError(f"baseline.learned_ticks: expected a count, got {ticks!r:.40}")
+        started, finished = d.get("started_t_s"), d.get("finished_t_s")
+        for name, v in (("started_t_s", started), ("finished_t_s", finished)):
+            if v is not None and not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)):
+                raise BaselineStateError(f"baseline.{name}: expected a time or null, got {v!r:.40}")
+        if d.get("envelope") != p.describe():
+            old = cls(p)
+            old.mode, old.theta, old.distance_lpm = _MODE_OF[state], tuple(theta), distance  # type: ignore[assignment]
+            old.learned_ticks, old.started_t_s, old.finished_t_s = ticks, started, finished
+            old.history = hist[-HISTORY_MAX:]
+            old.covered = 0
+            old.reset("the configured envelope changed")
+            return old, "the configured envelope changed: learning afresh"
+        nb = p.n_bins
+        n = np.asarray(_ints(d.get("n"), "baseline.n", nb), dtype=np.int64)
+        sxx = np.asarray(_floats_2d(d.get("sxx"), "baseline.sxx", nb, N_FEATURES * N_FEATURES)).reshape(
+            nb, N_FEATURES, N_FEATURES
+        )
+        sxy = np.asarray(_floats_2d(d.get("sxy"), "baseline.sxy", nb, N_FEATURES))
+        sy = np.asarray(_floats(d.get("sy"), "baseline.sy", nb))
+        bl.n, bl.sxx, bl.sxy, bl.sy = n, sxx, sxy, sy
+        bl.covered = int(np.count_nonzero(n >= p.min_points))
+        bl.learned_ticks = ticks
+        bl.mode = _MODE_OF[state]
+        bl.theta = (theta[0], theta[1], theta[2])
+        bl.distance_lpm = distance
+        bl.started_t_s, bl.finished_t_s = started, finished
+        bl.history = hist[-HISTORY_MAX:]
+        return bl, None
+
+
+def _floats(v: Any, name: str, n: int) -> list[float]:
+    ok = isinstance(v, list) and len(v) == n
+    ok = ok and all(isinstance(a, (int, float)) and not isinstance(a, bool) and math.isfinite(a) for a in v)
+    if not ok:
+        raise BaselineStateError(f"{name}: expected {n} finite numbers, got {v!r:.60}")
+    return [float(a) for a in v]
+
+
+def _ints(v: Any, name: str, n: int) -> list[int]:
+    ok = isinstance(v, list) and len(v) == n
+    ok = ok and all(isinstance(a, int) and not isinstance(a, bool) and a >= 0 for a in v)
+    if not ok:
+        raise BaselineStateError(f"{name}: expected {n} counts, got {v!r:.60}")
+    return list(v)
+
+
+def _floats_2d(v: Any, name: str, n: int, m: int) -> list[list[float]]:
+    if not isinstance(v, list) or len(v) != n:
+        raise BaselineStateError(f"{name}: expected {n} rows, got {v!r:.60}")
+    return [_floats(row, f"{name}[{i}]", m) for i, row in enumerate(v)]
