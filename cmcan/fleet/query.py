@@ -53,6 +53,7 @@ EMPTY: dict[str, dict[str, str]] = {
         "pump_disp_cc": _F,
         "dp_bar": _F,
         "temp_c": _F,
+        "baseline_state": _I,
         **_PROV,
     },
     "events": {
