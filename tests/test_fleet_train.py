@@ -18,8 +18,16 @@ pytest.importorskip("onnx")
 from cmcan.cli import main
 from cmcan.errors import CmcanError
 from cmcan.fleet import dataset as ds
-from cmcan.fleet.points import machine_logs, read_machine
-from cmcan.fleet.train import DriveFacts, common_facts, healthy_rows, read_types, unit_spread
+from cmcan.fleet.points import drive_facts, machine_logs, read_machine
+from cmcan.fleet.train import (
+    DriveFacts,
+    common_facts,
+    fit_type,
+    healthy_rows,
+    read_types,
+    selection_info,
+    unit_spread,
+)
 from cmcan.model.runtime import load_model
 from cmcan.roles import MODEL_INPUTS
 from tests.conftest import run_cli
@@ -117,6 +125,15 @@ def test_the_model_predicts_the_healthy_machines_closely(fleet):
         assert len(mp) >= 20
         assert abs(float(np.median(ratio_pct)) - 100.0) < 0.5, machine
         assert float(np.percentile(np.abs(ratio_pct - 100.0), 95)) < 1.0, machine
+
+
+def test_the_dask_run_gives_the_bytes_of_the_same_fit_in_one_process(fleet):
+    """Deterministic: machines in sorted order, rows by operating hour, float64; the cluster changes nothing."""
+    logs = [machine_logs(fleet["ds"], m) for m in reversed(COMPACT)]
+    points = [read_machine(str(fleet["ds"]), lg, math.inf, True) for lg in logs]
+    facts = common_facts({lg.machine: drive_facts(lg, "ds") for lg in logs}, "ds")
+    res = fit_type(points, facts, "compact", str(fleet["ds"]), selection_info(None, [], 20))
+    assert res.blob == fleet["out"].read_bytes()
 
 
 def test_the_selection_keeps_only_healthy_evaluated_rows_and_until_h_cuts(fleet):

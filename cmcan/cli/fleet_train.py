@@ -101,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
     require_extra("train", "onnx")
     from cmcan.fleet import dataset as ds
     from cmcan.fleet.points import drive_facts, gather_points, machine_logs
-    from cmcan.fleet.train import check_points, common_facts, fit_type
+    from cmcan.fleet.train import check_points, common_facts, fit_type, selection_info
 
     root = ds.open_dataset(Path(args.dataset), create=False)
     chosen = _selected(args)
@@ -125,13 +125,7 @@ def run(args: argparse.Namespace) -> int:
     until_h = math.inf if args.until_h is None else args.until_h
     points = gather_points(root, logs, until_h, not args.no_verify, args.scheduler, args.workers)
     check_points(points, args.min_points, str(root))
-    selection = {
-        "rule": "every tick evaluated inside the envelope, finite operating point, warning level ok, "
-        "before the machine's first ratio warning",
-        "until_h": args.until_h,
-        "excluded": sorted(args.exclude),
-        "min_points": args.min_points,
-    }
+    selection = selection_info(args.until_h, args.exclude, args.min_points)
     try:
         res = fit_type(points, facts, args.machine_type, str(root), selection)
     except ValueError as exc:

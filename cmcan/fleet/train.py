@@ -218,6 +218,17 @@ def unit_spread(residual_lpm: Mapping[str, NDArray[np.float64]]) -> dict[str, An
     }
 
 
+def selection_info(until_h: float | None, excluded: Sequence[str], min_points: int) -> dict[str, Any]:
+    """How the points were chosen, for ``training["selection"]``."""
+    return {
+        "rule": "every tick evaluated inside the envelope, finite operating point, warning level ok, "
+        "before the machine's first ratio warning",
+        "until_h": until_h,
+        "excluded": sorted(excluded),
+        "min_points": min_points,
+    }
+
+
 @dataclass(frozen=True)
 class TypeFit:
     blob: bytes  # the sealed ONNX model
