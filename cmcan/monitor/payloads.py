@@ -200,18 +200,7 @@ class Payloads:
         bm = o.baseline
         if bm is not None and (tick.baseline_state != self.last_baseline or k % bm.every_ticks == 0):
             self.last_baseline = tick.baseline_state
-            out.append(
-                self._frame(
-                    tick.t_s,
-                    bm,
-                    {
-                        "baseline_state": float(tick.baseline_state),
-                        "baseline_learned_h": min(tick.baseline_learned_h, BASELINE_LEARNED_SPAN_H[1]),
-                        "baseline_coverage_pct": tick.baseline_coverage_pct,
-                        "baseline_distance_lpm": tick.baseline_distance_lpm,
-                    },
-                )
-            )
+            out.append(self._frame(tick.t_s, bm, _baseline_values(tick)))
         return out
 
     def frames_columns(self, ks: NDArray[np.int64], c: TickColumns, wcount: NDArray[np.int64]) -> FrameColumns:
@@ -266,25 +255,8 @@ class Payloads:
                 },
             ),
         )
-        bm = o.baseline
-        if bm is not None:
-            bstate = c.baseline_state.astype(np.int64)
-            bprev = np.empty(len(ks), dtype=np.int64)
-            bprev[0] = prev_baseline
-            bprev[1:] = bstate[:-1]
-            parts = (
-                *parts,
-                _encode(
-                    bm,
-                    np.flatnonzero((bstate != bprev) | (ks % bm.every_ticks == 0)),
-                    {
-                        "baseline_state": bstate.astype(np.float64),
-                        "baseline_learned_h": np.minimum(c.baseline_learned_h, BASELINE_LEARNED_SPAN_H[1]),
-                        "baseline_coverage_pct": c.baseline_coverage_pct,
-                        "baseline_distance_lpm": c.baseline_distance_lpm,
-                    },
-                ),
-            )
+        if o.baseline is not None:
+            parts = (*parts, _baseline_part(o.baseline, ks, c, prev_baseline))
         return self._interleave(c.t_s, parts)
 
     def skip_columns(self, ks: NDArray[np.int64], c: TickColumns) -> None:
@@ -323,6 +295,34 @@ class Payloads:
             dlc=np.array([m.length for m in msgs], dtype=np.int16)[kind_of],
             data=data,
         )
+
+
+def _baseline_values(tick: Tick) -> dict[str, float]:
+    """CM_BASELINE's signals of one tick."""
+    return {
+        "baseline_state": float(tick.baseline_state),
+        "baseline_learned_h": min(tick.baseline_learned_h, BASELINE_LEARNED_SPAN_H[1]),
+        "baseline_coverage_pct": tick.baseline_coverage_pct,
+        "baseline_distance_lpm": tick.baseline_distance_lpm,
+    }
+
+
+def _baseline_part(
+    msg: OutputMessage, ks: NDArray[np.int64], c: TickColumns, prev_state: int
+) -> tuple[NDArray[np.int64], NDArray[np.uint8]]:
+    """CM_BASELINE of a stretch of ticks: on each change of state (``prev_state``: the one last sent)
+    and every ``every_ticks``, as :meth:`Payloads.frames` sends it tick after tick."""
+    state = c.baseline_state.astype(np.int64)
+    prev = np.empty(len(ks), dtype=np.int64)
+    prev[0] = prev_state
+    prev[1:] = state[:-1]
+    values = {
+        "baseline_state": state.astype(np.float64),
+        "baseline_learned_h": np.minimum(c.baseline_learned_h, BASELINE_LEARNED_SPAN_H[1]),
+        "baseline_coverage_pct": c.baseline_coverage_pct,
+        "baseline_distance_lpm": c.baseline_distance_lpm,
+    }
+    return _encode(msg, np.flatnonzero((state != prev) | (ks % msg.every_ticks == 0)), values)
 
 
 def _encode(
