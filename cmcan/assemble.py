@@ -741,9 +741,7 @@ def node_params(cfg: Config, db: Database) -> NodeParams | None:
     claim = None
     if j.name is not None:
         claim = ClaimParams(j.name, j.source_address, j.addresses, cfg.output_channel)
-    out = [
-        msg for _, o in cfg.output_items() if (msg := db.get_message_by_name(o.message)).is_extended_frame
-    ]
+    out = [msg for _, o in cfg.output_items() if (msg := db.get_message_by_name(o.message)).is_extended_frame]
     return NodeParams(
         address=j.source_address,
         channel=cfg.output_channel,

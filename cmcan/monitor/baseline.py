@@ -84,6 +84,7 @@ class BaselineParams:
     ref_dp_bar: float = 300.0
     ref_temp_c: float = 50.0
     ridge: float = 1e-3  # relative to the mean diagonal: keeps an unexcited term near the type model
+    block_ticks: int = 100  # the learning's end is checked once per block of this many ticks (10 s)
     # the warning thresholds while the type model judges alone (learning, suspect): wider
     learning_thresholds: Thresholds | None = None
 
@@ -169,18 +170,24 @@ class Baseline:
         self.started_t_s: float | None = None  # frame time of the first learned tick
         self.finished_t_s: float | None = None
         self.history: list[dict[str, Any]] = []
-        # learn_columns: each row's learned ticks and covered bins after it (for the ticks' progress)
-        self.progress: tuple[NDArray[np.int64], NDArray[np.int64]] = (np.zeros(0, np.int64), np.zeros(0, np.int64))
+        self.block: int | None = None  # the block of ticks the newest tick is in (tick index // block_ticks)
+        self._rows: list[tuple[float, ...]] = []  # ticks of the open block learned one at a time, not yet folded
+        self.shown = (0, 0)  # learned ticks and covered bins at the last check: the ticks' progress
 
     # -- what it tells ------------------------------------------------------------------------------
 
     @property
     def learned_h(self) -> float:
-        return self.learned_ticks * self.p.period_s / 3600.0
+        return self.progress_of(self.learned_ticks, self.covered)[0]
 
     @property
     def coverage_pct(self) -> float:
-        return 100.0 * self.covered / self.p.n_bins
+        return self.progress_of(self.learned_ticks, self.covered)[1]
+
+    @property
+    def shown_progress(self) -> tuple[float, float]:
+        """Hours learned and envelope covered (%) as of the last check: what the ticks carry."""
+        return self.progress_of(*self.shown)
 
     def progress_of(self, learned_ticks: Any, covered: Any) -> tuple[Any, Any]:
         """Hours learned and share of the envelope covered (%) from ticks and bins, as :attr:`learned_h`
@@ -201,6 +208,7 @@ class Baseline:
         return phi[:, 0] * t0 + phi[:, 1] * t1 + phi[:, 2] * t2
 
     def describe(self) -> dict[str, Any]:
+        self.fold()
         return {
             "state": MODE_NAMES[self.mode],
             "learned_h": self.learned_h,
@@ -218,91 +226,112 @@ class Baseline:
         }
 
     # -- learning -----------------------------------------------------------------------------------
+    #
+    # The learning's end is checked at the first tick of each block of ``block_ticks`` ticks (by tick
+    # index), on the ticks before it: the same ticks in both forms, however the frames came in chunks.
+    # One tick at a time the rows wait in a list and are folded in per block, as arrays: learning
+    # costs the receive path an append per tick, not numpy calls on single rows.
 
     def _done(self) -> bool:
         return self.covered >= self.p.bins_needed and self.learned_h >= self.p.min_hours - 1e-12
 
-    def learn(self, t_s: float, x: NDArray[np.float64], measured: float, predicted: float) -> bool:
-        """One tick the gate passed inside the envelope: learn it while learning. True when this tick
-        ended the learning (the correction applies from the next tick)."""
+    def tick(self, k: int, t_s: float) -> bool:
+        """The start of tick ``k`` (at ``t_s``), before it is judged: at the first tick of a new block
+        the rows so far are folded in and the learning's end checked. True when it ended here: from
+        this tick on the machine is judged in its new state."""
         if self.mode != Mode.LEARNING:
             return False
-        row = np.asarray(x, dtype=np.float64).reshape(1, -1)
-        b = int(bin_index(self.p, row)[0])
-        r = (measured - predicted) * self.p.lpm_per_unit
-        if b < 0 or not math.isfinite(r):
+        blk = k // self.p.block_ticks
+        if self.block is None or blk == self.block:
+            self.block = blk
             return False
-        phi = features(self.p, row)[0]
-        if not np.isfinite(phi).all():
-            return False
-        self.sxx[b] += np.outer(phi, phi)
-        self.sxy[b] += phi * r
-        self.sy[b] += r
-        self.n[b] += 1
-        self.covered += int(self.n[b] == self.p.min_points)
-        self.learned_ticks += 1
-        if self.started_t_s is None:
-            self.started_t_s = t_s
-        if self._done():
-            self._finish(t_s)
-            return True
-        return False
+        self.block = blk
+        self.fold()
+        return self._check(t_s)
 
-    def learn_columns(
+    def add(self, t_s: float, x: tuple[float, float, float, float], measured: float, predicted: float) -> None:
+        """One tick the gate passed inside the envelope, while learning (folded in at its block's end)."""
+        if self.mode == Mode.LEARNING:
+            self._rows.append((t_s, *x, measured, predicted))
+
+    def fold(self) -> None:
+        """The waiting rows into the statistics (the order of the additions is the ticks')."""
+        if self._rows:
+            a = np.array(self._rows, dtype=np.float64)
+            self._rows = []
+            self._accumulate(a[:, 0], a[:, 1:5], a[:, 5], a[:, 6])
+
+    def _accumulate(
         self,
         t_s: NDArray[np.float64],
         x: NDArray[np.float64],
         measured: NDArray[np.float64],
         predicted: NDArray[np.float64],
-    ) -> int:
-        """:meth:`learn` for ticks in order (all passed the gate): the same additions in the same order.
-        Returns the index of the tick that ended the learning, or -1; :attr:`progress` then holds each
-        tick's learned ticks and covered bins after it."""
-        n_rows = len(t_s)
-        self.progress = (np.full(n_rows, self.learned_ticks), np.full(n_rows, self.covered))
-        if self.mode != Mode.LEARNING or not n_rows:
-            return -1
-        x = np.asarray(x, dtype=np.float64)
+    ) -> None:
+        if not len(t_s):
+            return
         b = bin_index(self.p, x)
-        r = (np.asarray(measured) - np.asarray(predicted)) * self.p.lpm_per_unit
+        r = (measured - predicted) * self.p.lpm_per_unit
         phi = features(self.p, x)
         ok = (b >= 0) & np.isfinite(r) & np.isfinite(phi).all(axis=1)
         pos = np.flatnonzero(ok)
         if not len(pos):
-            return -1
+            return
         b, r, phi = b[pos], r[pos], phi[pos]
-        # the tick that ends the learning: the first where both the coverage and the hours are reached
-        newly = np.zeros(len(pos), dtype=np.int64)
-        for bb in np.unique(b):  # a bin becomes covered at its (min_points - n)-th new tick
-            need = self.p.min_points - int(self.n[bb])
-            if need >= 1:
-                hits = np.flatnonzero(b == bb)
-                if len(hits) >= need:
-                    newly[hits[need - 1]] += 1
-        onehot_cum = self.covered + np.cumsum(newly)
-        ticks = self.learned_ticks + np.arange(1, len(pos) + 1)
-        hours_ok = ticks * self.p.period_s / 3600.0 >= self.p.min_hours - 1e-12
-        done = np.flatnonzero((onehot_cum >= self.p.bins_needed) & hours_ok)
-        end = int(done[0]) + 1 if len(done) else len(pos)
-        b, r, phi = b[:end], r[:end], phi[:end]
         np.add.at(self.sxx, b, phi[:, :, None] * phi[:, None, :])
         np.add.at(self.sxy, b, phi * r[:, None])
         np.add.at(self.sy, b, r)
         np.add.at(self.n, b, 1)
-        learned, covered = np.zeros(n_rows, dtype=np.int64), np.zeros(n_rows, dtype=np.int64)
-        learned[pos[:end]], covered[pos[:end]] = ticks[:end], onehot_cum[:end]
-        self.progress = (
-            np.maximum.accumulate(np.maximum(learned, self.learned_ticks)),
-            np.maximum.accumulate(np.maximum(covered, self.covered)),
-        )
-        self.covered = int(onehot_cum[end - 1])
-        self.learned_ticks += end
+        self.covered = int(np.count_nonzero(self.n >= self.p.min_points))
+        self.learned_ticks += len(pos)
         if self.started_t_s is None:
             self.started_t_s = float(t_s[pos[0]])
-        if len(done):
-            self._finish(float(t_s[pos[end - 1]]))
-            return int(pos[end - 1])
-        return -1
+
+    def _check(self, t_s: float) -> bool:
+        self.shown = (self.learned_ticks, self.covered)
+        if self._done():
+            self._finish(t_s)
+            return True
+        return False
+
+    def run_columns(
+        self,
+        ks: NDArray[np.int64],
+        t_k: NDArray[np.float64],
+        cand: NDArray[np.int64],
+        x: NDArray[np.float64],
+        measured: NDArray[np.float64],
+        predicted: NDArray[np.float64],
+    ) -> tuple[int, NDArray[np.int64], NDArray[np.int64]]:
+        """:meth:`tick` and :meth:`add` for a stretch of ticks ``ks`` (at ``t_k``); ``cand``: the
+        indexes of the ticks the gate passed, whose points are ``x``, ``measured``, ``predicted``.
+        Returns the first tick judged in the new state (``len(ks)`` when the learning goes on) and
+        each tick's shown progress (learned ticks, covered bins)."""
+        n = len(ks)
+        split = n
+        ticks_shown, covered_shown = np.full(n, self.shown[0]), np.full(n, self.shown[1])
+        if self.mode != Mode.LEARNING or not n:
+            return split, ticks_shown, covered_shown
+        blocks = ks // self.p.block_ticks
+        prev = np.empty(n, dtype=np.int64)
+        prev[0] = blocks[0] if self.block is None else self.block
+        prev[1:] = blocks[:-1]
+        done = 0  # candidates folded in so far
+        for i in np.flatnonzero(blocks != prev).tolist():
+            upto = int(np.searchsorted(cand, i))
+            self.fold()
+            self._accumulate(t_k[cand[done:upto]], x[done:upto], measured[done:upto], predicted[done:upto])
+            done = upto
+            ended = self._check(float(t_k[i]))
+            ticks_shown[i:], covered_shown[i:] = self.shown
+            if ended:
+                split = i
+                break
+        self.block = int(blocks[split - 1]) if split == n else int(blocks[split])
+        if split == n:  # the rest of the stretch's rows are learned; its end is checked at the next block
+            self.fold()
+            self._accumulate(t_k[cand[done:]], x[done:], measured[done:], predicted[done:])
+        return split, ticks_shown, covered_shown
 
     def _finish(self, t_s: float) -> None:
         f = fit(self.p, self.n, self.sxx, self.sxy, self.sy)
@@ -333,6 +362,7 @@ class Baseline:
         self.history = history
 
     def to_dict(self) -> dict[str, Any]:
+        self.fold()  # the sums are the same whenever rows are folded in; the end is checked per block
         return {
             "format": FORMAT,
             "envelope": self.p.describe(),
@@ -342,6 +372,8 @@ class Baseline:
             "sxy": self.sxy.tolist(),
             "sy": self.sy.tolist(),
             "learned_ticks": self.learned_ticks,
+            "block": self.block,
+            "shown": list(self.shown),
             "theta": list(self.theta),
             "distance_lpm": self.distance_lpm,
             "started_t_s": self.started_t_s,
@@ -395,6 +427,11 @@ class Baseline:
         bl.distance_lpm = distance
         bl.started_t_s, bl.finished_t_s = started, finished
         bl.history = hist[-HISTORY_MAX:]
+        block, shown = d.get("block"), d.get("shown", [ticks, bl.covered])
+        if block is not None and (isinstance(block, bool) or not isinstance(block, int)):
+            raise BaselineStateError(f"baseline.block: expected a block number or null, got {block!r:.40}")
+        bl.block = block
+        bl.shown = tuple(_ints(shown, "baseline.shown", 2))  # type: ignore[assignment]
         return bl, None
 
 

@@ -73,7 +73,7 @@ from cmcan.monitor.tick import LEVEL_NAMES, OPERATING_POINT, Tick, TickColumns, 
 from cmcan.monitor.totals import Totals
 from cmcan.monitor.warnings import Level, Reason, Thresholds, Transition, WarningMachine, fault_raised, warning_raised
 from cmcan.monitor.windows import Affine, DpFromHighLow, Target, Windows
-from cmcan.roles import MODEL_INPUTS, gated_roles
+from cmcan.roles import DP, MODEL_INPUTS, PUMP_DISP, PUMP_SPEED, TEMP, gated_roles
 
 COUNTERS = (
     "frames_total",
@@ -383,22 +383,20 @@ class Monitor:
         if self.health.tick(t):  # an erratic input message makes the point implausible
             g = Gate.IMPLAUSIBLE_INPUT
         pt = self.ratio.point(mean, count, g)
-        bl, switched = self.baseline, False
+        bl = self.baseline
         if bl is not None:
+            if bl.tick(k, t):  # the learning ended on the ticks before this one
+                self._baseline_changed()
             if bl.applies and pt.evaluated:
                 pt = self._corrected(pt, mean)
             elif pt.gate == Gate.EVALUATING and bl.mode == Mode.LEARNING:
-                x = np.array([[mean[r] for r in MODEL_INPUTS]])
-                switched = bl.learn(t, x[0], pt.measured, pt.predicted)
+                bl.add(t, (mean[PUMP_SPEED], mean[PUMP_DISP], mean[DP], mean[TEMP]), pt.measured, pt.predicted)
         if pt.evaluated:
             self.filter.add(pt.ratio_raw_pct, pt.leak_lpm)
         tick = self._judge(t, pt, mean)
         for listener in self.listeners:
             listener.tick(tick)
-        out = self._emit(k, tick)
-        if switched:
-            self._baseline_changed()
-        return out
+        return self._emit(k, tick)
 
     # -- the on-board baseline ---------------------------------------------------------------------
 
@@ -499,10 +497,11 @@ class Monitor:
         bl = self.baseline
         if bl is None:
             return {}
+        learned_h, coverage = bl.shown_progress
         return {
             "baseline_state": int(bl.mode),
-            "baseline_learned_h": bl.learned_h,
-            "baseline_coverage_pct": bl.coverage_pct,
+            "baseline_learned_h": learned_h,
+            "baseline_coverage_pct": coverage,
             "baseline_distance_lpm": bl.distance_lpm,
         }
 
@@ -655,23 +654,15 @@ class Monitor:
             self._filter_and_judge(ks, pts, mean, {}, out)
             return
         n = len(ks)
-        split = n  # the stretch's ticks from here on are judged after the learning ended
         mode_before, distance_before = bl.mode, bl.distance_lpm
-        learned, covered = np.full(n, bl.learned_ticks), np.full(n, bl.covered)
-        if bl.mode == Mode.LEARNING:
-            cand = np.flatnonzero(pts.gate == Gate.EVALUATING)
-            if len(cand):
-                x = np.column_stack([mean[r][cand] for r in MODEL_INPUTS])
-                t_k = ks[cand].astype(np.float64) * self.period
-                k = bl.learn_columns(t_k, x, pts.measured[cand], pts.predicted[cand])
-                learned[cand], covered[cand] = bl.progress
-                learned, covered = np.maximum.accumulate(learned), np.maximum.accumulate(covered)
-                if k >= 0:
-                    split = int(cand[k]) + 1
-        # each tick's state and progress after it: the tick that ends the learning has the new state
+        cand = np.flatnonzero(pts.gate == Gate.EVALUATING)
+        x = np.column_stack([mean[r][cand] for r in MODEL_INPUTS])
+        t_k = ks.astype(np.float64) * self.period
+        # split: the first tick judged in the state the learning's end brought (n: none in this stretch)
+        split, learned, covered = bl.run_columns(ks, t_k, cand, x, pts.measured[cand], pts.predicted[cand])
         state = np.full(n, int(mode_before), dtype=np.int8)
         distance = np.full(n, distance_before)
-        state[split - 1 :], distance[split - 1 :] = int(bl.mode), bl.distance_lpm
+        state[split:], distance[split:] = int(bl.mode), bl.distance_lpm
         learned_h, coverage = bl.progress_of(learned, covered)
         cols = {
             "baseline_state": state,
@@ -683,8 +674,9 @@ class Monitor:
             pts = self._corrected_columns(pts, mean) if bl.applies else pts
             self._filter_and_judge(ks, pts, mean, cols, out)
             return
-        # the learning ended at tick split - 1, judged on the type model
-        self._filter_and_judge(ks[:split], _take(pts, 0, split), _cut(mean, 0, split), _cut(cols, 0, split), out)
+        if split > 0:  # the ticks before the learning's end, judged on the type model
+            first, first_mean = _take(pts, 0, split), _cut(mean, 0, split)
+            self._filter_and_judge(ks[:split], first, first_mean, _cut(cols, 0, split), out)
         self._baseline_changed()
         if split < n:
             rest, rest_mean = _take(pts, split, n), _cut(mean, split, n)
