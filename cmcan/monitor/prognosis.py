@@ -1,13 +1,18 @@
 """Prognosis: operating hours until the low warning and until end of life, each as p10/p50/p90.
 
-The time base is operating hours. Evaluated ticks with a valid filter go into a decimated history:
-one point per ``bin_h`` of operating time (the mean hour, extra leakage and ratio of its ticks);
-when it holds more than ``max_points``, adjacent points of its older half are merged in pairs down
-to three quarters of that: the recent stretch keeps its resolution, the state stays bounded. One
-tick at a time (:meth:`Prognosis.add`) or a stretch of ticks as arrays
-(:meth:`Prognosis.add_columns`): the same bins with the same float additions in the same order, so
-both leave an identical state. :meth:`Prognosis.restart` begins a new history (a replaced unit, a
-reset baseline); :meth:`Prognosis.to_dict` / :meth:`Prognosis.from_dict` carry it across restarts.
+The time base is operating hours. Evaluated ticks go into a decimated history: one point per
+``bin_h`` of operating time, the mean hour and ratio of its ticks and its leakage referred to the
+reference conditions (``dp_ref_bar``, ``temp_ref_c``): a worn gap leaks laminar, ``leak = L * g`` with
+``g = (dp / dp_ref) * (mu(T_ref) / mu(T))`` from the tick's dp and oil temperature, and the bin's ``L``
+is the least-squares one, ``sum(leak * g) / sum(g^2)`` (ticks at low pressure, whose leakage says
+little, count little; below ``min_dp_bar`` not at all). When the history holds more than
+``max_points``, adjacent points of its older half are merged in pairs down to three quarters of
+that: the recent stretch keeps its resolution, the state stays bounded. One tick at a time
+(:meth:`Prognosis.add`) or a stretch of ticks as arrays (:meth:`Prognosis.add_columns`): the same
+bins with the same float additions in the same order, so both leave an identical state.
+:meth:`Prognosis.restart` begins a new history (a replaced unit, a reset baseline);
+:meth:`Prognosis.to_dict` / :meth:`Prognosis.from_dict` carry it across restarts. The estimate also
+takes the open bin as its newest point once it holds ``min_ticks`` ticks.
 
 The estimate (:func:`estimate`) fits the extra leakage ``y`` (l/min) over the history with a
 baseline and a power law from an onset: ``y = b + c * ((h - t0) / (T - t0))^k`` for ``h > t0``
@@ -18,19 +23,23 @@ faster; onset ``t0`` and shape ``k`` come from a grid, ``b`` and ``c`` (``c >= 0
   the residuals' lag-1 autocorrelation, at least ``t_min``: the grid search and correlated points
   make 2 far too lax) and larger than both ``min_rise_lpm`` and ``rise_sigmas`` times the residuals'
   spread (the noise floor).
-- The interval: the points weighed by their noise (a floor plus ``level_rel`` of the wear leakage,
-  which swings with oil viscosity and pressure), curves are drawn from the fit's posterior (a cell by
-  its likelihood, so every onset and shape the data do not rule out is drawn; its level and rise
-  from their normal distributions; flat priors) and followed to each threshold, each time spread by
-  ``model_rel`` (the law is an assumption). The draws of the estimates of the last ``pool_h`` hours
-  (at most a quarter of the hours left), less the hours since, are pooled with the current one's,
-  so a warm or cold stretch of the oil's cycle does not decide alone. Reported: p10, p50, p90.
+- The interval: the points weighed by their noise (a floor plus a share of the wear leakage, the
+  share estimated from the worn stretch's residuals, at most ``level_rel``), curves are drawn from
+  the fit's posterior (a cell by its likelihood, so every onset and shape the data do not rule out is
+  drawn; its level and rise from their normal distributions; flat priors) and followed to each
+  threshold, each time spread by ``model_rel`` (the law is an assumption). With ``pool_h`` (default
+  0: off) the draws of the estimates of the last ``pool_h`` hours (at most a quarter of the hours
+  left), less the hours since, are pooled with the current one's; referred to reference conditions,
+  the oil's cycle that made this worth its lag is gone. Reported: p10, p50, p90.
 - State: ``none`` without a trend, ``imminent`` when p10 to end of life is within ``imminent_h``,
   ``trend`` otherwise.
 
 Ratio thresholds (the low warning, an end of life given as a ratio) are mapped to an extra leakage by
 the least-squares line of the ratio's deficit (100 - ratio) on the leakage over the history: on one
-machine both move together, the ratio also through the flow it is a share of.
+machine both move together, the ratio also through the flow it is a share of. The ratio is the one
+measured, at the machine's own mix of oil temperatures and pressures, the leakage the referred one:
+the line holds on average, and the warning, judged on the measured ratio, comes first on a warm or
+high-pressure stretch, up to a part of the oil's cycle sooner than the hours to it say.
 
 Nothing here reads a clock; float64 throughout; the same history gives the same estimate.
 """
@@ -79,11 +88,13 @@ class PrognosisParams:
     # The wear law is an assumption: a field curve is no exact power law, and onset and shape are
     # picked from a grid. Hours to a threshold carry this relative error (lognormal) on top of the fit's.
     model_rel: float = 0.1
-    # The measured wear leakage swings by about this share of itself with the oil's temperature
-    # (viscosity: some 3 %/K) and the duty's pressure; the fit weighs its points accordingly.
+    # The referred wear leakage may still scatter by a share of itself (a gap not quite laminar, the
+    # sensors' lag behind the oil): the fit weighs its points by the share its residuals show, at most this.
     level_rel: float = 0.1
-    pool_h: float = 6.0  # the estimate pools those of the last 6 h (at most a quarter of the hours left)
-    pool_every_h: float = 2.0  # ... taken every 2 h
+    # Pool the estimates of the last pool_h hours (at most a quarter of the hours left), taken every
+    # pool_every_h: off, as its lag costs more near the end than the referred leakage's scatter
+    pool_h: float = 0.0
+    pool_every_h: float = 2.0
     seed: int = 20260  # fixed: the same history gives the same interval
     # Reference conditions the leakage is referred to (a laminar gap flow: Q ~ dp / mu). Defaults: the
     # reference drive's rated 480 bar and 60 C oil, at which the simulator and a test rig state a wear
@@ -207,10 +218,9 @@ class Prognosis:
     def _close(self) -> None:
         """The open bin becomes a point (when it holds enough ticks); the history thinned if full.
         Its leakage at the reference conditions is the least-squares L of leak_i = L * g_i."""
-        n = self.open_n
-        if n >= self.params.min_ticks and self.open_sum_gg > 0:
-            leak_ref = self.open_sum_lg / self.open_sum_gg
-            self.points.append((self.open_sum_h / n, leak_ref, self.open_sum_ratio / n, n, self.open_sum_gg))
+        q = self._open_point()
+        if q is not None:
+            self.points.append(q)
             if len(self.points) > self.params.max_points:
                 self.points = _thin(self.points, self.params.max_points - self.params.max_points // 4)
         self._clear_open()
@@ -225,17 +235,26 @@ class Prognosis:
         self.points = []
         self._clear_open()
 
-    def arrays(self) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-        """The closed points' hours, leakage at the reference conditions and ratio (the open bin is
-        not yet a point)."""
-        if not self.points:
+    def arrays(self, with_open: bool = False) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """The closed points' hours, leakage at the reference conditions and ratio; ``with_open``:
+        and the open bin's as the newest point, when it holds ``min_ticks`` ticks already."""
+        pts = self.points + ([q] if with_open and (q := self._open_point()) is not None else [])
+        if not pts:
             e = np.empty(0)
             return e, e.copy(), e.copy()
-        p = np.array(self.points, dtype=np.float64)
+        p = np.array(pts, dtype=np.float64)
         return p[:, 0].copy(), p[:, 1].copy(), p[:, 2].copy()
 
+    def _open_point(self) -> Point | None:
+        n = self.open_n
+        if n < self.params.min_ticks or not self.open_sum_gg > 0:
+            return None
+        return (self.open_sum_h / n, self.open_sum_lg / self.open_sum_gg, self.open_sum_ratio / n, n, self.open_sum_gg)
+
     def estimate(self) -> Estimate:
-        h, leak, ratio = self.arrays()
+        """The estimate from the history and the open bin: the newest ticks count as soon as they
+        make a point, not only when a later bin begins (half an hour and more sooner near the end)."""
+        h, leak, ratio = self.arrays(with_open=True)
         return estimate(self.params, h, leak, ratio)
 
     # -- state file ----------------------------------------------------------------------------------
@@ -454,7 +473,15 @@ def _draw_hours(
     before = d.basis[d.g] == 0.0
     floor = float(np.sqrt(np.mean(d.resid[before] ** 2))) if np.count_nonzero(before) >= 4 else 0.0
     floor = max(floor, p.sigma_floor_lpm)
-    w = 1.0 / (floor**2 + (p.level_rel * d.c * d.basis[d.g]) ** 2)
+    # The share of the wear leakage the points scatter by on top of the floor, from the residuals of
+    # the worn stretch (referred to reference conditions little is left of the oil's swing), at most
+    # level_rel: a large share would let the newest points, which decide the extrapolation, count little.
+    u = d.c * d.basis[d.g]
+    worn = u > 0.25 * d.c
+    rel2 = 0.0
+    if np.count_nonzero(worn) >= 4:
+        rel2 = max(float(np.mean(d.resid[worn] ** 2)) - floor**2, 0.0) / float(np.mean(u[worn] ** 2))
+    w = 1.0 / (floor**2 + min(rel2, p.level_rel**2) * u**2)
     f = _fit(d.basis, leak, w)
     gw = int(np.argmin(f.sse))
     resid_w = (leak - (f.b[gw] + f.c[gw] * d.basis[gw])) * np.sqrt(w)
