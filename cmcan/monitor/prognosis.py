@@ -62,7 +62,13 @@ _FORMAT_V1 = "cmcan-prognosis/1"  # leakage as measured, not referred to referen
 NONE, TREND, IMMINENT = "none", "trend", "imminent"
 EOL_KINDS = ("leak_lpm", "ratio_pct")
 _NEVER_H = 1e6  # a drawn curve that never reaches a threshold; reported as inf
-_SHAPES = (1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 5.0, 6.0, 8.0)  # power-law exponents tried
+# Power-law exponents tried: 2^(i/8) from 1 to 8 (9 % apart; given as literals so every platform has
+# the same grid). A coarser grid misfits the newest points, where the extrapolation starts, by more
+# than their noise once the leakage is referred to reference conditions.
+_SHAPES = (
+    1.0, 1.091, 1.189, 1.297, 1.414, 1.542, 1.682, 1.834, 2.0, 2.181, 2.378, 2.594, 2.828,
+    3.084, 3.364, 3.668, 4.0, 4.362, 4.757, 5.187, 5.657, 6.169, 6.727, 7.336, 8.0,
+)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -79,7 +85,7 @@ class PrognosisParams:
     eol_value: float = 90.0
     imminent_h: float = 24.0  # p10 to end of life within this: imminent (service within a few shifts)
     min_points: int = 12  # the rising stretch must hold at least this many points (6 h)
-    onsets: int = 24  # onset candidates on the grid
+    onsets: int = 48  # onset candidates on the grid (some 3 h apart on a 300 h history)
     t_min: float = 6.0  # significance of the rise (grid search and autocorrelation make 2 too lax)
     min_rise_lpm: float = 1.5  # the smallest rise reported as a trend
     rise_sigmas: float = 5.0  # ... and at least this many times the residuals' spread
@@ -473,14 +479,16 @@ def _draw_hours(
     before = d.basis[d.g] == 0.0
     floor = float(np.sqrt(np.mean(d.resid[before] ** 2))) if np.count_nonzero(before) >= 4 else 0.0
     floor = max(floor, p.sigma_floor_lpm)
-    # The share of the wear leakage the points scatter by on top of the floor, from the residuals of
-    # the worn stretch (referred to reference conditions little is left of the oil's swing), at most
-    # level_rel: a large share would let the newest points, which decide the extrapolation, count little.
+    # The share of the wear leakage the points scatter by on top of the floor, from the worn stretch's
+    # residuals (referred to reference conditions little is left of the oil's swing), at most
+    # level_rel. From successive differences: a smooth misfit of the law is no scatter, and taken
+    # for one it would let the newest points, which decide the extrapolation, count little.
     u = d.c * d.basis[d.g]
-    worn = u > 0.25 * d.c
+    worn = np.flatnonzero(u > 0.25 * d.c)
     rel2 = 0.0
-    if np.count_nonzero(worn) >= 4:
-        rel2 = max(float(np.mean(d.resid[worn] ** 2)) - floor**2, 0.0) / float(np.mean(u[worn] ** 2))
+    if len(worn) >= 4:
+        scatter2 = 0.5 * float(np.mean(np.diff(d.resid[worn]) ** 2))
+        rel2 = max(scatter2 - floor**2, 0.0) / float(np.mean(u[worn] ** 2))
     w = 1.0 / (floor**2 + min(rel2, p.level_rel**2) * u**2)
     f = _fit(d.basis, leak, w)
     gw = int(np.argmin(f.sse))
