@@ -5,10 +5,14 @@ with its onset, span (onset to failure), shape (the exponent k of x = F s^k) and
 varied; constant duty at various operating points or mixed wheel-loader / excavator work; the oil
 cycling by a few to 25 C; sensor noise scaled 0.5-2x. Each is simulated in bursts (10 s every 15 min
 of operating time), replayed through the shipped monitor (columnar engine), and its evaluated ticks
-with a valid filter are fed to the prognosis; an estimate is taken every operating hour.
+(raw extra leakage (predicted - measured) * lpm_per_unit, raw ratio, dp and oil temperature, as the
+ticks carry them) are fed to the prognosis, which refers the leakage to its reference conditions; an
+estimate is taken every operating hour.
 
 End of life is the machine's, as its configuration would give it: the leakage at loss of function
-(the scenario's ``fail_extra_lpm`` at 480 bar and 60 C) as the monitor sees it on that machine's duty
+(the scenario's ``fail_extra_lpm``, stated at 480 bar and 60 C) referred to the stage's reference
+conditions (the same by default). With ``--without-normalization`` (the comparison: every tick taken
+as if at the reference conditions) it is that leakage as the monitor sees it on that machine's duty
 and oil, i.e. scaled by the simulated truth's mean ratio of leakage at the evaluated operating points
 to leakage at the reference point over the worn stretch (an oracle for the level, not for the time).
 Truth is the scenario's failure hour.
