@@ -51,8 +51,9 @@ tick = st.tuples(
     st.floats(-2.0, 30.0),
     st.floats(85.0, 101.0),
     st.integers(0, 30),  # 0: this tick's hour steps back
-    st.floats(0.0, 600.0) | st.sampled_from([480.0, 19.99, 20.0, math.nan]),  # dp (bar), some below min_dp_bar
-    st.floats(-50.0, 170.0) | st.sampled_from([60.0, -30.0, 150.0, 149.99, math.nan]),  # oil (C), some off the table
+    # dp (bar) and oil temperature (C): mostly usable, some below min_dp_bar, off the viscosity table or NaN
+    st.just(480.0) | st.floats(20.0, 600.0) | st.floats(20.0, 600.0) | st.sampled_from([19.99, 0.0, math.nan]),
+    st.just(60.0) | st.floats(-30.0, 150.0) | st.floats(-50.0, 170.0) | st.sampled_from([-30.0, 149.99, math.nan]),
 )
 
 
