@@ -5,10 +5,14 @@ with its onset, span (onset to failure), shape (the exponent k of x = F s^k) and
 varied; constant duty at various operating points or mixed wheel-loader / excavator work; the oil
 cycling by a few to 25 C; sensor noise scaled 0.5-2x. Each is simulated in bursts (10 s every 15 min
 of operating time), replayed through the shipped monitor (columnar engine), and its evaluated ticks
-with a valid filter are fed to the prognosis; an estimate is taken every operating hour.
+(raw extra leakage (predicted - measured) * lpm_per_unit, raw ratio, dp and oil temperature, as the
+ticks carry them) are fed to the prognosis, which refers the leakage to its reference conditions; an
+estimate is taken every operating hour.
 
 End of life is the machine's, as its configuration would give it: the leakage at loss of function
-(the scenario's ``fail_extra_lpm`` at 480 bar and 60 C) as the monitor sees it on that machine's duty
+(the scenario's ``fail_extra_lpm``, stated at 480 bar and 60 C) referred to the stage's reference
+conditions (the same by default). With ``--without-normalization`` (the comparison: every tick taken
+as if at the reference conditions) it is that leakage as the monitor sees it on that machine's duty
 and oil, i.e. scaled by the simulated truth's mean ratio of leakage at the evaluated operating points
 to leakage at the reference point over the worn stretch (an oracle for the level, not for the time).
 Truth is the scenario's failure hour.
@@ -22,18 +26,21 @@ Metrics (alpha = 20 %), over estimates from the first trend reported until failu
 - false trends: healthy 100 h runs (the shipped healthy_mixed_100h and variants) with any estimate
   other than ``none``.
 
-    python bench/bench_prognosis.py [--scenarios 24] [--seed 7] [--jobs 2]
+    python bench/bench_prognosis.py [--scenarios 24] [--seed 7] [--jobs 2] [--without-normalization]
+                                    [--only 0,3] [--cache DIR]
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import math
+import os
 import statistics
 import time
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -156,18 +163,75 @@ def healthy_cases(seed: int) -> list[Case]:
     return out
 
 
-def run_case(case: Case, oil_normalized: bool = False) -> Result:
+def run_case(case: Case, normalized: bool = True, cache: str | None = None) -> Result:
     from cmcan import config as cfgmod
+    from cmcan.monitor.prognosis import Prognosis, PrognosisParams
+
+    t_start = time.perf_counter()
+    cfg = cfgmod.load()
+    ticks = _cached_ticks(case, cfg, cache)
+    h, leak, ratio, dp, temp = (ticks[k] for k in ("h", "leak", "ratio", "dp", "temp"))
+    ok = np.ones(len(h), bool)
+    params = PrognosisParams(low_pct=cfg.thresholds.low_pct, oil=cfg.oil)
+    if not normalized:  # the comparison: every tick at the reference conditions, gain 1
+        dp, temp = np.full(len(h), params.dp_ref_bar), np.full(len(h), params.temp_ref_c)
+
+    res = Result(case)
+    if case.fail_h is None:
+        res.eol_lpm = 40.0
+    elif normalized:
+        res.eol_lpm = eol_ref_lpm(case, params)
+    else:
+        res.eol_lpm = eol_lpm_for(case, ticks)
+    params = replace(params, eol_kind="leak_lpm", eol_value=res.eol_lpm)
+    prog = Prognosis(params)
+    res.first_warning_h = float(ticks["first_low_h"]) if math.isfinite(ticks["first_low_h"]) else None
+    # fed hour by hour, an estimate after each (the daemon would estimate as each bin closes)
+    end = float(h[-1]) if len(h) else 0.0
+    edges = np.searchsorted(h, np.arange(1.0, end + 1.0))
+    a = 0
+    for z in edges.tolist():
+        prog.add_columns(h[a:z], leak[a:z], ratio[a:z], dp[a:z], temp[a:z], ok[a:z])
+        a = z
+        e = prog.estimate()
+        if case.fail_h is not None and e.at_h >= case.fail_h:
+            break
+        res.max_t = max(res.max_t, e.t_stat)
+        res.max_rise = max(res.max_rise, e.rise_lpm)
+        if e.state != "none":
+            res.estimates.append((e.at_h, e.state, *e.to_eol_h))
+    res.seconds = time.perf_counter() - t_start
+    return res
+
+
+def _cached_ticks(case: Case, cfg: Any, cache: str | None) -> dict[str, Any]:
+    """The case's evaluated ticks (simulated and replayed through the shipped monitor), from ``cache``
+    when it holds them: the prognosis can be iterated on without simulating again."""
+    key = hashlib.sha256(json.dumps(case.doc, sort_keys=True).encode()).hexdigest()[:16]
+    path = os.path.join(cache, f"{case.name}-{key}.npz") if cache else None
+    if path and os.path.exists(path):
+        with np.load(path) as z:
+            return {k: z[k] for k in z.files}
+    out = simulate_ticks(case, cfg)
+    if path:
+        os.makedirs(cache, exist_ok=True)
+        np.savez(path + ".tmp.npz", **out)
+        os.replace(path + ".tmp.npz", path)
+    return out
+
+
+def simulate_ticks(case: Case, cfg: Any) -> dict[str, Any]:
+    """Simulate the case, replay it through the shipped monitor (columnar engine) and keep its
+    evaluated ticks: hour, raw extra leakage ((predicted - measured) * lpm_per_unit), raw ratio, dp
+    and oil temperature (the tick's window means), and, for the oracle end of life, the simulated
+    truth's extra leakage at those hours."""
     from cmcan.assemble import assemble, dbc_for
     from cmcan.frame import FrameColumns
-    from cmcan.monitor.prognosis import Prognosis, PrognosisParams
     from cmcan.replay import replay_columns
     from cmcan.sim import scenario as scn
     from cmcan.sim.frames import frames_from_run
     from cmcan.sim.run import simulate
 
-    t_start = time.perf_counter()
-    cfg = cfgmod.load()
     db = dbc_for(cfg)
     s = scn.from_dict(case.doc, source=case.name)
     run = simulate(s, db)
@@ -185,39 +249,15 @@ def run_case(case: Case, oil_normalized: bool = False) -> Result:
         dlc=fr.dlc.astype(np.int16),
         data=fr.data,
     )
-    sink = _Ticks()
+    sink = _Ticks(cfg.lpm_per_unit)
     mon = assemble(cfg).monitor
     step = 200_000
     summary = replay_columns(mon, (cols_slice(cols, a, a + step) for a in range(0, n, step)), [sink])
-    h, leak, ratio, ok = sink.arrays(run.start_epoch_s)
-    if oil_normalized:  # what-if: the leakage at 60 C viscosity, from the measured oil temperature
-        oil = s.params.oil
-        mu_ref = float(oil.dynamic_viscosity_pa_s(60.0))
-        scale = oil.dynamic_viscosity_pa_s(np.interp(h, run["operating_h"], run["temp_c"])) / mu_ref
-        leak, ratio = leak * scale, 100.0 - (100.0 - ratio) * scale
-
-    res = Result(case)
-    res.eol_lpm = eol_lpm_for(case, run, h[ok], oil_normalized) if case.fail_h is not None else 40.0
-    params = PrognosisParams(eol_kind="leak_lpm", eol_value=res.eol_lpm, low_pct=cfg.thresholds.low_pct)
-    prog = Prognosis(params)
+    out = sink.arrays(run.start_epoch_s)
+    out["true_leak"] = np.interp(out["h"], run["operating_h"], run["true_extra_leak_lpm"])
     lows = [w["operating_h"] for w in summary.warnings if w["to"] == "low"]
-    res.first_warning_h = lows[0] if lows else None
-    # fed hour by hour, an estimate after each (the daemon would estimate as each bin closes)
-    end = float(h[-1]) if len(h) else 0.0
-    edges = np.searchsorted(h, np.arange(1.0, end + 1.0))
-    a = 0
-    for z in edges.tolist():
-        prog.add_columns(h[a:z], leak[a:z], ratio[a:z], ok[a:z])
-        a = z
-        e = prog.estimate()
-        if case.fail_h is not None and e.at_h >= case.fail_h:
-            break
-        res.max_t = max(res.max_t, e.t_stat)
-        res.max_rise = max(res.max_rise, e.rise_lpm)
-        if e.state != "none":
-            res.estimates.append((e.at_h, e.state, *e.to_eol_h))
-    res.seconds = time.perf_counter() - t_start
-    return res
+    out["first_low_h"] = np.float64(lows[0] if lows else math.nan)
+    return out
 
 
 def cols_slice(c: Any, a: int, z: int) -> Any:
@@ -233,12 +273,13 @@ def cols_slice(c: Any, a: int, z: int) -> Any:
 
 
 class _Ticks:
-    """Keeps the evaluated ticks' hour, leakage, ratio and validity."""
+    """Keeps the evaluated ticks' hour, raw leakage and ratio, dp and oil temperature."""
 
     wants_ticks = True
     wants_frames = False
 
-    def __init__(self) -> None:
+    def __init__(self, lpm_per_unit: float) -> None:
+        self.lpm_per_unit = lpm_per_unit
         self.parts: list[tuple[np.ndarray, ...]] = []
 
     def start(self, t0: float) -> None:
@@ -248,7 +289,8 @@ class _Ticks:
         from cmcan.monitor.gating import EVALUATED
 
         ev = np.isin(c.gate, np.array(sorted(int(g) for g in EVALUATED)))
-        self.parts.append((c.t_run_s[ev], c.extra_leak_lpm[ev], c.ratio_filt_pct[ev], c.filt_valid[ev]))
+        leak = (c.predicted[ev] - c.measured[ev]) * self.lpm_per_unit  # as the core's Point.leak_lpm
+        self.parts.append((c.t_run_s[ev], leak, c.ratio_raw_pct[ev], c.dp_bar[ev], c.temp_c[ev]))
 
     def frames(self, frames: Any) -> None:
         pass
@@ -259,30 +301,36 @@ class _Ticks:
     def abort(self) -> None:
         pass
 
-    def arrays(self, start_epoch_s: float) -> tuple[np.ndarray, ...]:
+    def arrays(self, start_epoch_s: float) -> dict[str, np.ndarray]:
+        names = ("h", "leak", "ratio", "dp", "temp")
         if not self.parts:
-            e = np.empty(0)
-            return e, e, e, np.empty(0, bool)
-        t, lk, r, ok = (np.concatenate(x) for x in zip(*self.parts, strict=True))
-        return (t - start_epoch_s) / 3600.0, lk, r, ok
+            return {k: np.empty(0) for k in names}
+        t, lk, r, dp, tc = (np.concatenate(x) for x in zip(*self.parts, strict=True))
+        return dict(zip(names, ((t - start_epoch_s) / 3600.0, lk, r, dp, tc), strict=True))
 
 
-def eol_lpm_for(case: Case, run: Any, tick_h: np.ndarray, oil_normalized: bool = False) -> float:
-    """The machine's end of life as the monitor sees it: F scaled by the mean ratio of the true
-    leakage at the evaluated operating points (the monitor's ticks: its duty, its oil) to the leakage
-    at the reference point, over the worn stretch."""
+def eol_ref_lpm(case: Case, params: Any) -> float:
+    """The machine's end of life at the stage's reference conditions: the leakage at loss of function
+    (stated at the scenario's reference point) referred to them by the laminar law, as a machine's
+    configuration would state it from a rig test."""
+    from cmcan.sim import scenario as scn
+
+    ev = scn.from_dict(case.doc).document["events"][0]
+    oil = params.oil
+    visc = float(oil.dynamic_viscosity_pa_s(ev["ref_temp_c"])) / float(oil.dynamic_viscosity_pa_s(params.temp_ref_c))
+    return float(ev["fail_extra_lpm"] * params.dp_ref_bar / ev["ref_dp_bar"] * visc)
+
+
+def eol_lpm_for(case: Case, ticks: dict[str, Any]) -> float:
+    """Without normalization, the machine's end of life as the monitor sees it: F scaled by the mean
+    ratio of the true leakage at the evaluated operating points (the monitor's ticks: its duty, its
+    oil) to the leakage at the reference point, over the worn stretch."""
     ev = case.doc["events"][0]
+    tick_h = ticks["h"]
     s = np.clip((tick_h - ev["start_h"]) / (ev["fail_h"] - ev["start_h"]), 0.0, 1.0)
     x_ref = ev["fail_extra_lpm"] * s ** ev["shape"]
     worn = (s >= 0.3) & (tick_h < ev["fail_h"])
-    true_lpm = np.interp(tick_h[worn], run["operating_h"], run["true_extra_leak_lpm"])
-    if oil_normalized:
-        from cmcan.sim import scenario as scn
-
-        oil = scn.from_dict(case.doc).params.oil
-        temp = np.interp(tick_h[worn], run["operating_h"], run["true_temp_c"])
-        true_lpm = true_lpm * oil.dynamic_viscosity_pa_s(temp) / float(oil.dynamic_viscosity_pa_s(60.0))
-    return float(ev["fail_extra_lpm"] * np.sum(true_lpm) / np.sum(x_ref[worn]))
+    return float(ev["fail_extra_lpm"] * np.sum(ticks["true_leak"][worn]) / np.sum(x_ref[worn]))
 
 
 # -- metrics -----------------------------------------------------------------------------------------
@@ -332,16 +380,22 @@ def main() -> None:
     ap.add_argument("--no-healthy", action="store_true", help="skip the healthy 100 h runs")
     ap.add_argument("--dump", help="write every estimate to this JSON file")
     ap.add_argument(
-        "--oil-normalized",
+        "--without-normalization",
         action="store_true",
-        help="what-if: feed the leakage referred to 60 C oil (from the measured temperature), as a monitor "
-        "that normalised it would give it",
+        help="the comparison: every tick taken at the reference conditions (the leakage as measured, not "
+        "referred to them), end of life as the monitor sees it at the machine's duty and oil",
     )
+    ap.add_argument("--only", help="run only these wear scenarios, by index: 0,3,7 (iterating on a subset)")
+    ap.add_argument("--cache", help="keep each case's evaluated ticks in this folder and reuse them")
     args = ap.parse_args()
-    cases = wear_cases(args.scenarios, args.seed) + ([] if args.no_healthy else healthy_cases(args.seed))
+    wear = wear_cases(args.scenarios, args.seed)
+    if args.only:
+        wear = [wear[int(i)] for i in args.only.split(",")]
+    cases = wear + ([] if args.no_healthy else healthy_cases(args.seed))
     t0 = time.perf_counter()
+    n = len(cases)
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as ex:
-        results = list(ex.map(run_case, cases, [args.oil_normalized] * len(cases)))
+        results = list(ex.map(run_case, cases, [not args.without_normalization] * n, [args.cache] * n))
     wall = time.perf_counter() - t0
     if args.dump:
         with open(args.dump, "w", encoding="utf-8") as f:

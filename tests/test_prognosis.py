@@ -12,18 +12,30 @@ from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
 from cmcan.monitor.prognosis import IMMINENT, NONE, TREND, Prognosis, PrognosisParams
+from cmcan.oil import VG46, oil_from_grade
 
 FLOW_LPM = 234.0  # 78 cm3/rev at 3000 rpm: the extra leakage's share of it is the ratio's deficit
 SMALL = PrognosisParams(bin_h=0.25, max_points=12, min_ticks=2, min_points=4, onsets=4, draws=50)
+REF = PrognosisParams()
 
 
-def ticks(hours, leak_lpm, seed=0, noise_lpm=0.3):
-    """Evaluated ticks: the leakage with noise (filtered, so correlated from tick to tick) and its ratio."""
+def ticks(hours, leak_lpm, seed=0, noise_lpm=0.3, dp_bar=None, temp_c=None):
+    """Evaluated ticks: the leakage with noise (correlated from tick to tick, as window means are) and
+    its ratio, at the reference conditions unless an operating point is given (then the leakage given
+    is the one at the reference conditions and the tick's is a laminar flow at its point)."""
     rng = np.random.default_rng(seed)
-    white = rng.normal(0.0, noise_lpm, len(hours))
+    n = len(hours)
+    dp = np.full(n, REF.dp_ref_bar) if dp_bar is None else np.asarray(dp_bar, float)
+    temp = np.full(n, REF.temp_ref_c) if temp_c is None else np.asarray(temp_c, float)
+    white = rng.normal(0.0, noise_lpm, n)
     kernel = np.ones(8) / 8
-    noisy = leak_lpm + np.convolve(white, kernel, mode="same") * math.sqrt(8)
-    return hours, noisy, 100.0 - noisy / FLOW_LPM * 100.0, np.ones(len(hours), bool)
+    noisy = leak_lpm * laminar_gain(dp, temp) + np.convolve(white, kernel, mode="same") * math.sqrt(8)
+    return hours, noisy, 100.0 - noisy / FLOW_LPM * 100.0, dp, temp, np.ones(n, bool)
+
+
+def laminar_gain(dp_bar, temp_c, oil=VG46):
+    """A gap flow at (dp, T) over its flow at 480 bar and 60 C, from the oil's law (no table)."""
+    return np.asarray(dp_bar) / 480.0 * oil.dynamic_viscosity_pa_s(60.0) / oil.dynamic_viscosity_pa_s(temp_c)
 
 
 def same(a: Prognosis, b: Prognosis) -> None:
@@ -39,6 +51,9 @@ tick = st.tuples(
     st.floats(-2.0, 30.0),
     st.floats(85.0, 101.0),
     st.integers(0, 30),  # 0: this tick's hour steps back
+    # dp (bar) and oil temperature (C): mostly usable, some below min_dp_bar, off the viscosity table or NaN
+    st.just(480.0) | st.floats(20.0, 600.0) | st.floats(20.0, 600.0) | st.sampled_from([19.99, 0.0, math.nan]),
+    st.just(60.0) | st.floats(-30.0, 150.0) | st.floats(-50.0, 170.0) | st.sampled_from([-30.0, 149.99, math.nan]),
 )
 
 
@@ -46,27 +61,34 @@ tick = st.tuples(
 @given(st.lists(tick, min_size=30, max_size=400), st.lists(st.integers(1, 60), min_size=1, max_size=20), st.data())
 def test_per_tick_and_array_forms_leave_the_same_state(rows, cuts, data):
     hours, h = [], 0.0
-    for dh, _, _, _, back in rows:
+    for dh, _, _, _, back, _, _ in rows:
         h = h - 0.3 if back == 0 else h + dh
         hours.append(h)
     valid = np.array([r[1] for r in rows])
     leak = np.array([r[2] for r in rows])
     ratio = np.array([r[3] for r in rows])
+    dp = np.array([r[5] for r in rows])
+    temp = np.array([r[6] for r in rows])
     hs = np.array(hours)
     one, cols = Prognosis(SMALL), Prognosis(SMALL)
+
+    def one_by_one(p: Prognosis, i: int) -> None:
+        p.add(hours[i], float(leak[i]), float(ratio[i]), float(dp[i]), float(temp[i]), bool(valid[i]))
+
     for i in range(len(rows)):
-        one.add(hours[i], float(leak[i]), float(ratio[i]), bool(valid[i]))
+        one_by_one(one, i)
     a, ci = 0, 0
     mixed = data.draw(st.booleans())
     while a < len(rows):
         z = min(a + cuts[ci % len(cuts)], len(rows))
         if mixed and ci % 2:  # per tick and as columns in turn, on one object
             for i in range(a, z):
-                cols.add(hours[i], float(leak[i]), float(ratio[i]), bool(valid[i]))
+                one_by_one(cols, i)
         else:
-            cols.add_columns(hs[a:z], leak[a:z], ratio[a:z], valid[a:z])
+            cols.add_columns(hs[a:z], leak[a:z], ratio[a:z], dp[a:z], temp[a:z], valid[a:z])
         a, ci = z, ci + 1
     same(one, cols)
+    valid = valid & np.isfinite(dp) & np.isfinite(temp) & (dp >= SMALL.min_dp_bar)
     bins = np.floor(hs / SMALL.bin_h)
     eff = np.maximum.accumulate(bins[valid]) if valid.any() else bins[:0]
     _, per_bin = np.unique(eff, return_counts=True)
@@ -74,6 +96,7 @@ def test_per_tick_and_array_forms_leave_the_same_state(rows, cuts, data):
     event(f"history thinned: {closed > SMALL.max_points}")
     event(f"an hour stepping back: {bool(np.any(np.diff(hs) < 0))}")
     event(f"invalid ticks skipped: {not valid.all()}")
+    event(f"an oil temperature off the viscosity table: {bool(np.any((temp < -30) | (temp > 150)))}")
     cut_bins = [int(sum(cuts[j % len(cuts)] for j in range(k))) for k in range(1, ci)]
     event(f"a bin cut by a chunk boundary: {any(0 < c < len(rows) and bins[c] == bins[c - 1] for c in cut_bins)}")
     event(f"history points: {'0' if not one.points else '<12' if len(one.points) < 12 else 'full'}")
@@ -82,15 +105,17 @@ def test_per_tick_and_array_forms_leave_the_same_state(rows, cuts, data):
 def test_the_array_form_agrees_on_a_wearing_drive_in_uneven_chunks():
     h = np.linspace(0.0, 150.0, 15001)
     leak = np.where(h > 50, 40.0 * np.clip((h - 50) / 100, 0, 1) ** 3, 0.0)
-    h, lk, r, ok = ticks(h, leak, seed=3)
     one, cols = Prognosis(), Prognosis()
+    dp = 300.0 + 150.0 * np.sin(h * 7.0)  # mixed duty
+    temp = 60.0 + 25.0 * np.sin(2 * np.pi * h / 12.0)  # the oil's cycle
+    h, lk, r, dp, temp, ok = ticks(h, leak, seed=3, dp_bar=dp, temp_c=temp)
     for i in range(len(h)):
-        one.add(float(h[i]), float(lk[i]), float(r[i]), True)
+        one.add(float(h[i]), float(lk[i]), float(r[i]), float(dp[i]), float(temp[i]), True)
     rng = np.random.default_rng(1)
     a = 0
     while a < len(h):
         z = a + int(rng.integers(1, 900))
-        cols.add_columns(h[a:z], lk[a:z], r[a:z], ok[a:z])
+        cols.add_columns(h[a:z], lk[a:z], r[a:z], dp[a:z], temp[a:z], ok[a:z])
         a = z
     same(one, cols)
     assert one.estimate().state != NONE
@@ -107,18 +132,51 @@ def test_history_stays_bounded_and_still_reaches_back_to_the_start():
     assert p.points[0][0] < 40.0 and p.points[-1][0] > 1999.0
     assert p.points[-1][3] < p.points[0][3]  # the recent bins are single, the oldest merged
     assert sum(q[3] for q in p.points) + p.open_n == len(h)  # thinning keeps every tick's weight
+    assert math.isclose(sum(q[4] for q in p.points) + p.open_sum_gg, len(h), rel_tol=1e-9)  # gain 1 each
 
 
 def test_a_saved_history_round_trips_through_json_and_goes_on_alike():
     h = np.arange(0.0, 120.0, 0.01)
-    h, lk, r, ok = ticks(h, np.where(h > 40, 0.004 * (h - 40) ** 2, 0.0), seed=5)
+    temp = 55.0 + 20.0 * np.sin(h / 3.0)
+    h, lk, r, dp, temp, ok = ticks(h, np.where(h > 40, 0.004 * (h - 40) ** 2, 0.0), seed=5, temp_c=temp)
     a = Prognosis()
-    a.add_columns(h[:9000], lk[:9000], r[:9000], ok[:9000])
+    a.add_columns(h[:9000], lk[:9000], r[:9000], dp[:9000], temp[:9000], ok[:9000])
     b = Prognosis.from_dict(json.loads(json.dumps(a.to_dict())))
+    assert b.restarted == ""
     same(a, b)
     for x in (a, b):
-        x.add_columns(h[9000:], lk[9000:], r[9000:], ok[9000:])
+        x.add_columns(h[9000:], lk[9000:], r[9000:], dp[9000:], temp[9000:], ok[9000:])
     same(a, b)
+
+
+def test_a_history_saved_by_the_first_version_or_for_other_conditions_begins_anew_and_says_why():
+    """The first version saved the leakage as measured; a history referred to other reference
+    conditions or another oil is not this one either: a new history, the reason in ``restarted``."""
+    v1 = {
+        "format": "cmcan-prognosis/1",
+        "bin_h": 0.5,
+        "points": [[1.0, 2.0, 99.0, 30]],
+        "open": [3, 2, 3.0, 4.0, 199.0],
+    }
+    p = Prognosis.from_dict(json.loads(json.dumps(v1)))
+    assert p.points == [] and p.open_bin is None and "not referred to reference conditions" in p.restarted
+    h = np.arange(0.0, 10.0, 0.01)
+    saved = Prognosis()
+    saved.add_columns(*ticks(h, np.full(len(h), 2.0)))
+    doc = json.loads(json.dumps(saved.to_dict()))
+    for other in (
+        PrognosisParams(dp_ref_bar=300.0),
+        PrognosisParams(temp_ref_c=50.0),
+        PrognosisParams(oil=oil_from_grade("VG32")),
+    ):
+        q = Prognosis.from_dict(doc, other)
+        assert q.points == [] and "referred to" in q.restarted, q.restarted
+        q.add_columns(*ticks(h, np.full(len(h), 2.0)))  # and goes on as a new history
+        assert q.points
+    assert Prognosis.from_dict(doc).points == saved.points
+
+
+R = [480.0, 60.0, 46.0, 6.8]  # the default reference: dp (bar), oil (C), nu40 and nu100 (cSt)
 
 
 @pytest.mark.parametrize(
@@ -126,10 +184,19 @@ def test_a_saved_history_round_trips_through_json_and_goes_on_alike():
     [
         None,
         {"format": "other"},
-        {"format": "cmcan-prognosis/1", "bin_h": 1.0, "points": [], "open": None},
-        {"format": "cmcan-prognosis/1", "bin_h": 0.5, "points": [[1.0, math.nan, 99.0, 3]], "open": None},
-        {"format": "cmcan-prognosis/1", "bin_h": 0.5, "points": [[1.0, 2.0, 99.0, -1]], "open": None},
-        {"format": "cmcan-prognosis/1", "bin_h": 0.5, "points": [], "open": [1, 2, 3.0]},
+        {"format": "cmcan-prognosis/2", "bin_h": 1.0, "reference": R, "points": [], "open": None},
+        {"format": "cmcan-prognosis/2", "bin_h": 0.5, "reference": R, "points": [[1.0, math.nan, 99.0, 3, 3.0]]},
+        {"format": "cmcan-prognosis/2", "bin_h": 0.5, "reference": R, "points": [[1.0, 2.0, 99.0, -1, 3.0]]},
+        {"format": "cmcan-prognosis/2", "bin_h": 0.5, "reference": R, "points": [[1.0, 2.0, 99.0, 3, 0.0]]},
+        {"format": "cmcan-prognosis/2", "bin_h": 0.5, "reference": R, "points": [[1.0, 2.0, 99.0, 3]]},
+        {"format": "cmcan-prognosis/2", "bin_h": 0.5, "reference": R, "points": [], "open": [1, 2, 3.0]},
+        {
+            "format": "cmcan-prognosis/2",
+            "bin_h": 0.5,
+            "reference": R,
+            "points": [],
+            "open": [1, 2, 3.0, 1.0, -1.0, 99.0],
+        },
     ],
 )
 def test_a_damaged_saved_history_is_refused(doc):
@@ -150,6 +217,61 @@ def test_restart_begins_a_new_history():
     assert p.points[0][0] >= 141.0 and p.estimate().state == NONE
 
 
+# -- reference conditions ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_constant_leak_swinging_with_oil_and_pressure_is_flat_at_reference_conditions(seed):
+    """3 l/min at 480 bar and 60 C, seen through an oil cycle of 35-85 C (its viscosity some 5x apart)
+    and a mixed duty of 10-470 bar: the measured leakage swings from under 0.5 to over 4 l/min, the
+    history at reference conditions stays at 3 l/min within its noise, and no trend is reported."""
+    rng = np.random.default_rng(seed)
+    h = np.arange(0.0, 120.0, 0.01)
+    temp = 60.0 + 25.0 * np.sin(2 * np.pi * h / rng.uniform(8.0, 24.0) + seed)
+    dp = rng.uniform(10.0, 470.0, len(h))
+    cols = ticks(h, np.full(len(h), 3.0), seed=seed, noise_lpm=0.3, dp_bar=dp, temp_c=temp)
+    measured = cols[1]
+    assert np.percentile(measured, 5) < 0.5 and np.percentile(measured, 95) > 4.0
+    p = Prognosis()
+    for a in range(0, len(h), 200):
+        p.add_columns(*(c[a : a + 200] for c in cols))
+        assert p.estimate().state == NONE
+    _, leak, _ = p.arrays()
+    # within the noise: 0.3 l/min a tick, referred by 1 / gain (larger on cold oil and low pressure)
+    assert abs(float(np.mean(leak)) - 3.0) < 0.05 and float(np.std(leak)) < 0.35, (np.mean(leak), np.std(leak))
+    # the same ticks taken as if at the reference point swing with the oil's cycle: what was wrong before
+    as_measured = Prognosis()
+    as_measured.add_columns(h, measured, cols[2], np.full(len(h), 480.0), np.full(len(h), 60.0), cols[5])
+    assert float(np.std(as_measured.arrays()[1])) > 0.8
+
+
+def test_wear_under_an_oil_cycle_and_mixed_duty_is_seen_at_reference_conditions():
+    """Wear x = 40 s^3 (at 480 bar, 60 C) from 40 h, failing at 160 h, measured through an oil cycle
+    of +-25 C and a mixed duty: the history follows x within a few percent and the trend is seen."""
+    h = np.arange(0.0, 140.0, 0.01)
+    x = 40.0 * np.clip((h - 40) / 120, 0, 1) ** 3
+    temp = 60.0 + 25.0 * np.sin(2 * np.pi * h / 14.0)
+    dp = 250.0 + 200.0 * np.sin(h * 31.0) ** 2
+    cols = ticks(h, x, seed=1, noise_lpm=0.2, dp_bar=dp, temp_c=temp)
+    p = Prognosis(PrognosisParams(eol_kind="leak_lpm", eol_value=40.0))
+    p.add_columns(*cols)
+    hh, leak, _ = p.arrays()
+    truth = 40.0 * np.clip((hh - 40) / 120, 0, 1) ** 3
+    late = hh > 100.0
+    assert np.max(np.abs(leak[late] - truth[late]) / truth[late]) < 0.05
+    e = p.estimate()
+    assert e.state != NONE and e.to_eol_h[0] <= 20.0 <= e.to_eol_h[2], e
+
+
+def test_ticks_below_the_minimum_pressure_or_without_an_operating_point_are_skipped():
+    p = Prognosis(SMALL)
+    for i in range(40):
+        p.add(i * 0.01, 5.0, 98.0, 10.0, 60.0, True)  # idling: no gap flow to speak of
+        p.add(i * 0.01, 5.0, 98.0, math.nan, 60.0, True)
+        p.add(i * 0.01, 5.0, 98.0, 300.0, math.nan, True)
+    assert p.open_n == 0 and p.points == []
+
+
 # -- the estimate ---------------------------------------------------------------------------------------
 
 
@@ -158,10 +280,10 @@ def test_restart_begins_a_new_history():
 def test_no_trend_on_a_healthy_drive_with_noise_and_oil_cycles(seed, swing_lpm, period_h):
     h = np.arange(0.0, 100.0, 0.01)
     offset = 0.5 + swing_lpm * np.sin(2 * np.pi * h / period_h + seed)
-    h, lk, r, ok = ticks(h, offset, seed=seed, noise_lpm=0.4)
+    cols = ticks(h, offset, seed=seed, noise_lpm=0.4)
     p = Prognosis()
     for a in range(0, len(h), 200):  # an estimate every 2 h
-        p.add_columns(h[a : a + 200], lk[a : a + 200], r[a : a + 200], ok[a : a + 200])
+        p.add_columns(*(c[a : a + 200] for c in cols))
         e = p.estimate()
         assert e.state == NONE, e
 
@@ -174,11 +296,11 @@ def test_power_law_wear_gives_intervals_that_hold_the_truth(k, seed):
     onset, fail, big_f = 40.0, 160.0, 40.0
     h = np.arange(0.0, fail, 0.01)
     wear = big_f * np.clip((h - onset) / (fail - onset), 0, 1) ** k
-    h, lk, r, ok = ticks(h, wear, seed=seed)
+    cols = ticks(h, wear, seed=seed)
     p = Prognosis(PrognosisParams(eol_kind="leak_lpm", eol_value=big_f))
     inside, n, first = 0, 0, None
     for a in range(0, len(h), 500):  # an estimate every 5 h
-        p.add_columns(h[a : a + 500], lk[a : a + 500], r[a : a + 500], ok[a : a + 500])
+        p.add_columns(*(c[a : a + 500] for c in cols))
         e = p.estimate()
         if e.state == NONE:
             continue
@@ -203,15 +325,15 @@ def test_hours_to_the_low_warning_follow_the_ratio():
     inside = 0
     for seed in range(10):
         h = np.arange(0.0, 120.0, 0.01)
-        h, lk, r, ok = ticks(h, 40.0 * np.clip((h - 40) / 120, 0, 1) ** 3, seed=seed)
+        cols = ticks(h, 40.0 * np.clip((h - 40) / 120, 0, 1) ** 3, seed=seed)
         p = Prognosis()
         upto = int(np.searchsorted(h, 85.0))
-        p.add_columns(h[:upto], lk[:upto], r[:upto], ok[:upto])
+        p.add_columns(*(c[:upto] for c in cols))
         e = p.estimate()
         assert e.state == TREND
         lo, _, hi = e.to_low_h
         inside += lo <= truth_h - e.at_h <= hi
-        p.add_columns(h[upto:], lk[upto:], r[upto:], ok[upto:])
+        p.add_columns(*(c[upto:] for c in cols))
         assert p.estimate().to_low_h[1] == 0.0
     assert inside >= 7, inside
 
