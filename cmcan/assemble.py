@@ -10,7 +10,7 @@ import logging
 import math
 import re
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +25,7 @@ from cmcan.j1939 import dm1 as j1939_dm1
 from cmcan.j1939 import ids
 from cmcan.j1939.claim import ClaimParams
 from cmcan.model import GrayBoxModel, ModelError, default_model_path, load_model
+from cmcan.monitor.baseline import BIN_ROLES, BaselineParams
 from cmcan.monitor.core import Monitor, MonitorParams
 from cmcan.monitor.diagnostics import Dm1Params
 from cmcan.monitor.gating import GateLimits, RoleFit, fit_to_cycles, prediction_ok
@@ -40,8 +41,10 @@ from cmcan.roles import (
     LOW_PRESSURE,
     MODEL_INPUTS,
     OUTPUT_SIGNALS,
+    PUMP_SPEED,
     QUANTITY_OUTPUT,
     QUANTITY_SIGNALS,
+    TEMP,
     UNITS,
     SignalRef,
     gated_roles,
@@ -681,6 +684,50 @@ def build_monitor(
         dm1=dm1_params(cfg, db),
         own_address=cfg.j1939.source_address if cfg.j1939.enabled else None,
         node=node_params(cfg, db),
+        baseline=baseline_params(cfg, model),
+    )
+
+
+# Bins along each role of the envelope the coverage counts over, where the configuration gives no
+# edges: low / mid / high speed and pressure, cold and warm oil.
+BASELINE_BINS = {PUMP_SPEED: 3, DP: 3, TEMP: 2}
+# Without a configured allowance or the type's unit spread: a bin this share of the nominal flow away
+# from the type model is no unit-to-unit difference (displacement and sensor tolerances give ~1 %).
+SUSPECT_SHARE_OF_NOMINAL = 0.02
+
+
+def baseline_params(cfg: Config, model: GrayBoxModel) -> BaselineParams | None:
+    """The on-board baseline where the configuration enables it: the envelope's bins (configured, or the
+    model's envelope split in :data:`BASELINE_BINS`), the guard's allowance (configured, or
+    ``suspect_sigmas`` x the type's unit spread from the model's training metadata, or
+    :data:`SUSPECT_SHARE_OF_NOMINAL` of the nominal flow)."""
+    b = cfg.baseline
+    if not b.enabled:
+        return None
+    env = model.envelope
+    edges = []
+    for role in BIN_ROLES:
+        if role in b.edges:
+            edges.append(tuple(b.edges[role]))
+        else:
+            lo, hi = env[role]
+            edges.append(tuple(float(v) for v in np.linspace(lo, hi, BASELINE_BINS[role] + 1)))
+    suspect = b.suspect_lpm
+    if suspect is None:
+        spread = (model.meta.training or {}).get("unit_spread") or {}
+        sd = spread.get("offset_sd_lpm") if isinstance(spread, dict) else None
+        ok = isinstance(sd, (int, float)) and not isinstance(sd, bool) and math.isfinite(sd) and sd > 0
+        suspect = b.suspect_sigmas * float(sd) if ok else SUSPECT_SHARE_OF_NOMINAL * cfg.drive.nominal_flow_lpm
+    return BaselineParams(
+        edges=tuple(edges),
+        min_points=b.min_points,
+        coverage_pct=b.coverage_pct,
+        min_hours=b.min_hours,
+        suspect_lpm=float(suspect),
+        lpm_per_unit=cfg.lpm_per_unit,
+        period_s=1.0 / cfg.rate_hz,
+        oil=cfg.oil,
+        learning_thresholds=replace(cfg.thresholds, low_pct=b.learning_low_pct, high_pct=b.learning_high_pct),
     )
 
 

@@ -8,6 +8,7 @@ model live in :mod:`cmcan.assemble`.
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -92,6 +93,47 @@ def _gating_rule(c: dict[str, Any]) -> tuple[str, str] | None:
 
 def _config_rule(c: dict[str, Any]) -> tuple[str, str] | None:
     return _signals_rule(c) or _gating_rule(c)
+
+
+def _edges_rule(e: dict[str, Any]) -> tuple[str, str] | None:
+    for role, edges in e.items():
+        if edges is not None and any(b <= a for a, b in itertools.pairwise(edges)):
+            return role, f"bin edges must rise, got {edges}"
+    return None
+
+
+def _baseline_rule(b: dict[str, Any]) -> tuple[str, str] | None:
+    if not b["learning_low_pct"] < 100.0 < b["learning_high_pct"]:
+        return "learning_low_pct", "the learning band must hold 100 %"
+    return None
+
+
+# The machine's own baseline, learned on board (cmcan.monitor.baseline; docs/commissioning.md).
+_BASELINE = Obj(
+    {
+        "enabled": Bool(default=False),
+        # bin edges of the envelope the coverage counts over; default: the model's envelope in BINS
+        "edges": Obj(
+            {
+                r: Seq(Num(-1e6, 1e6), min_len=2, max_len=21, default=None)
+                for r in ("pump_speed_rpm", "dp_bar", "temp_c")
+            },
+            default={},
+            rule=_edges_rule,
+        ),
+        "min_points": Num(1, 10_000_000, "ticks", default=100, integer=True),
+        "coverage_pct": Num(1, 100, "%", default=70.0),
+        "min_hours": Num(0, 10000, "h", default=2.0),
+        # a covered bin's mean residual further than this from the type model: baseline_suspect;
+        # default: suspect_sigmas x the type's unit-to-unit spread in its metadata, else 2 % of nominal flow
+        "suspect_lpm": Num(0.01, 10000, "l/min", default=None),
+        "suspect_sigmas": Num(1, 20, default=4.0),
+        "learning_low_pct": Num(50, 100, "%", default=95.0),
+        "learning_high_pct": Num(100, 200, "%", default=105.0),
+    },
+    default={},
+    rule=_baseline_rule,
+)
 
 
 def _threshold_rule(t: dict[str, Any]) -> tuple[str, str] | None:
@@ -214,6 +256,7 @@ _CONFIG = Obj(
             {"directory": Str(default="/var/lib/cmcan"), "save_every_s": Num(1, 86400, "s", default=60.0)}, default={}
         ),
         "uplink": UPLINK,  # validated by cmcan.uplink.config, disabled by default
+        "baseline": _BASELINE,
     },
     rule=_config_rule,
 )
@@ -402,6 +445,21 @@ class GatingConfig:
 
 
 @dataclass(frozen=True)
+class BaselineConfig:
+    """The ``baseline`` section: how the machine learns its own baseline (None fields: from the model)."""
+
+    enabled: bool = False
+    edges: dict[str, tuple[float, ...]] = field(default_factory=dict)
+    min_points: int = 100
+    coverage_pct: float = 70.0
+    min_hours: float = 2.0
+    suspect_lpm: float | None = None
+    suspect_sigmas: float = 4.0
+    learning_low_pct: float = 95.0
+    learning_high_pct: float = 105.0
+
+
+@dataclass(frozen=True)
 class FilterConfig:
     samples: int
     min_samples: int
@@ -522,6 +580,7 @@ class Config:
     messages: dict[str, MessageConfig] = field(default_factory=dict)
     input_health: HealthConfig = field(default_factory=HealthConfig)
     j1939: J1939Config = field(default_factory=J1939Config)
+    baseline: BaselineConfig = field(default_factory=BaselineConfig)
 
     @property
     def channel_list(self) -> tuple[ChannelConfig, ...]:
@@ -651,8 +710,14 @@ def from_dict(data: Any, source: str, base_dir: Path) -> Config:
         state=StateConfig(state_dir, float(raw["state"]["save_every_s"])),
         uplink=UplinkSettings.from_raw(raw["uplink"], state_dir, base_dir, source),
         points=_points(raw, drive, source),
+        baseline=_baseline(raw["baseline"]),
     )
     return _with_bus_sections(cfg, raw, source)
+
+
+def _baseline(b: dict[str, Any]) -> BaselineConfig:
+    edges = {r: tuple(float(v) for v in e) for r, e in b["edges"].items() if e is not None}
+    return BaselineConfig(**{**b, "edges": edges})
 
 
 def _sources(v: Any) -> tuple[int, ...] | None:

@@ -1,4 +1,5 @@
-"""``cmcan fleet``: replay many machines' logs on Dask into a Parquet data set, report on it, query it."""
+"""``cmcan fleet``: replay many machines' logs on Dask into a Parquet data set, report on it, query it;
+``fleet train`` (a machine-type model from it) is :mod:`cmcan.cli.fleet_train`."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from cmcan.cli import fleet_train
 from cmcan.cli.common import Subparsers
 from cmcan.cli.errors import EX_DATAERR, ensure_writable, require_extra
 from cmcan.cli.jsonout import print_json
@@ -84,6 +86,8 @@ def add_subparser(sub: Subparsers) -> None:
         "data set; the records themselves are still checked)",
     )
     q.set_defaults(func=run_query)
+
+    fleet_train.add_parser(fsub)
 
     d = fsub.add_parser(
         "drop",

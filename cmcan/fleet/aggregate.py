@@ -50,6 +50,7 @@ REDUCTIONS: dict[str, tuple[str, str]] = {
     "time_below_s": ("time_below_threshold_s", "last"),
     # the operating point of the evaluated ticks: what a type model trains on (``cmcan fleet train``)
     **{role: (role, "mean_eval") for role in OPERATING_POINT},
+    "baseline_state": ("baseline_state", "last"),
 }
 
 

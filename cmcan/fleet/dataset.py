@@ -453,6 +453,7 @@ def write_record(path: Path, row: dict[str, Any]) -> None:
 # Types of the summary's columns that can be NULL in a log's row (a NULL alone has no type).
 NULLABLE_TYPES = {
     "cut_line": "int64",
+    "motor_disp_cc": "double",
     "carried_from": "string",
     "fit": "string",
     "fit_median_pct": "double",

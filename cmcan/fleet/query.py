@@ -53,6 +53,7 @@ EMPTY: dict[str, dict[str, str]] = {
         "pump_disp_cc": _F,
         "dp_bar": _F,
         "temp_c": _F,
+        "baseline_state": _I,
         **_PROV,
     },
     "events": {
@@ -93,6 +94,10 @@ EMPTY: dict[str, dict[str, str]] = {
         "final_level": _S,
         "final_reason": _S,
         **{f"count_{k}": _I for k in ("frames_total", "accepted", "ticks", "evaluated")},
+        "quantity": _S,
+        "motor_disp_cc": _F,
+        "oil_nu40_cst": _F,
+        "oil_nu100_cst": _F,
         "threshold_low_pct": _F,
         "threshold_high_pct": _F,
         "timeline_rate_hz": _F,

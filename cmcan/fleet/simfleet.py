@@ -7,6 +7,7 @@ Layout of ``OUT``::
     types/<type>/model.onnx            trained on a healthy sweep of that type's drive
     logs/<machine>/<machine>_<YYYYmmddTHHMM>.log   candump -l logs, one per ``log_hours`` of operation
     manifest.csv                       machine, log, config, model (paths relative to OUT)
+    types.csv                          machine, type (for ``cmcan fleet train --types``)
     truth.json                         the ground truth: each machine's type, duty, oil and failures
                                        (and, with unit-to-unit variation, its own draws: ``unit``)
 
@@ -43,6 +44,7 @@ from cmcan.sim.frames import Frames, frames_from_run
 from cmcan.sim.run import simulate
 
 TRUTH_FORMAT = "cmcan-fleet-truth/1"
+TYPES_FILE = "types.csv"
 
 
 def _write_text(path: Path, text: str) -> None:
@@ -158,6 +160,12 @@ def write_fleet(
     w.writerow(("machine", "log", "config", "model"))
     w.writerows(rows)
     _write_text(out / "manifest.csv", buf.getvalue())
+    # machine -> type, what `cmcan fleet train --types` reads (the data set records no type)
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(("machine", "type"))
+    w.writerows((p.machine, p.type.name) for p in plans)
+    _write_text(out / TYPES_FILE, buf.getvalue())
     truth = {
         "format": TRUTH_FORMAT,
         "cmcan_version": __version__,
@@ -179,8 +187,8 @@ def write_fleet(
 
 
 def remove_outputs(out: Path) -> None:
-    """What ``write_fleet`` writes (for --force): the logs, types, dbc folders and the two files."""
+    """What ``write_fleet`` writes (for --force): the logs, types, dbc folders and the three files."""
     for d in ("logs", "types", "dbc"):
         shutil.rmtree(out / d, ignore_errors=True)
-    for f in ("manifest.csv", "truth.json"):
+    for f in ("manifest.csv", TYPES_FILE, "truth.json"):
         (out / f).unlink(missing_ok=True)

@@ -553,6 +553,11 @@ def _replay_and_commit(
         "final_level": res.snapshot["level"],
         "final_reason": res.snapshot["reason"],
         **{f"count_{k}": int(v) for k, v in c.items()},
+        # the configuration's drive facts a type model needs (``cmcan fleet train``): one quantity, V_M, oil
+        "quantity": inp.cfg.quantity,
+        "motor_disp_cc": None if inp.cfg.motor_disp_cc is None else float(inp.cfg.motor_disp_cc),
+        "oil_nu40_cst": float(inp.cfg.oil.nu40_cst),
+        "oil_nu100_cst": float(inp.cfg.oil.nu100_cst),
         "threshold_low_pct": float(inp.cfg.thresholds.low_pct),
         "threshold_high_pct": float(inp.cfg.thresholds.high_pct),
         "timeline_rate_hz": float(opt.rate_hz),

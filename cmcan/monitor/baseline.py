@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from cmcan.monitor.warnings import Thresholds
 from cmcan.oil import VG46, Oil
 from cmcan.roles import DP, MODEL_INPUTS, PUMP_DISP, PUMP_SPEED, TEMP
 
@@ -83,6 +84,8 @@ class BaselineParams:
     ref_dp_bar: float = 300.0
     ref_temp_c: float = 50.0
     ridge: float = 1e-3  # relative to the mean diagonal: keeps an unexcited term near the type model
+    # the warning thresholds while the type model judges alone (learning, suspect): wider
+    learning_thresholds: Thresholds | None = None
 
     @property
     def n_bins(self) -> int:
@@ -186,7 +189,9 @@ class Baseline:
         """The machine's correction of the type model at points ``x`` (l/min); zero unless monitoring."""
         if not self.applies:
             return np.zeros(len(x))
-        return features(self.p, x) @ np.asarray(self.theta)
+        phi = features(self.p, x)
+        t0, t1, t2 = self.theta  # term by term, not a BLAS product: one row or many, the same sums
+        return phi[:, 0] * t0 + phi[:, 1] * t1 + phi[:, 2] * t2
 
     def describe(self) -> dict[str, Any]:
         return {

@@ -58,6 +58,7 @@ from numpy.typing import NDArray
 
 from cmcan.frame import Frame, FrameColumns
 from cmcan.j1939 import ids as j1939_ids
+from cmcan.monitor.baseline import Baseline, BaselineParams, BaselineStateError, Mode
 from cmcan.monitor.clock import TickClock
 from cmcan.monitor.diagnostics import Dm1Params, Dm1Producer
 from cmcan.monitor.filter import RatioFilter
@@ -72,7 +73,7 @@ from cmcan.monitor.tick import LEVEL_NAMES, OPERATING_POINT, Tick, TickColumns, 
 from cmcan.monitor.totals import Totals
 from cmcan.monitor.warnings import Level, Reason, Thresholds, Transition, WarningMachine, fault_raised, warning_raised
 from cmcan.monitor.windows import Affine, DpFromHighLow, Target, Windows
-from cmcan.roles import gated_roles
+from cmcan.roles import MODEL_INPUTS, gated_roles
 
 COUNTERS = (
     "frames_total",
@@ -165,6 +166,7 @@ class Monitor:
         dm1: Dm1Params | None = None,
         own_address: int | None = None,
         node: NodeParams | None = None,
+        baseline: BaselineParams | None = None,
     ) -> None:
         p = self.params = params
         self.inputs = tuple(inputs)
@@ -199,8 +201,10 @@ class Monitor:
         # The wall clock's steps undone: frame time t is ``t + run_shift_s`` on the run's own continuous
         # time base (a clock correction is no time the machine ran), which operating hours count on.
         self.run_shift_s = 0.0
+        # the machine's own baseline where configured (:mod:`.baseline`); why it restarted, if it did
+        self.baseline, self.baseline_note = _baseline_from(baseline, self.totals.baseline)
         level, reason = _CONDITION[self.totals.condition]
-        self.machine = WarningMachine(p.thresholds, condition=level, condition_reason=reason)
+        self.machine = WarningMachine(self._thresholds(), condition=level, condition_reason=reason)
         n = p.filter_samples
         self.filter = RatioFilter(
             n, p.filter_min_samples, self.totals.filter_ratios[-n:], self.totals.filter_leaks[-n:]
@@ -379,12 +383,84 @@ class Monitor:
         if self.health.tick(t):  # an erratic input message makes the point implausible
             g = Gate.IMPLAUSIBLE_INPUT
         pt = self.ratio.point(mean, count, g)
+        bl, switched = self.baseline, False
+        if bl is not None:
+            if bl.applies and pt.evaluated:
+                pt = self._corrected(pt, mean)
+            elif pt.gate == Gate.EVALUATING and bl.mode == Mode.LEARNING:
+                x = np.array([[mean[r] for r in MODEL_INPUTS]])
+                switched = bl.learn(t, x[0], pt.measured, pt.predicted)
         if pt.evaluated:
             self.filter.add(pt.ratio_raw_pct, pt.leak_lpm)
         tick = self._judge(t, pt, mean)
         for listener in self.listeners:
             listener.tick(tick)
-        return self._emit(k, tick)
+        out = self._emit(k, tick)
+        if switched:
+            self._baseline_changed()
+        return out
+
+    # -- the on-board baseline ---------------------------------------------------------------------
+
+    def _thresholds(self) -> Thresholds:
+        """The warning thresholds now: wider while the type model judges a machine still learning."""
+        bl = self.baseline
+        if bl is not None and bl.mode == Mode.LEARNING and bl.p.learning_thresholds is not None:
+            return bl.p.learning_thresholds
+        return self.params.thresholds
+
+    def _baseline_changed(self) -> None:
+        """The reference changed (learning ended, or a reset): the thresholds follow, and the filter
+        starts afresh when its ratios were against another reference."""
+        self.machine = replace(self.machine, th=self._thresholds())
+        bl = self.baseline
+        if bl is not None and (bl.applies or bl.mode == Mode.LEARNING):
+            p = self.params
+            self.filter = RatioFilter(p.filter_samples, p.filter_min_samples, [], [])
+
+    def reset_baseline(self, reason: str, at: str | None = None) -> bool:
+        """Learn the machine's baseline afresh (after service), the old one kept in its history; False
+        when no baseline is configured."""
+        if self.baseline is None:
+            return False
+        was_applied = self.baseline.applies
+        self.baseline.reset(reason, at)
+        self.machine = replace(self.machine, th=self._thresholds())
+        if was_applied:
+            p = self.params
+            self.filter = RatioFilter(p.filter_samples, p.filter_min_samples, [], [])
+        return True
+
+    def _corrected(self, pt: Point, mean: Mapping[str, float]) -> Point:
+        """A point judged against the machine's own baseline: the type model's prediction plus the
+        machine's correction."""
+        assert self.baseline is not None
+        x = np.array([[mean[r] for r in MODEL_INPUTS]])
+        lpu = self.params.lpm_per_unit
+        pred = pt.predicted + float(self.baseline.correction_lpm(x)[0]) / lpu
+        if not pred > 0.0:
+            return pt
+        return replace(
+            pt, predicted=pred, ratio_raw_pct=pt.measured / pred * 100.0, leak_lpm=(pred - pt.measured) * lpu
+        )
+
+    def _corrected_columns(self, pts: Points, mean: Mapping[str, NDArray[np.float64]]) -> Points:
+        """:meth:`_corrected` at every evaluated tick of a stretch."""
+        assert self.baseline is not None
+        e = pts.evaluated
+        if not len(e):
+            return pts
+        x = np.column_stack([mean[r][e] for r in MODEL_INPUTS])
+        lpu = self.params.lpm_per_unit
+        pe = pts.predicted[e] + self.baseline.correction_lpm(x) / lpu
+        ok = pe > 0.0
+        pe = np.where(ok, pe, pts.predicted[e])
+        pred, raw = pts.predicted.copy(), pts.ratio_raw_pct.copy()
+        meas = pts.measured[e]
+        pred[e] = pe
+        raw[e] = np.where(ok, meas / pe * 100.0, raw[e])
+        leak = np.where(ok, (pe - meas) * lpu, pts.leak_lpm)
+        return replace(pts, predicted=pred, ratio_raw_pct=raw, leak_lpm=leak)
 
     def _judge(self, t: float, pt: Point, mean: Mapping[str, float]) -> Tick:
         """Steps 5 and 6 of a tick: the warning machine, the totals, the tick."""
@@ -415,6 +491,7 @@ class Monitor:
             time_below_s=m.time_below_s,
             run_shift_s=self.run_shift_s,
             **{role: mean[role] for role in OPERATING_POINT},
+            baseline_state=0 if self.baseline is None else int(self.baseline.mode),
         )
         return self.last_tick
 
@@ -562,10 +639,46 @@ class Monitor:
         gates = gate_columns(mean, std, count, age, p.limits, p.max_age_s, p.envelope)
         gates[erratic] = Gate.IMPLAUSIBLE_INPUT
         pts = self.ratio.points(mean, count, gates)
+        bl = self.baseline
+        if bl is None:
+            self._filter_and_judge(ks, pts, mean, np.zeros(len(ks), dtype=np.int8), out)
+            return
+        split = len(ks)  # the stretch's ticks from here on are judged after the learning ended
+        if bl.mode == Mode.LEARNING:
+            cand = np.flatnonzero(pts.gate == Gate.EVALUATING)
+            if len(cand):
+                x = np.column_stack([mean[r][cand] for r in MODEL_INPUTS])
+                t_k = ks[cand].astype(np.float64) * self.period
+                k = bl.learn_columns(t_k, x, pts.measured[cand], pts.predicted[cand])
+                if k >= 0:
+                    split = int(cand[k]) + 1
+        if split == len(ks):
+            pts = self._corrected_columns(pts, mean) if bl.applies else pts
+            self._filter_and_judge(ks, pts, mean, np.full(len(ks), int(bl.mode), dtype=np.int8), out)
+            return
+        # the learning ended at tick split - 1 (judged on the type model, its state the new one)
+        state = np.full(split, int(Mode.LEARNING), dtype=np.int8)
+        state[-1] = int(bl.mode)
+        self._filter_and_judge(ks[:split], _take(pts, 0, split), _cut(mean, 0, split), state, out)
+        self._baseline_changed()
+        if split < len(ks):
+            rest, rest_mean = _take(pts, split, len(ks)), _cut(mean, split, len(ks))
+            rest = self._corrected_columns(rest, rest_mean) if bl.applies else rest
+            n = len(ks) - split
+            self._filter_and_judge(ks[split:], rest, rest_mean, np.full(n, int(bl.mode), dtype=np.int8), out)
+
+    def _filter_and_judge(
+        self,
+        ks: NDArray[np.int64],
+        pts: Points,
+        mean: Mapping[str, NDArray[np.float64]],
+        baseline_state: NDArray[np.int8],
+        out: _Out,
+    ) -> None:
         filt, filt_leak, valid = self.filter.add_columns(
             pts.ratio_raw_pct[pts.evaluated], pts.leak_lpm, pts.evaluated, len(ks)
         )
-        self._judge_columns(ks, pts, filt, filt_leak, valid, mean, out)
+        self._judge_columns(ks, pts, filt, filt_leak, valid, mean, baseline_state, out)
 
     def _judge_columns(
         self,
@@ -575,6 +688,7 @@ class Monitor:
         filt_leak: NDArray[np.float64],
         valid: NDArray[np.bool_],
         mean: Mapping[str, NDArray[np.float64]],
+        baseline_state: NDArray[np.int8],
         out: _Out,
     ) -> None:
         """:meth:`_judge` and :meth:`_emit` at every tick of a stretch."""
@@ -610,6 +724,7 @@ class Monitor:
             time_below_s=w.time_below_s,
             run_shift_s=np.full(len(ks), self.run_shift_s),  # no clock step within a stretch
             **{role: mean[role] for role in OPERATING_POINT},
+            baseline_state=baseline_state,
         )
         self.last_tick = ticks.tick(len(ks) - 1)
         for listener in self.listeners:
@@ -633,10 +748,11 @@ class Monitor:
         same; otherwise they start afresh. Returns what started afresh (empty: nothing)."""
         p = self.params
         self.totals = old.totals
+        self.baseline, self.baseline_note = _baseline_taken(self.baseline, old.baseline)
         ratios, leaks = old.filter.saved()
         n = p.filter_samples
         self.filter = RatioFilter(n, p.filter_min_samples, ratios[-n:], leaks[-n:])
-        self.machine = replace(old.machine, th=p.thresholds)
+        self.machine = replace(old.machine, th=self._thresholds())
         self.ratio.counts.update(old.ratio.counts)
         self.accepted, self.n_ticks, self.run_shift_s = old.accepted, old.n_ticks, old.run_shift_s
         self.payloads.continue_from(old.payloads)
@@ -680,6 +796,7 @@ class Monitor:
         """The totals with the filter contents, ready to persist."""
         self.totals.filter_ratios, self.totals.filter_leaks = self.filter.saved()
         self.totals.condition = LEVEL_NAMES[self.machine.condition]
+        self.totals.baseline = None if self.baseline is None else self.baseline.to_dict()
         self.transitions_since_save = 0
         return self.totals
 
@@ -703,6 +820,7 @@ class Monitor:
                 for (ch, fid, ext), n in self.router.busiest_unknown()
             ],
             "dtcs_active": list(self.totals.dtc_active),
+            **({"baseline": self.baseline.describe()} if self.baseline is not None else {}),
             **({"j1939_node": self.node.describe()} if self.node is not None else {}),
         }
 
@@ -755,6 +873,48 @@ class _Out:
         if not self.pieces:
             return None
         return self.pieces[0] if len(self.pieces) == 1 else FrameColumns.concat(self.pieces)
+
+
+def _baseline_from(p: BaselineParams | None, saved: dict[str, Any] | None) -> tuple[Baseline | None, str | None]:
+    """The baseline under ``p`` from the saved document (a fresh one where none was saved)."""
+    if p is None:
+        return None, None
+    if saved is None:
+        return Baseline(p), None
+    try:
+        return Baseline.from_dict(saved, p)
+    except BaselineStateError as exc:
+        # the rest of the state is good: learn afresh rather than refuse to monitor
+        return Baseline(p), f"the saved baseline could not be used ({exc}): learning afresh"
+
+
+def _baseline_taken(new: Baseline | None, old: Baseline | None) -> tuple[Baseline | None, str | None]:
+    """A reload's baseline: the old one where the parameters are the same, else its document read
+    under the new parameters (another envelope learns afresh)."""
+    if new is None or old is None:
+        return new, None
+    if new.p == old.p:
+        return old, None
+    return _baseline_from(new.p, old.to_dict())
+
+
+def _take(pts: Points, lo: int, hi: int) -> Points:
+    """Ticks ``lo`` to ``hi`` of a stretch's points."""
+    e = pts.evaluated
+    sel = (e >= lo) & (e < hi)
+    return Points(
+        pts.gate[lo:hi],
+        pts.measured[lo:hi],
+        pts.predicted[lo:hi],
+        pts.whitebox[lo:hi],
+        pts.ratio_raw_pct[lo:hi],
+        e[sel] - lo,
+        pts.leak_lpm[sel],
+    )
+
+
+def _cut(mean: Mapping[str, NDArray[np.float64]], lo: int, hi: int) -> dict[str, NDArray[np.float64]]:
+    return {r: v[lo:hi] for r, v in mean.items()}
 
 
 def _node_route(node: NodeParams | None, channels: Channels) -> tuple[NodeSlot | None, int]:

@@ -48,6 +48,7 @@ class Tick:
     pump_disp_cc: float = math.nan
     dp_bar: float = math.nan
     temp_c: float = math.nan
+    baseline_state: int = 0  # the on-board baseline: 0 none configured, else cmcan.monitor.baseline.Mode
 
 
 @dataclass(frozen=True)
@@ -74,8 +75,11 @@ class TickColumns:
     pump_disp_cc: NDArray[np.float64] = None  # type: ignore[assignment]
     dp_bar: NDArray[np.float64] = None  # type: ignore[assignment]
     temp_c: NDArray[np.float64] = None  # type: ignore[assignment]
+    baseline_state: NDArray[np.int8] = None  # type: ignore[assignment]
 
     def __post_init__(self) -> None:
+        if self.baseline_state is None:
+            object.__setattr__(self, "baseline_state", np.zeros(len(self.t_s), dtype=np.int8))
         if self.run_shift_s is None:
             object.__setattr__(self, "run_shift_s", np.zeros(len(self.t_s)))
         for name in OPERATING_POINT:
@@ -107,6 +111,7 @@ class TickColumns:
             time_below_s=float(self.time_below_s[i]),
             run_shift_s=float(self.run_shift_s[i]),
             **{name: float(getattr(self, name)[i]) for name in OPERATING_POINT},
+            baseline_state=int(self.baseline_state[i]),
         )
 
     @classmethod
@@ -129,6 +134,7 @@ class TickColumns:
             time_below_s=col("time_below_s", np.float64),
             run_shift_s=col("run_shift_s", np.float64),
             **{name: col(name, np.float64) for name in OPERATING_POINT},
+            baseline_state=col("baseline_state", np.int8),
         )
 
     @classmethod

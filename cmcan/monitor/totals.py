@@ -42,6 +42,8 @@ class Totals:
     dtc_active: list[str] = field(default_factory=list)
     # J1939-73 DM3 and DM11: each clear, with who asked (address, NAME where known) and when
     dtc_clears: list[dict[str, Any]] = field(default_factory=list)  # newest last, at most CLEARS_MAX
+    # the on-board baseline (cmcan.monitor.baseline's document, checked there), None where not configured
+    baseline: dict[str, Any] | None = None
 
     def record(self, tr: Transition, run_shift_s: float) -> None:
         """A level change, with its time on the run's continuous time base (``Monitor.run_shift_s``)."""
@@ -133,6 +135,10 @@ class Totals:
         t.dtc_occurrences = {str(k): int(v) for k, v in occ.items()}
         t.dtc_active = [str(k) for k in active]
         t.dtc_clears = _clears(d.get("dtc_clears", []))  # absent before J1939 clears were kept
+        bl = d.get("baseline")  # absent before the on-board baseline
+        if bl is not None and not isinstance(bl, dict):
+            raise StateError(f"field 'baseline': expected a mapping or null, got {bl!r:.80}")
+        t.baseline = bl
         return t
 
 

@@ -1,0 +1,271 @@
+"""A machine-type model from many machines' healthy operating points (``cmcan fleet train``): the pure core.
+
+Arrays in, arrays and figures out; reading the data set on Dask is :mod:`cmcan.fleet.points`, the
+command line :mod:`cmcan.cli.fleet_train`.
+
+- :func:`healthy_rows` picks a machine's timeline rows a type model may learn from: every tick of the
+  row evaluated inside the envelope, a finite operating point, warning level ok, before the machine's
+  first ratio warning (a drive that warned once was wearing before it did) and before ``until_h``.
+- :func:`fit_type` fits them with the same closed-form fit as ``cmcan train``
+  (:func:`cmcan.model.train.fit`, float64) and measures the **unit-to-unit spread**: each machine's
+  offset, the mean of its residual (measured - predicted) in l/min over its own points, and the
+  spread of those offsets, recorded in the model's ``training["unit_spread"]``.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cmcan.errors import CmcanError, Kind
+from cmcan.roles import MODEL_INPUTS
+
+MIN_MACHINES = 2  # a spread needs two units
+MIN_POINTS_PER_MACHINE = 20  # fewer: a machine's offset is noise
+# Why a row is left out, in the order the rules are applied (the counts say which rule took it).
+REFUSALS = ("not_all_evaluated", "outside_envelope", "no_operating_point", "not_ok", "after_warning", "after_until_h")
+WARNING_LEVELS = ("low", "high")  # ratio warnings: the drive itself (a fault is an input's, not the drive's)
+TYPE_COLUMNS = ("machine", "type")
+
+
+@dataclass(frozen=True)
+class MachinePoints:
+    """One machine's healthy points, rows sorted by operating hour."""
+
+    machine: str
+    x: NDArray[np.float64]  # (n, 4) in MODEL_INPUTS order
+    measured: NDArray[np.float64]  # the output quantity (rpm or l/min)
+    operating_h: NDArray[np.float64]
+    rows: int  # timeline rows read
+    refused: dict[str, int]  # rows left out, by rule (REFUSALS)
+
+    def __len__(self) -> int:
+        return len(self.measured)
+
+
+@dataclass(frozen=True)
+class DriveFacts:
+    """What the type model's fit needs from the configuration the machines were replayed with."""
+
+    quantity: str
+    motor_disp_cc: float | None
+    oil_nu40_cst: float
+    oil_nu100_cst: float
+
+    @property
+    def lpm_per_unit(self) -> float:
+        """l/min per unit of the quantity: V_M / 1000 for motor speed, 1 for flow."""
+        return 1.0 if self.motor_disp_cc is None else self.motor_disp_cc / 1000.0
+
+
+# -- which machines: the type mapping --------------------------------------------------------------------
+
+
+def read_types(path: str | Path) -> dict[str, str]:
+    """machine -> type from a CSV with a header naming ``machine`` and ``type`` (other columns are
+    ignored: an inventory may have more); a machine listed twice with two types is refused."""
+    p = Path(path)
+    try:
+        with open(p, newline="", encoding="utf-8") as f:
+            reader = csv.DictReader(f)
+            header = [h.strip() for h in reader.fieldnames or ()]
+            missing = [c for c in TYPE_COLUMNS if c not in header]
+            if missing:
+                raise CmcanError(
+                    f"{p}: --types lacks column(s) {', '.join(missing)}; expected a header machine,type", Kind.DATA
+                )
+            out: dict[str, str] = {}
+            for line, row in enumerate(reader, start=2):
+                row = {(k or "").strip(): (v or "").strip() for k, v in row.items() if k is not None}
+                m, t = row.get("machine", ""), row.get("type", "")
+                if not m and not t:
+                    continue
+                if not m or not t:
+                    raise CmcanError(f"{p} line {line}: expected a machine and its type, got {m!r}, {t!r}", Kind.DATA)
+                if out.get(m, t) != t:
+                    raise CmcanError(f"{p} line {line}: machine {m} has type {out[m]} on an earlier line", Kind.DATA)
+                out[m] = t
+    except OSError as exc:
+        raise CmcanError(f"{p}: cannot read the types file: {exc.strerror or exc}", Kind.NO_INPUT) from None
+    except (UnicodeError, csv.Error) as exc:
+        raise CmcanError(f"{p}: not a CSV file: {exc}", Kind.DATA) from None
+    return out
+
+
+def machines_of_type(types: Mapping[str, str], machine_type: str, source: str) -> list[str]:
+    """The machines of a type, sorted; an unknown type names the known ones."""
+    chosen = sorted(m for m, t in types.items() if t == machine_type)
+    if not chosen:
+        known = ", ".join(sorted(set(types.values()))) or "none"
+        raise CmcanError(f"{source}: no machine of type {machine_type!r}; its types are {known}", Kind.DATA)
+    return chosen
+
+
+def common_facts(facts: Mapping[str, DriveFacts], dataset: str) -> DriveFacts:
+    """The one quantity, V_M and oil every machine was replayed with; a mix is refused, naming the field
+    and the machines on each side."""
+    if not facts:
+        raise CmcanError(f"{dataset}: no machines to compare", Kind.DATA)
+    for field in ("quantity", "motor_disp_cc", "oil_nu40_cst", "oil_nu100_cst"):
+        by_value: dict[Any, list[str]] = {}
+        for m in sorted(facts):
+            by_value.setdefault(getattr(facts[m], field), []).append(m)
+        if len(by_value) > 1:
+            sides = "; ".join(f"{v} on {', '.join(ms)}" for v, ms in by_value.items())
+            raise CmcanError(
+                f"{dataset}: the machines were replayed with configurations of different {field} ({sides}); "
+                "a type model needs one configuration's quantity, V_M and oil: name machines of one type",
+                Kind.DATA,
+            )
+    return facts[min(facts)]
+
+
+# -- which rows: healthy, evaluated, inside the envelope ----------------------------------------------------
+
+
+def healthy_rows(
+    cols: Mapping[str, NDArray[Any]], until_h: float = math.inf
+) -> tuple[NDArray[np.bool_], dict[str, int]]:
+    """Rows a type model may learn from, and how many each rule (:data:`REFUSALS`) left out.
+
+    ``cols``: one machine's timeline columns (``ticks``, ``evaluated``, ``gate``, ``warning_level``,
+    ``measured``, the operating point) with ``operating_h`` (its place on the machine's life)."""
+    n = len(cols["ticks"])
+    op_h = np.asarray(cols["operating_h"], dtype=np.float64)
+    ticks = np.asarray(cols["ticks"], dtype=np.int64)
+    level = np.asarray(cols["warning_level"], dtype=object)
+    # the gate column is the row's last tick's: with every tick evaluated, that one inside the envelope
+    rules = {
+        "not_all_evaluated": (ticks > 0) & (np.asarray(cols["evaluated"], dtype=np.int64) == ticks),
+        "outside_envelope": np.asarray(cols["gate"], dtype=object) == "evaluating",
+        "no_operating_point": np.all(
+            np.isfinite(np.column_stack([np.asarray(cols[c], dtype=np.float64) for c in (*MODEL_INPUTS, "measured")])),
+            axis=1,
+        )
+        if n
+        else np.ones(0, dtype=bool),
+        "not_ok": level == "ok",
+        "after_warning": op_h < _first_warning_h(op_h, level),
+        "after_until_h": op_h < until_h,
+    }
+    keep = np.ones(n, dtype=bool)
+    refused = {}
+    for name in REFUSALS:
+        refused[name] = int(np.count_nonzero(keep & ~rules[name]))
+        keep &= rules[name]
+    return keep, refused
+
+
+def _first_warning_h(op_h: NDArray[np.float64], level: NDArray[Any]) -> float:
+    warned = np.isin(level, WARNING_LEVELS)
+    return float(op_h[warned].min()) if warned.any() else math.inf
+
+
+def machine_points(machine: str, cols: Mapping[str, NDArray[Any]], until_h: float = math.inf) -> MachinePoints:
+    """A machine's healthy points from its timeline columns, sorted by (operating hour, time)."""
+    keep, refused = healthy_rows(cols, until_h)
+    order = np.lexsort((np.asarray(cols["time_s"], dtype=np.float64)[keep], np.asarray(cols["operating_h"])[keep]))
+    x = np.column_stack([np.asarray(cols[c], dtype=np.float64)[keep] for c in MODEL_INPUTS]).reshape(-1, 4)
+    return MachinePoints(
+        machine,
+        np.ascontiguousarray(x[order]),
+        np.asarray(cols["measured"], dtype=np.float64)[keep][order],
+        np.asarray(cols["operating_h"], dtype=np.float64)[keep][order],
+        rows=len(cols["ticks"]),
+        refused=refused,
+    )
+
+
+def check_points(points: Sequence[MachinePoints], min_points: int, dataset: str) -> None:
+    """Enough machines, each with enough points; else an error naming the machine and the rules that
+    took its rows."""
+    for mp in points:
+        if len(mp) < min_points:
+            why = ", ".join(f"{k} {v}" for k, v in mp.refused.items() if v) or "none refused"
+            raise CmcanError(
+                f"{dataset}: machine {mp.machine}: {len(mp)} healthy points of {mp.rows} timeline rows, expected at "
+                f"least {min_points} (--min-points); rows left out: {why}. Leave it out with --exclude {mp.machine}",
+                Kind.DATA,
+            )
+    if len(points) < MIN_MACHINES:
+        raise CmcanError(
+            f"{dataset}: {len(points)} machine(s) with healthy points, expected at least {MIN_MACHINES}: "
+            "a unit-to-unit spread needs two units (for one machine, use cmcan train)",
+            Kind.DATA,
+        )
+
+
+# -- the spread ----------------------------------------------------------------------------------------------
+
+
+def unit_spread(residual_lpm: Mapping[str, NDArray[np.float64]]) -> dict[str, Any]:
+    """``training["unit_spread"]``: each machine's offset (the mean of its residual in l/min, each of its
+    points weighted equally), their sample standard deviation (n - 1) and the largest absolute one."""
+    per = {m: {"offset_lpm": float(np.mean(r)), "points": len(r)} for m, r in sorted(residual_lpm.items())}
+    offsets = np.array([v["offset_lpm"] for v in per.values()], dtype=np.float64)
+    return {
+        "machines": len(per),
+        "offset_sd_lpm": float(np.std(offsets, ddof=1)) if len(offsets) > 1 else 0.0,
+        "offset_max_abs_lpm": float(np.max(np.abs(offsets))) if len(offsets) else 0.0,
+        "per_machine": per,
+    }
+
+
+def selection_info(until_h: float | None, excluded: Sequence[str], min_points: int) -> dict[str, Any]:
+    """How the points were chosen, for ``training["selection"]``."""
+    return {
+        "rule": "every tick evaluated inside the envelope, finite operating point, warning level ok, "
+        "before the machine's first ratio warning",
+        "until_h": until_h,
+        "excluded": sorted(excluded),
+        "min_points": min_points,
+    }
+
+
+@dataclass(frozen=True)
+class TypeFit:
+    blob: bytes  # the sealed ONNX model
+    model: Any  # cmcan.model.train.TrainedModel
+    residual_stats: dict[str, Any]
+    training: dict[str, Any]
+
+
+def fit_type(
+    points: Sequence[MachinePoints],
+    facts: DriveFacts,
+    machine_type: str,
+    source: str,
+    selection: Mapping[str, Any] | None = None,
+) -> TypeFit:
+    """The type model on every machine's points (machines in sorted order), its residual figures and
+    the unit-to-unit spread, written as ``cmcan train`` writes a model (:func:`cmcan.model.train.to_onnx`)."""
+    from cmcan.model.train import fingerprint, fit, residual_figures, to_onnx
+    from cmcan.oil import Oil
+
+    points = sorted(points, key=lambda mp: mp.machine)
+    x = np.concatenate([mp.x for mp in points]).astype(np.float64)
+    y = np.concatenate([mp.measured for mp in points]).astype(np.float64)
+    oil = Oil(facts.oil_nu40_cst, facts.oil_nu100_cst)
+    model = fit(x, y, facts.motor_disp_cc, facts.quantity, oil)
+    stats = residual_figures(model, x, y, "D_trn")
+    residual_lpm = {mp.machine: (mp.measured - model.predict(mp.x)) * facts.lpm_per_unit for mp in points}
+    spread = unit_spread(residual_lpm)
+    training = {
+        "fingerprint": fingerprint(x, y),
+        "source": source,
+        "machine_type": machine_type,
+        "t_start_h": 0.0,
+        "t_trn_h": None,
+        "points_trn": len(y),
+        "points_tst": 0,
+        "selection": dict(selection or {}),
+        "unit_spread": spread,
+    }
+    return TypeFit(to_onnx(model, stats, training), model, stats, training)
