@@ -38,23 +38,20 @@ coverage needs the same number of sampled ticks per bin, i.e. up to 120 times th
 gateway would need: the hours to leave learning here are an upper bound.
 
 On-board fit cost, on one healthy machine (``--cost-machine``, default the first healthy one): the
-learning stage alone, fed that machine's evaluated ticks (its operating points, measured and type
-prediction, as the type arm computed them) one at a time as the gateway does (:meth:`Baseline.learn`)
-and as columns (:meth:`Baseline.learn_columns`), with the gateway's own ``min_hours`` (the ticks cycled
-until the learning ends, at most ``--cost-cycles`` times through): CPU seconds, microseconds per tick,
-peak memory (tracemalloc) and the state's size. Then the receive path: the first ``--cost-frames``
-frames of that machine's first log frame by frame (``Monitor.feed``, the daemon's path) with and
-without the baseline configured, in alternating rounds (``--rounds``), each round running the plain
-configuration twice: CPU per frame of each (the best of the rounds), the ratio with / without (the
-median of the rounds' ratios) and the noise (the median of |plain / plain - 1|).
-
-Until the monitor has the baseline wired in (a ``baseline`` configuration section, ``Monitor.baseline``
-and the ticks' ``baseline_state``), the onboard arm and the receive-path comparison are skipped and
-say so; the learning stage's cost is then measured with a stand-in envelope (4 bins per input over the
-model's training envelope) and the stand-in parameters printed.
+learning stage alone (the configuration's baseline parameters, with the gateway's own ``min_hours``),
+fed that machine's evaluated ticks (operating point, measured and type prediction, as the type arm
+computed them) one at a time as the gateway's receive path does (:meth:`Baseline.learn`), cycled until
+the learning ends or ``--cost-ticks`` ticks, and the same ticks as columns
+(:meth:`Baseline.learn_columns`, the replay's path): CPU seconds, microseconds per tick, what that
+makes for ``min_hours`` of a gateway's learned ticks, peak memory (tracemalloc) and the state's size.
+Then the receive path: the first ``--cost-frames`` frames of that machine's first log frame by frame
+(``Monitor.feed``, the daemon's path) with and without the baseline configured (the section above: it
+learns over these frames), in rounds (``--rounds``) of plain, with, plain: CPU per frame of each (the
+best of the rounds), the ratio with / without (the median of the rounds' ratios) and the noise (the
+median of |plain / plain - 1|).
 
     python bench/bench_baseline.py [--machines 21] [--hours 150] [--seed 29] [--jobs 2] [--cache DIR]
-    python bench/bench_baseline.py --quick      # 4 machines x 30 h, a minute or so
+    python bench/bench_baseline.py --quick      # 4 machines x 20 h, well under a minute
 """
 
 from __future__ import annotations
@@ -71,7 +68,7 @@ import tempfile
 import time
 import tracemalloc
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -124,26 +121,6 @@ def fleet(cache: Path, spec: Any) -> Path:
     print(f"fleet written to {out}: {s['machines']} machines, {s['frames'] / 1e6:.1f} M frames in "
           f"{time.perf_counter() - t:.0f} s")  # fmt: skip
     return out
-
-
-def wiring() -> str | None:
-    """None when the monitor has the baseline wired in, else what is missing."""
-    from cmcan.monitor.core import Monitor
-    from cmcan.monitor.tick import TickColumns
-
-    if "baseline_state" not in {f.name for f in fields(TickColumns)}:
-        return "the ticks have no baseline_state"
-    if not hasattr(Monitor, "baseline") and "baseline" not in getattr(Monitor, "__slots__", ()):
-        # an attribute set in __init__ only: look for it on an assembled monitor
-        try:
-            from cmcan import config as cfgmod
-            from cmcan.assemble import assemble
-
-            if not hasattr(assemble(cfgmod.load()).monitor, "baseline"):
-                return "the monitor has no baseline"
-        except Exception as exc:  # any failure means: not usable here
-            return f"the monitor does not assemble: {exc}"
-    return None
 
 
 def type_raw(root: Path, type_name: str = "mid") -> dict[str, Any]:
@@ -327,28 +304,6 @@ def _plain(d: dict[str, Any]) -> dict[str, Any]:
 
 
 # -- the fit's cost --------------------------------------------------------------------------------------
-
-
-def standin_params(cfg: Any, model_path: Path | None, min_hours: float) -> Any:
-    """Baseline parameters when the configuration cannot say them yet: 4 bins per input over the type
-    model's training envelope, the section's documented defaults."""
-    from cmcan.assemble import load_model_for
-    from cmcan.monitor.baseline import BIN_ROLES, BaselineParams
-
-    model = load_model_for(cfg, model_path)
-    env = model.envelope
-    edges = tuple(tuple(np.linspace(env[r][0], env[r][1], 5).tolist()) for r in BIN_ROLES)
-    lpm_per_unit = cfg.motor_disp_cc / 1000.0 if cfg.quantity == "motor_speed_rpm" else 1.0
-    rated = 78.0 * 2.0  # the mid pump's flow at 2000 rpm, l/min
-    return BaselineParams(
-        edges=edges,
-        min_points=100,
-        coverage_pct=70.0,
-        min_hours=min_hours,
-        suspect_lpm=0.02 * rated,
-        lpm_per_unit=lpm_per_unit,
-        period_s=1.0 / cfg.rate_hz if hasattr(cfg, "rate_hz") else 0.1,
-    )
 
 
 def learning_cost(params: Any, ev: dict[str, np.ndarray], max_ticks: int) -> dict[str, Any]:
@@ -568,9 +523,7 @@ def print_cost(lc: dict[str, Any], rc: dict[str, Any] | None, params_note: str) 
             f"  the same as columns (Baseline.learn_columns): {lc['columns_cpu_s']:.3f} CPU s, "
             f"peak {lc['columns_peak_b'] / 1e6:.2f} MB, same result: {lc['columns_same']}"
         )
-    if rc is None:
-        print("  receive path with / without the baseline: skipped (the baseline is not wired into the monitor)")
-    else:
+    if rc is not None:
         print(
             f"  receive path (Monitor.feed, {rc['frames']} frames, baseline {rc['state_at_end']} at the end, "
             f"{rc['learned_h_at_end']:.2f} h learned): {rc['plain_us']:.2f} us/frame without, "
@@ -621,9 +574,8 @@ def main() -> None:
     root = fleet(args.cache, spec)
     truth = json.loads((root / "truth.json").read_text())
     share = args.burst_s / (args.every_min * 60.0)
-    missing = wiring()
-    section = None if missing else {"enabled": True, "min_hours": round(args.min_hours * share, 6)}
-    arms = ARMS if section is not None else ARMS[:2]
+    section = {"enabled": True, "min_hours": round(args.min_hours * share, 6)}
+    arms = ARMS
     n_worn = sum(m["degrading"] for m in truth["machines"])
     print(
         f"fleet: {spec.machines} mid machines x {spec.hours:g} h, seed {spec.seed}, "
@@ -633,12 +585,7 @@ def main() -> None:
         f"time-lapse {args.burst_s:g} s every {args.every_min:g} min (1/{1 / share:g} of the operation)"
     )
     print(f"engineer: cmcan train on the first {args.train_h:g} h of each machine's own log")
-    if section is None:
-        print(f"onboard: SKIPPED, the baseline is not wired into the monitor yet ({missing}); merge main and rerun")
-    else:
-        print(
-            f"onboard: baseline section {section} (min_hours: {args.min_hours:g} h of a gateway's ticks x {share:.5g})"
-        )
+    print(f"onboard: baseline section {section} (min_hours: {args.min_hours:g} h of a gateway's ticks x {share:.5g})")
 
     jobs = [
         {
@@ -667,21 +614,15 @@ def main() -> None:
     cfg_plain = load_cfg(root, None)
     a, _mon, _cpu = replay_machine(logs, cfg_plain, None, points=True)
     ev = {"t": a["ev_t"], "x": a["ev_x"], "measured": a["ev_measured"], "predicted": a["ev_predicted"]}
-    rc = None
-    if section is not None:
-        cfg_bl = load_cfg(root, {"enabled": True, "min_hours": args.min_hours})
-        from cmcan.assemble import assemble
+    from cmcan.assemble import assemble
 
-        params = assemble(cfg_bl).monitor.baseline.p
-        note = f"machine {name}, the configuration's baseline parameters, min_hours {args.min_hours:g}"
-        rc = receive_cost(cfg_plain, load_cfg(root, section), logs[0], args.cost_frames, args.rounds)
-    else:
-        params = standin_params(cfg_plain, None, args.min_hours)
-        note = (
-            f"machine {name}, STAND-IN parameters: {len(params.edges[0]) - 1}x{len(params.edges[1]) - 1}x"
-            f"{len(params.edges[2]) - 1} bins over the model's envelope, min_points {params.min_points}, "
-            f"coverage {params.coverage_pct:g} %, min_hours {params.min_hours:g}, suspect {params.suspect_lpm:g} l/min"
-        )
+    params = assemble(load_cfg(root, {"enabled": True, "min_hours": args.min_hours})).monitor.baseline.p
+    note = (
+        f"machine {name}, the configuration's baseline parameters but min_hours {args.min_hours:g}: "
+        f"{'x'.join(str(len(e) - 1) for e in params.edges)} bins, min_points {params.min_points}, "
+        f"coverage {params.coverage_pct:g} %, suspect {params.suspect_lpm:.3g} l/min"
+    )
+    rc = receive_cost(cfg_plain, load_cfg(root, section), logs[0], args.cost_frames, args.rounds)
     gateway_ticks = math.ceil(params.min_hours * 3600.0 / params.period_s)
     lc = learning_cost(params, ev, args.cost_ticks or math.ceil(1.25 * gateway_ticks))
     lc["gateway_ticks"] = gateway_ticks
