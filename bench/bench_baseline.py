@@ -144,8 +144,9 @@ def load_cfg(root: Path, baseline: dict[str, Any] | None, type_name: str = "mid"
 
 
 class TickSink:
-    """Keeps what the metrics need of every tick: time, level, gate, baseline state; and the evaluated
-    ticks' operating points, measured and predicted values when ``points``."""
+    """Keeps what the metrics need of every tick: time, level, gate, baseline state; and, when
+    ``points``, the operating point, measured and predicted value of each tick the gate passed inside
+    the envelope (``EVALUATING``: what the baseline learns from)."""
 
     wants_ticks = True
     wants_frames = False
@@ -161,11 +162,11 @@ class TickSink:
         part = {"t": c.t_run_s.copy(), "level": c.level.copy(), "gate": c.gate.copy()}
         state = getattr(c, "baseline_state", None)
         part["state"] = np.zeros(len(c), np.int8) if state is None else np.asarray(state, np.int8).copy()
-        if self.points:
-            from cmcan.monitor.gating import EVALUATED
+        if self.points:  # the ticks the baseline learns from: those the gate passed inside the envelope
+            from cmcan.monitor.gating import Gate
             from cmcan.roles import MODEL_INPUTS
 
-            ev = np.isin(c.gate, np.array(sorted(int(g) for g in EVALUATED)))
+            ev = c.gate == int(Gate.EVALUATING)
             part["ev_t"] = c.t_s[ev]
             part["ev_x"] = np.column_stack([getattr(c, r)[ev] for r in MODEL_INPUTS])
             part["ev_measured"] = c.measured[ev]
@@ -275,9 +276,10 @@ def run_machine(job: dict[str, Any]) -> dict[str, Any]:
     start_s, hours = m["start_epoch_s"], m["hours"]
     t0 = time.perf_counter()
     out: dict[str, Any] = {"machine": m["machine"]}
-    a, _mon, cpu = replay_machine(logs, load_cfg(root, None), None)
+    a, _mon, cpu = replay_machine(logs, load_cfg(root, None), None, points=True)
     out["type"] = arm_result(a, start_s, hours, 0.0, m)
     out["type"].cpu_s = cpu
+    out["reachable"] = reachable(job["params"], a)
     model = train_engineer(root, m, job["train_h"], Path(job["models"]))
     a, _mon, cpu = replay_machine(logs, load_cfg(root, None), model)
     out["engineer"] = arm_result(a, start_s, hours, job["train_h"], m)
@@ -295,6 +297,20 @@ def run_machine(job: dict[str, Any]) -> dict[str, Any]:
         out["onboard"] = r
     out["seconds"] = time.perf_counter() - t0
     return out
+
+
+def reachable(params: Any, a: dict[str, np.ndarray]) -> dict[str, float]:
+    """What this log's learnable ticks could give the baseline at most: the share of the envelope's bins
+    they visit at all, and the share they fill with ``min_points`` each over the whole log."""
+    from cmcan.monitor.baseline import bin_index
+
+    b = bin_index(params, a["ev_x"])
+    n = np.bincount(b[b >= 0], minlength=params.n_bins)
+    return {
+        "visited_pct": 100.0 * float(np.count_nonzero(n)) / params.n_bins,
+        "filled_pct": 100.0 * float(np.count_nonzero(n >= params.min_points)) / params.n_bins,
+        "needed_pct": 100.0 * params.bins_needed / params.n_bins,
+    }
 
 
 def _plain(d: dict[str, Any]) -> dict[str, Any]:
@@ -391,6 +407,19 @@ def receive_cost(cfg_plain: Any, cfg_bl: Any, log: Path, frames: int, rounds: in
 # -- the report ------------------------------------------------------------------------------------------
 
 
+def overrides(pairs: list[str]) -> dict[str, Any]:
+    """``--set KEY=VALUE`` pairs as section keys (values read as YAML)."""
+    import yaml
+
+    out = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep or not key:
+            raise SystemExit(f"--set {pair!r}: expected KEY=VALUE")
+        out[key] = yaml.safe_load(value)
+    return out
+
+
 def fate(m: dict[str, Any]) -> str:
     if m["degrading"]:
         f = m["failures"][0]
@@ -410,7 +439,7 @@ def report(truth: dict[str, Any], results: list[dict[str, Any]], arms: tuple[str
     for arm in arms:
         head += f" | {arm + ' lo/hi':>14} {'lead':>6}"
     if "onboard" in arms:
-        head += f" | {'learned@h':>9} {'state':>16} {'cov %':>5} {'dist l/min':>10}"
+        head += f" | {'learned@h':>9} {'state':>16} {'cov %':>5} {'vis/fill %':>10} {'dist l/min':>10}"
     print(head)
     for r in results:
         m = by[r["machine"]]
@@ -424,11 +453,15 @@ def report(truth: dict[str, Any], results: list[dict[str, Any]], arms: tuple[str
         if "onboard" in arms:
             o, d = r["onboard"], r["onboard"].describe
             cov, dist = d.get("coverage_pct", math.nan), d.get("distance_lpm", math.nan)
-            line += f" | {_h(o.learned_end_h):>9} {o.final_state:>16} {cov:5.0f} {dist:10.2f}"
+            reach = r["reachable"]
+            vis = f"{reach['visited_pct']:.0f}/{reach['filled_pct']:.0f}"
+            line += f" | {_h(o.learned_end_h):>9} {o.final_state:>16} {cov:5.0f} {vis:>10} {dist:10.2f}"
         print(line)
     print("lo/hi: low/high warnings raised before + after the counting starts (type: from 0 h; engineer: from")
     print("its training stretch's end; onboard: from the end of learning); lead: failure hour less the first")
-    print("tick at or after the onset with the level low ('!': already low at the onset, raised before it)")
+    print("tick at or after the onset with the level low ('!': already low at the onset, raised before it);")
+    print("cov %: the baseline's coverage at the end; vis/fill %: the envelope's bins this log's learnable ticks")
+    print("visit at all / fill with min_points each over the whole log (the most coverage it could give)")
 
     healthy = [r for r in results if not by[r["machine"]]["degrading"] and not _leak(by[r["machine"]])]
     worn = [r for r in results if by[r["machine"]]["degrading"]]
@@ -537,13 +570,21 @@ def print_cost(lc: dict[str, Any], rc: dict[str, Any] | None, params_note: str) 
 def main() -> None:
     ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     ap.add_argument("--machines", type=int, help="machines of the fleet (default 21; --quick 4)")
-    ap.add_argument("--hours", type=float, help="operating hours of each (default 150; --quick 30)")
+    ap.add_argument("--hours", type=float, help="operating hours of each (default 150; --quick 20)")
     ap.add_argument("--seed", type=int, default=29, help="draws the fleet")
     ap.add_argument("--spread-scale", type=float, default=1.0, help="unit-to-unit tolerances times this")
     ap.add_argument("--arriving-leaks", type=int, default=2, help="healthy machines arriving with a leak")
-    ap.add_argument("--onset-min-h", type=float, help="no wear starts before this hour (default 25; --quick 10)")
-    ap.add_argument("--train-h", type=float, help="the engineer's training stretch, h (default 10; --quick 5)")
+    ap.add_argument("--onset-min-h", type=float, help="no wear starts before this hour (default 25; --quick 6)")
+    ap.add_argument("--train-h", type=float, help="the engineer's training stretch, h (default 10; --quick 4)")
     ap.add_argument("--min-hours", type=float, default=2.0, help="the baseline's min_hours on a gateway (h)")
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="what-if: another value for a key of the baseline section (YAML, e.g. coverage_pct=50); "
+        "the defaults are the configuration's",
+    )
     ap.add_argument("--burst-s", type=float, default=10.0, help="time-lapse: a burst of this many seconds ...")
     ap.add_argument("--every-min", type=float, default=20.0, help="... every this many minutes of operation")
     ap.add_argument("--jobs", type=int, default=2, help="processes")
@@ -556,7 +597,7 @@ def main() -> None:
     )
     ap.add_argument("--cost-frames", type=int, help="frames of the receive-path comparison (default 200000)")
     ap.add_argument("--rounds", type=int, default=3, help="rounds of the receive-path comparison")
-    ap.add_argument("--quick", action="store_true", help="a small fleet (4 machines x 30 h) for a check")
+    ap.add_argument("--quick", action="store_true", help="a small fleet (4 machines x 20 h) for a check")
     ap.add_argument("--json", type=Path, help="also write the figures to this JSON file")
     args = ap.parse_args()
     quick = {"machines": 4, "hours": 20.0, "onset_min_h": 6.0, "train_h": 4.0, "cost_frames": 20000}
@@ -574,8 +615,13 @@ def main() -> None:
     root = fleet(args.cache, spec)
     truth = json.loads((root / "truth.json").read_text())
     share = args.burst_s / (args.every_min * 60.0)
-    section = {"enabled": True, "min_hours": round(args.min_hours * share, 6)}
+    section = {"enabled": True, "min_hours": round(args.min_hours * share, 6), **overrides(args.set)}
+    gateway_section = {**section, "min_hours": args.min_hours}
     arms = ARMS
+    from cmcan.assemble import assemble
+    from cmcan.monitor.baseline import BIN_ROLES
+
+    params = assemble(load_cfg(root, section)).monitor.baseline.p
     n_worn = sum(m["degrading"] for m in truth["machines"])
     print(
         f"fleet: {spec.machines} mid machines x {spec.hours:g} h, seed {spec.seed}, "
@@ -585,7 +631,14 @@ def main() -> None:
         f"time-lapse {args.burst_s:g} s every {args.every_min:g} min (1/{1 / share:g} of the operation)"
     )
     print(f"engineer: cmcan train on the first {args.train_h:g} h of each machine's own log")
-    print(f"onboard: baseline section {section} (min_hours: {args.min_hours:g} h of a gateway's ticks x {share:.5g})")
+    print(
+        f"onboard: baseline section {section} (min_hours: {args.min_hours:g} h of a gateway's ticks x {share:.5g}"
+        + (", WHAT-IF: " + ", ".join(args.set) if args.set else ", every other key the configuration's default")
+        + f"): {'x'.join(str(len(e) - 1) for e in params.edges)} bins over "
+        + ", ".join(f"{r} {e[0]:g}..{e[-1]:g}" for r, e in zip(BIN_ROLES, params.edges, strict=True))
+        + f", {params.bins_needed} of them with {params.min_points} ticks each, "
+        + f"suspect beyond {params.suspect_lpm:.3g} l/min"
+    )
 
     jobs = [
         {
@@ -594,6 +647,7 @@ def main() -> None:
             "train_h": args.train_h,
             "models": str(root / "engineer"),
             "baseline": section,
+            "params": params,
         }
         for m in truth["machines"]
     ]
@@ -614,14 +668,8 @@ def main() -> None:
     cfg_plain = load_cfg(root, None)
     a, _mon, _cpu = replay_machine(logs, cfg_plain, None, points=True)
     ev = {"t": a["ev_t"], "x": a["ev_x"], "measured": a["ev_measured"], "predicted": a["ev_predicted"]}
-    from cmcan.assemble import assemble
-
-    params = assemble(load_cfg(root, {"enabled": True, "min_hours": args.min_hours})).monitor.baseline.p
-    note = (
-        f"machine {name}, the configuration's baseline parameters but min_hours {args.min_hours:g}: "
-        f"{'x'.join(str(len(e) - 1) for e in params.edges)} bins, min_points {params.min_points}, "
-        f"coverage {params.coverage_pct:g} %, suspect {params.suspect_lpm:.3g} l/min"
-    )
+    params = assemble(load_cfg(root, gateway_section)).monitor.baseline.p
+    note = f"machine {name}, the section above with a gateway's min_hours {args.min_hours:g}"
     rc = receive_cost(cfg_plain, load_cfg(root, section), logs[0], args.cost_frames, args.rounds)
     gateway_ticks = math.ceil(params.min_hours * 3600.0 / params.period_s)
     lc = learning_cost(params, ev, args.cost_ticks or math.ceil(1.25 * gateway_ticks))
