@@ -5,7 +5,7 @@ Issue 29's scenario, a simulated fleet of one type (``mid``) with unit-to-unit v
 machines (21), each ``--hours`` of operation (150) with mixed duty (wheel loader or excavator, drawn)
 and oil from cold to hot (each machine's mean drawn in 40..55 C, swinging +-15..20 C over 10 h: 20 to
 75 C); a third of them develop wear of the pump or the motor, none starting before ``--onset-min-h``
-(25 h: after their learning), failing in the last third of their hours; two healthy ones arrive with a
+(25 h, meant to be after their learning), failing in the last third of their hours; two healthy ones arrive with a
 leak (4..8 % of rated flow at 480 bar). Written once by :func:`cmcan.fleet.simfleet.write_fleet` to
 ``--cache`` (keyed by the spec), with its truth sidecar.
 
@@ -17,8 +17,8 @@ Each machine's whole log (its logs in order, through one monitor: the columnar e
   the type's configuration otherwise, replayed with that model: the per-machine model an engineer makes
   (an arriving leak is in its training data: it learns the leak as healthy);
 - onboard: the type's configuration and model with a ``baseline:`` section (``enabled: true``, every
-  other key the configuration's default but ``min_hours``, see below): the gateway learns the machine
-  itself.
+  other key the configuration's default but ``min_hours``, see below; ``--set KEY=VALUE`` for a
+  what-if): the gateway learns the machine itself.
 
 Printed side by side: false low and high warnings per 100 h on the healthy machines (arriving leaks
 apart), counted after the engineer's training stretch (engineer), after the learning ended (onboard;
@@ -27,15 +27,16 @@ leave ``learning`` (median, max); the lead of the first low warning before each 
 (the first tick at or after the fault's onset with the level low; a low already raised before the onset
 is marked: it is no lead), and onboard's lead against the engineer's (goal: within 10 %); the arriving
 leaks flagged ``baseline_suspect`` (goal 2 of 2) and whether the other two arms raised a low warning on
-them at all.
+them at all. Per machine also the share of the envelope's bins its learnable ticks visit at all and
+fill with ``min_points`` each over its whole log: the most coverage that log could give.
 
 Time-lapse: the fleet is sampled in bursts (``--burst-s`` 10 s every ``--every-min`` 20 min, 1/120 of
 the operation), so a learned tick stands for 120 of a gateway's. The section's ``min_hours`` (learned,
 i.e. evaluated, ticks times the tick period) is ``--min-hours`` (the learned hours a gateway needs: 2.0,
 the configuration's default) times the sampled share, so it is reached after the same operating hours
-as on a gateway; ``min_points`` (ticks per bin) is left as configured, so the
-coverage needs the same number of sampled ticks per bin, i.e. up to 120 times the operating hours a
-gateway would need: the hours to leave learning here are an upper bound.
+as on a gateway; ``min_points`` (ticks per bin) is left as configured, so the coverage needs the same
+number of sampled ticks per bin, i.e. up to 120 times the operating hours a gateway would need: the
+hours to leave learning here are an upper bound (which bins a machine visits at all does not change).
 
 On-board fit cost, on one healthy machine (``--cost-machine``, default the first healthy one): the
 learning stage alone (the configuration's baseline parameters, with the gateway's own ``min_hours``),
