@@ -45,7 +45,7 @@ from cmcan.monitor.core import Monitor
 from cmcan.monitor.inputs import InputMessage
 from cmcan.ratelog import RateLimitedLog
 from cmcan.sdnotify import Notifier
-from cmcan.statefile import StateStore, write_node_status
+from cmcan.statefile import StateStore, take_baseline_request, write_node_status
 
 if TYPE_CHECKING:  # only for the type hint: the uplink's feed is an application beside this one
     from cmcan.uplink.feed import UplinkFeed
@@ -300,6 +300,7 @@ class Daemon:
         self.loop = _LoopState(next_wd=now, next_status=now, last_save=now, started=now)
         self._wake_r, self._wake_w = socket.socketpair()
         self._wake_w.setblocking(False)
+        self._baseline_request()  # one left while no daemon ran (cmcan baseline reset then writes the state)
         self.notifier.ready(self._status_text())
         log.info("cmcan running on %s %s", self.cfg.bus.interface, ", ".join(x.name for x in self.links))
 
@@ -557,7 +558,25 @@ class Daemon:
             "; ".join(afresh) or "nothing",
             "".join(f"; {k}" for k in kept),
         )
+        self._baseline_request()
         self.notifier.ready(self._status_text())
+
+    def _baseline_request(self) -> None:
+        """A baseline reset ``cmcan baseline reset`` left in the state directory (it then asks for a
+        reload): carried out by this, the state's only writer, and saved at once."""
+        if self.store is None:
+            return
+        req = take_baseline_request(self.store.dir)
+        if req is None:
+            return
+        if req.get("bad"):
+            log.error("baseline reset not carried out: %s", req["reason"])
+            return
+        if self.monitor.reset_baseline(req["reason"], req["at"] or None):
+            log.info("baseline reset (%s): learning afresh, the old baseline kept in the history", req["reason"])
+            self._save()
+        else:
+            log.error("baseline reset asked for, but the configuration has no baseline section enabled")
 
     # -- bus handling ----------------------------------------------------------------------------------
 

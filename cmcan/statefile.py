@@ -18,7 +18,11 @@ from cmcan.monitor.totals import StateError, Totals
 log = logging.getLogger("cmcan.state")
 STATE_FILE = "state.json"
 LOCK_FILE = "cmcan.lock"
-NODE_FILE = "j1939-node.json"  # the J1939 node's address claim as the daemon last saw it (uplink health)
+NODE_FILE = "j1939-node.json"
+# ``cmcan baseline reset`` asks the running daemon through this file and a reload (never two writers)
+BASELINE_REQUEST_FILE = (
+    "baseline-reset.json"  # the J1939 node's address claim as the daemon last saw it (uplink health)
+)
 
 
 class StateStore:
@@ -94,6 +98,34 @@ class StateStore:
             os.fsync(dfd)
         finally:
             os.close(dfd)
+
+
+def write_baseline_request(directory: str | Path, reason: str, at: str) -> Path:
+    """Leave a baseline reset for the daemon (written atomically: it reads all of it or nothing)."""
+    path = Path(directory) / BASELINE_REQUEST_FILE
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps({"reason": reason, "at": at}) + "\n", encoding="utf-8")
+    os.replace(tmp, path)
+    return path
+
+
+def take_baseline_request(directory: str | Path) -> dict[str, str] | None:
+    """The reset a ``cmcan baseline reset`` left, removed as it is taken; None when there is none. A
+    file that is not such a request is removed too, and said in ``reason`` (it must not block resets)."""
+    path = Path(directory) / BASELINE_REQUEST_FILE
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        return None
+    except OSError as exc:
+        return {"reason": f"unreadable request {path} ({exc.strerror})", "at": "", "bad": "1"}
+    with contextlib.suppress(OSError):
+        path.unlink()
+    try:
+        doc = json.loads(raw.decode("utf-8"))
+        return {"reason": str(doc["reason"])[:200], "at": str(doc.get("at", ""))[:40]}
+    except (ValueError, KeyError, TypeError):
+        return {"reason": f"unreadable request {path}", "at": "", "bad": "1"}
 
 
 def write_node_status(directory: str | Path, status: dict[str, object]) -> None:

@@ -14,7 +14,20 @@ from cmcan.cli.errors import EX_SOFTWARE, EX_USAGE, exit_code
 from cmcan.cli.journal import error_line, setup_logging
 from cmcan.errors import CmcanError
 
-SUBCOMMANDS = ("simulate", "train", "evaluate", "score", "replay", "run", "check", "demo", "gap", "uplink", "fleet")
+SUBCOMMANDS = (
+    "simulate",
+    "train",
+    "evaluate",
+    "score",
+    "replay",
+    "run",
+    "check",
+    "demo",
+    "gap",
+    "uplink",
+    "fleet",
+    "baseline",
+)
 
 
 class _Parser(argparse.ArgumentParser):
