@@ -139,7 +139,7 @@ def check_against_dbc(cfg: Config, db: Database) -> None:
             key = f"signals.{role}.{wrong.key}" if wrong.key else f"signals.{role}"
             raise SchemaError(cfg.source, key, f"{wrong.text} (units in {cfg.dbc_path})")
     inputs = {ref.message for ref in cfg.signals.values()}
-    for key, out in cfg.outputs.items(cfg.quantity):
+    for key, out in cfg.output_items():
         msg = _message(cfg, db, out.message, f"outputs.{key}.message")
         if out.message in inputs:
             raise SchemaError(cfg.source, f"outputs.{key}.message", f"{out.message} is also an input message")
@@ -187,7 +187,7 @@ def _strict(cfg: Config, db: Database, msg: Message, field: str) -> None:
 
 def read_messages(cfg: Config) -> set[str]:
     """The DBC messages cmcan reads (inputs) or sends (outputs) with this configuration."""
-    return {ref.message for ref in cfg.signals.values()} | {out.message for _, out in cfg.outputs.items(cfg.quantity)}
+    return {ref.message for ref in cfg.signals.values()} | {out.message for _, out in cfg.output_items()}
 
 
 def dbc_warnings(cfg: Config, db: Database) -> dict[str, str]:
@@ -203,7 +203,7 @@ def check_output_ranges(cfg: Config, db: Database) -> None:
     show, say, a CM ratio of 2.55 % as valid. Resolution is not judged, only the range."""
     span = output_span(cfg.drive.nominal_flow_lpm, cfg.drive.lpm_per_unit)
     spans = output_spans(QUANTITY_SIGNALS[cfg.quantity], span, cfg.drive.nominal_flow_lpm)
-    for key, out in cfg.outputs.items(cfg.quantity):
+    for key, out in cfg.output_items():
         msg = _message(cfg, db, out.message, f"outputs.{key}.message")
         for name in OUTPUT_SIGNALS[key]:
             sig, span = msg.get_signal_by_name(name), spans[name]
@@ -371,7 +371,7 @@ def check_bus(cfg: Config, db: Database) -> None:
                     "messages.NAME.source_addresses",
                 )
     out_chan = cfg.output_channel
-    for key, out in cfg.outputs.items(cfg.quantity):
+    for key, out in cfg.output_items():
         msg = db.get_message_by_name(out.message)
         if msg.is_extended_frame and not cfg.frames.extended_ids:
             raise SchemaError(
@@ -558,7 +558,7 @@ def outputs(cfg: Config, db: Database) -> Outputs:
     period_ms = 1000.0 / cfg.rate_hz
 
     def message(key: str) -> OutputMessage:
-        out = dict(cfg.outputs.items(cfg.quantity))[key]
+        out = dict(cfg.output_items())[key]
         msg = _message(cfg, db, out.message, f"outputs.{key}.message")
         return OutputMessage(
             frame_id=output_id(cfg, msg),
@@ -578,6 +578,7 @@ def outputs(cfg: Config, db: Database) -> Outputs:
         warning=message("warning"),
         channel=cfg.output_channel,
         quantity_signals=QUANTITY_SIGNALS[q],
+        baseline=message("cm_baseline") if cfg.baseline.enabled else None,
     )
 
 
@@ -741,7 +742,7 @@ def node_params(cfg: Config, db: Database) -> NodeParams | None:
     if j.name is not None:
         claim = ClaimParams(j.name, j.source_address, j.addresses, cfg.output_channel)
     out = [
-        msg for _, o in cfg.outputs.items(cfg.quantity) if (msg := db.get_message_by_name(o.message)).is_extended_frame
+        msg for _, o in cfg.output_items() if (msg := db.get_message_by_name(o.message)).is_extended_frame
     ]
     return NodeParams(
         address=j.source_address,

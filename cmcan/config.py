@@ -249,6 +249,7 @@ _CONFIG = Obj(
                 "cm_speed": _output("CM_SPEED", 100),
                 "cm_flow": _output("CM_FLOW", 100),
                 "warning": _output("CM_WARNING", 1000),
+                "cm_baseline": _output("CM_BASELINE", 1000),
             },
             default={},
         ),
@@ -477,11 +478,14 @@ class OutputsConfig:
     cm_speed: OutputMessageConfig
     warning: OutputMessageConfig
     cm_flow: OutputMessageConfig = OutputMessageConfig("CM_FLOW", 100)
+    cm_baseline: OutputMessageConfig = OutputMessageConfig("CM_BASELINE", 1000)
 
-    def items(self, quantity: str = MOTOR_SPEED) -> list[tuple[str, OutputMessageConfig]]:
-        """The messages a machine of this output quantity sends (CM_SPEED or CM_FLOW in the middle)."""
+    def items(self, quantity: str = MOTOR_SPEED, baseline: bool = False) -> list[tuple[str, OutputMessageConfig]]:
+        """The messages a machine of this output quantity sends (CM_SPEED or CM_FLOW in the middle),
+        and CM_BASELINE last where the on-board baseline is enabled."""
         key = QUANTITY_OUTPUT[quantity]
-        return [("cm_ratio", self.cm_ratio), (key, getattr(self, key)), ("warning", self.warning)]
+        out = [("cm_ratio", self.cm_ratio), (key, getattr(self, key)), ("warning", self.warning)]
+        return [*out, ("cm_baseline", self.cm_baseline)] if baseline else out
 
 
 @dataclass(frozen=True)
@@ -581,6 +585,10 @@ class Config:
     input_health: HealthConfig = field(default_factory=HealthConfig)
     j1939: J1939Config = field(default_factory=J1939Config)
     baseline: BaselineConfig = field(default_factory=BaselineConfig)
+
+    def output_items(self) -> list[tuple[str, OutputMessageConfig]]:
+        """The output messages this machine sends (:meth:`OutputsConfig.items`)."""
+        return self.outputs.items(self.quantity, self.baseline.enabled)
 
     @property
     def channel_list(self) -> tuple[ChannelConfig, ...]:

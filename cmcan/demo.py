@@ -29,6 +29,7 @@ from cmcan.frame import Frame, from_message, to_message_kwargs
 from cmcan.j1939 import dm1 as j1939_dm1
 from cmcan.j1939 import ids as j1939_ids
 from cmcan.j1939.transport import BamReceiver
+from cmcan.monitor.baseline import MODE_NAMES
 from cmcan.monitor.payloads import Outputs
 from cmcan.monitor.tick import LEVEL_NAMES
 from cmcan.monitor.warnings import Reason
@@ -42,6 +43,9 @@ log = logging.getLogger("cmcan.demo")
 
 LEAD_TIME_MIN_H = 10.0
 HEALTHY_UNTIL_H = 200.0
+# The demo's machine learns its own baseline on board (docs/commissioning.md) over about this many
+# operating hours of the time-lapse, from an envelope around the rig's one operating point.
+LEARNING_H = 20.0
 
 
 @dataclass
@@ -59,6 +63,16 @@ class DemoResult:
     ratio_pct: list[float] = field(default_factory=list)
     checks: dict[str, bool] = field(default_factory=dict)
     windows: dict[str, float] = field(default_factory=dict)
+    # the on-board baseline as CM_BASELINE showed it: (operating h, state name) at each change
+    baseline: list[tuple[float, str]] = field(default_factory=list)
+
+    @property
+    def learning_h(self) -> tuple[float, float] | None:
+        """The learning phase (first CM_BASELINE frame to the end of learning), None if none was seen."""
+        if not self.baseline or self.baseline[0][1] != "learning":
+            return None
+        end = next((h for h, s in self.baseline[1:] if s != "learning"), None)
+        return (self.baseline[0][0], end) if end is not None else None
 
     @property
     def passed(self) -> bool:
@@ -77,6 +91,7 @@ class DemoResult:
             "warnings": self.transitions,
             "failures": self.failures,
             "checks": self.checks,
+            "baseline": [{"operating_h": h, "state": s} for h, s in self.baseline],
             "passed": self.passed,
         }
 
@@ -103,6 +118,19 @@ def windows_of(cfg: cfgmod.Config) -> dict[str, float]:
         "filter_min_samples": cfg.filter.min_samples,
         "debounce_s": cfg.thresholds.debounce_s,
     }
+
+
+def with_baseline(cfg: cfgmod.Config, s: scn.Scenario, burst_s: float, every_min: float) -> cfgmod.Config:
+    """The on-board baseline on: the envelope the machine works in (the rig's one operating point, a
+    few percent either way, and its oil's swing), and the learned hours that :data:`LEARNING_H` of
+    the time-lapse's operation hold (it samples ``burst_s`` of every ``every_min``)."""
+    d, oil = s.duty, s.oil
+    speed, dp = float(d["pump_speed_rpm"]), float(d["dp_bar"])
+    t_lo, t_hi = oil["temp_c"] - oil["swing_c"] - 2.0, oil["temp_c"] + oil["swing_c"] + 2.0
+    edges = {"pump_speed_rpm": (0.95 * speed, 1.05 * speed), "dp_bar": (0.95 * dp, 1.05 * dp), "temp_c": (t_lo, t_hi)}
+    learned_h = LEARNING_H * burst_s / (every_min * 60.0)
+    b = replace(cfg.baseline, enabled=True, edges=edges, min_hours=round(0.8 * learned_h, 6), coverage_pct=100.0)
+    return replace(cfg, baseline=b)
 
 
 def demo_scenario(burst_s: float, every_min: float) -> scn.Scenario:
@@ -269,6 +297,24 @@ def analyse(
     return transitions, report, checks, ratio_h, ratio_pct
 
 
+def baseline_states(
+    received: list[Frame], db: Any, cfg: cfgmod.Config, start_epoch_s: float, outputs: Outputs | None = None
+) -> list[tuple[float, str]]:
+    """The baseline's state at each change as CM_BASELINE frames carried it (operating h, name)."""
+    if not cfg.baseline.enabled:
+        return []
+    msg = db.get_message_by_name(cfg.outputs.cm_baseline.message)
+    fid = outputs.baseline.frame_id if outputs is not None and outputs.baseline is not None else msg.frame_id
+    out: list[tuple[float, str]] = []
+    for m in sorted(received, key=lambda x: x.timestamp_s):
+        if m.arbitration_id == fid:
+            state = int(msg.decode(m.data, decode_choices=False)["baseline_state"])
+            name = MODE_NAMES.get(state, str(state))  # type: ignore[call-overload]  # IntEnum keys take ints
+            if not out or out[-1][1] != name:
+                out.append(((m.timestamp_s - start_epoch_s) / 3600.0, name))
+    return out
+
+
 def dm1_checks(
     received: list[Frame], cfg: cfgmod.Config, transitions: list[dict[str, Any]], start_epoch_s: float
 ) -> dict[str, bool]:
@@ -316,7 +362,7 @@ def run_demo(
 ) -> DemoResult:
     t0 = time.monotonic()
     s = demo_scenario(burst_s, every_min)
-    cfg = scale_windows(cfgmod.load(config_path), burst_s, every_min)
+    cfg = with_baseline(scale_windows(cfgmod.load(config_path), burst_s, every_min), s, burst_s, every_min)
     if cfg.quantity != MOTOR_SPEED:
         raise CmcanError(
             f"{cfg.source}: drive.quantity is {cfg.quantity}: the demo simulates a closed-circuit drive, whose "
@@ -345,6 +391,7 @@ def run_demo(
     received, sent, processed, outputs = stream(frames, cfg, state_dir, channel)
     failures = run.meta["scheduled_failures"]
     transitions, report, checks, rh, rp = analyse(received, db, cfg, run.start_epoch_s, failures, outputs)
+    baseline = baseline_states(received, db, cfg, run.start_epoch_s, outputs)
     res = DemoResult(
         s.name,
         f"virtual:{channel}",
@@ -359,6 +406,12 @@ def run_demo(
         rp,
         checks,
         windows_of(cfg),
+        baseline,
+    )
+    learning = res.learning_h
+    first_fail = min((f["fail_h"] for f in failures), default=float("inf"))
+    res.checks[f"the machine learned its own baseline before {HEALTHY_UNTIL_H:g} h"] = bool(
+        learning is not None and learning[1] < min(HEALTHY_UNTIL_H, first_fail) and baseline[-1][1] == "monitoring"
     )
     res.checks["every frame sent was processed"] = processed == sent
     if plot:

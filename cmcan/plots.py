@@ -95,6 +95,7 @@ class DemoFigure:
     leads: tuple[LeadLabel, ...]
     legend: tuple[str, ...]  # one entry per kind of line, in drawing order
     title: str
+    learning: tuple[float, float] | None = None  # the on-board baseline's learning phase (operating h)
 
 
 LEVEL_COLOR = {"low": "tab:orange", "high": "tab:purple"}
@@ -138,8 +139,11 @@ def demo_figure(res: Any, thresholds: Thresholds, title: str) -> DemoFigure:
     legend += [f"first {lv} warning (CM_WARNING)" for lv in ("low", "high") if any(w[1] == lv for w in warnings)]
     if leads:
         legend.append("lead time: first warning to failure")
+    learning = getattr(res, "learning_h", None)
+    if learning is not None:
+        legend.append(f"learning its own baseline ({learning[1] - learning[0]:.0f} h, type model, wider margins)")
     return DemoFigure(
-        (max(lo, 0.0), hi), (lo_t, hi_t), tuple(failures), tuple(warnings), tuple(leads), tuple(legend), title
+        (max(lo, 0.0), hi), (lo_t, hi_t), tuple(failures), tuple(warnings), tuple(leads), tuple(legend), title, learning
     )
 
 
@@ -153,6 +157,8 @@ def plot_demo(res: Any, thresholds: Thresholds, path: str | Path, title: str) ->
     spec = demo_figure(res, thresholds, title)
     fig, ax = plt.subplots(figsize=(11, 5.2))
     ax.axhspan(*spec.band, color="tab:green", alpha=0.12, lw=0, zorder=0)
+    if spec.learning is not None:
+        ax.axvspan(*spec.learning, color="0.6", alpha=0.25, lw=0, zorder=0)
     ax.axhline(spec.band[0], color="tab:orange", ls="--", lw=1)
     ax.axhline(spec.band[1], color="tab:purple", ls="--", lw=1)
     ax.plot(res.ratio_h, res.ratio_pct, ".", ms=1.5, color="tab:blue", zorder=3)
@@ -207,6 +213,8 @@ def plot_demo(res: Any, thresholds: Thresholds, path: str | Path, title: str) ->
     ]
     if spec.leads:
         kinds.append(Line2D([], [], color="0.25", lw=1, marker=">", ms=5))
+    if spec.learning is not None:
+        kinds.append(Patch(color="0.6", alpha=0.25))
     ax.legend(kinds, spec.legend, loc="lower left", fontsize=8, framealpha=0.9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

@@ -113,4 +113,6 @@ OUTPUT_SIGNALS: dict[str, tuple[str, ...]] = {
     "cm_speed": (*QUANTITY_SIGNALS[MOTOR_SPEED], "cm_alive_counter"),
     "cm_flow": (*QUANTITY_SIGNALS[FLOW], "cm_alive_counter"),
     "warning": ("warning_level", "warning_reason", "time_below_threshold_s", "warning_count"),
+    # the on-board baseline's state and progress, where the configuration enables it
+    "cm_baseline": ("baseline_state", "baseline_learned_h", "baseline_coverage_pct", "baseline_distance_lpm"),
 }

@@ -107,3 +107,15 @@ def test_an_earlier_demo_is_kept(tmp_path, monkeypatch):
     (tmp_path / "afile").write_text("x")
     with pytest.raises(CmcanError, match="not a folder"):
         out_dir("afile", True)
+
+
+def test_the_demo_figure_shades_the_learning_of_the_machines_own_baseline(tmp_path):
+    res = _result()
+    assert demo_figure(res, TH, "t").learning is None  # no CM_BASELINE seen: nothing shaded
+    res.baseline = [(0.0, "learning"), (18.4, "monitoring")]
+    spec = demo_figure(res, TH, "t")
+    assert spec.learning == (0.0, 18.4)
+    assert any("learning its own baseline (18 h" in x for x in spec.legend)
+    assert plot_demo(res, TH, tmp_path / "demo.png", "t") == spec
+    res.baseline = [(0.0, "learning")]  # still learning at the end: no phase that ended
+    assert demo_figure(res, TH, "t").learning is None

@@ -385,11 +385,11 @@ def test_the_embedded_cluster_leaves_glibc_malloc_thresholds_alone():
     chunk arrays are then mapped and faulted in afresh (about 1.6x the CPU per log). One thread per
     worker stays."""
     pytest.importorskip("distributed")
-    from cmcan.fleet.run import _close, make_client
+    from cmcan.fleet.run import close_client, make_client
 
     client = make_client(None, 1)
     try:
         env = client.submit(_worker_environ, pure=False).result(timeout=60)
     finally:
-        _close(client)
+        close_client(client)
     assert env == {"MALLOC_TRIM_THRESHOLD_": None, "OMP_NUM_THREADS": "1"}

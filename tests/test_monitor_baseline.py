@@ -88,3 +88,30 @@ def test_a_unit_arriving_with_a_leak_is_suspect_and_warns(unit):
     assert mon.baseline.mode == Mode.SUSPECT
     assert mon.baseline.distance_lpm < -3.0
     assert mon.snapshot()["baseline"]["state"] == "baseline_suspect"
+
+
+def test_cm_baseline_goes_on_the_bus_on_each_change_and_every_second(unit):
+    import cantools
+
+    from tests.conftest import ROOT
+
+    db = cantools.database.load_file(str(ROOT / "dbc" / "cmcan.dbc"))
+    msg = db.get_message_by_name("CM_BASELINE")
+    tl, frames, _, mon = _run(_cfg(), unit, "columnar")
+    sent = [f for f in frames if f.arbitration_id == msg.frame_id]
+    decoded = [msg.decode(f.data, decode_choices=False) for f in sent]
+    states = [d["baseline_state"] for d in decoded]
+    assert states[0] == Mode.LEARNING and states[-1] == Mode.MONITORING
+    first_monitoring = states.index(Mode.MONITORING)
+    # the change goes at once: at the tick the learning ended, not up to a second later
+    ended = int(np.flatnonzero(tl.baseline_state == Mode.MONITORING)[0])
+    assert sent[first_monitoring].timestamp_s == pytest.approx(tl.t_s[ended])
+    gaps = np.diff([f.timestamp_s for f in sent])
+    assert gaps.max() <= 1.0 + 1e-6
+    learned = [d["baseline_learned_h"] for d in decoded]
+    assert learned == sorted(learned) and learned[-1] == pytest.approx(mon.baseline.learned_h, abs=0.05)
+    assert decoded[-1]["baseline_coverage_pct"] == pytest.approx(mon.baseline.coverage_pct, abs=0.5)
+    assert decoded[-1]["baseline_distance_lpm"] == pytest.approx(mon.baseline.distance_lpm, abs=0.01)
+    # without the baseline section nothing of it is sent
+    _, plain, _, _ = _run(cfgmod.load(), unit[:20000], "columnar")
+    assert not any(f.arbitration_id == msg.frame_id for f in plain)

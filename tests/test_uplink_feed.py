@@ -152,3 +152,23 @@ def test_cmcan_run_with_the_uplink_enabled_creates_the_outbox(tmp_path):
     r = run_cli("uplink", "--config", str(config), "--status")
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["entries"] == 0
+
+
+def test_the_baseline_goes_into_the_summaries_and_its_changes_are_events(frames, tmp_path):
+    cfg = cfgmod.load()
+    cfg = replace(
+        cfg, baseline=cfgmod.BaselineConfig(enabled=True, min_points=40, coverage_pct=15.0, min_hours=0.01)
+    )
+    mon = monitor(cfg=cfg)
+    writer = OutboxWriter(str(tmp_path / "outbox.sqlite"), 10**9, 1e9).start()
+    feed = UplinkFeed(mon, writer, summary_every_s=30.0)
+    source = messages(frames)
+    d = Daemon(cfg, mon, None, lambda: ScriptedBus(source), uplink=feed)
+    run_daemon_until(d, lambda: mon.counters["frames_total"] == len(source))
+    got = [(r.kind, json.loads(r.body)) for r in Outbox(tmp_path / "outbox.sqlite").fetch_after(0, 10**6)]
+    changes = [b for k, b in got if k == "event" and b["type"] == "baseline_change"]
+    assert [(c["from"], c["state"]) for c in changes] == [("learning", "monitoring")]
+    assert changes[0]["learned_h"] >= 0.01 and changes[0]["coverage_pct"] >= 15.0
+    states = [b["baseline"]["state"] for k, b in got if k == "summary"]
+    assert states[0] == "learning" and states[-1] == "monitoring"
+    assert feed.errors == 0

@@ -102,6 +102,9 @@ def run(args: argparse.Namespace) -> int:
             f"(time-lapse: filter {w['filter_samples']} samples, debounce {w['debounce_s']:g} s of evaluated "
             "operation, scaled to the demo's sampling density)"
         )
+        if res.baseline:  # the on-board baseline's states as CM_BASELINE carried them
+            states = ", ".join(f"{name} from {h:.1f} h" for h, name in res.baseline)
+            print(f"the machine's own baseline (CM_BASELINE): {states}")
         print("warnings on the bus (CM_WARNING):")
         for t in res.transitions:
             print(f"  {t['operating_h']:8.1f} h  {t['from']:>5} -> {t['to']:<5} ({t['reason']})")

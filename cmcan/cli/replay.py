@@ -221,6 +221,12 @@ def _print(log: str, res: ReplaySummary, summary: dict[str, Any]) -> None:
         print(f"  {w['operating_h']:9.3f} h  {w['from']:>5} -> {w['to']:<5} ({w['reason']}{ratio})")
     if not summary["warnings"]:
         print("  no warnings")
+    b = res.snapshot.get("baseline")
+    if b is not None:  # the on-board baseline where configured (docs/commissioning.md)
+        print(
+            f"  baseline {b['state']}: {b['learned_h']:.2f} h learned, {b['coverage_pct']:.0f} % of the envelope, "
+            f"distance from the type model {b['distance_lpm']:+.2f} l/min"
+        )
 
 
 class _Progress:

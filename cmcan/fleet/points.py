@@ -129,9 +129,9 @@ def gather_points(
 ) -> list[MachinePoints]:
     """Every machine's healthy points, read on the cluster side by side, in machine order; a damaged
     file stops it with :class:`cmcan.fleet.dataset.Damaged` naming the files."""
-    from cmcan.fleet.run import _close, _require_dask, make_client
+    from cmcan.fleet.run import close_client, make_client, require_dask
 
-    _require_dask()
+    require_dask()
     own = client is None
     if own:
         client = make_client(scheduler, workers)
@@ -151,7 +151,7 @@ def gather_points(
         results = client.gather(futures)
     finally:
         if own:
-            _close(client)
+            close_client(client)
     problems = [p for r in results if isinstance(r, list) for p in r]
     if problems:
         raise ds.Damaged(problems)

@@ -54,6 +54,9 @@ EMPTY: dict[str, dict[str, str]] = {
         "dp_bar": _F,
         "temp_c": _F,
         "baseline_state": _I,
+        "baseline_learned_h": _F,
+        "baseline_coverage_pct": _F,
+        "baseline_distance_lpm": _F,
         **_PROV,
     },
     "events": {

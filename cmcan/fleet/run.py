@@ -77,7 +77,7 @@ class RunReport:
         }
 
 
-def _require_dask() -> None:
+def require_dask() -> None:
     try:
         import distributed  # noqa: F401
         import pyarrow  # noqa: F401
@@ -146,7 +146,7 @@ def make_client(scheduler: str | None, workers: int | None, memory_limit: str = 
     return Client(cluster)
 
 
-def _close(client: Any) -> None:
+def close_client(client: Any) -> None:
     cluster = getattr(client, "cluster", None)
     try:
         client.close(timeout=10)
@@ -178,7 +178,7 @@ def run_fleet(
     """Every job through the cluster; returns the counts. KeyboardInterrupt stops the run: committed
     logs stay, nothing half-written does, and the next run does the rest. ``refused`` (source
     entries not read) get a quarantine row each where their machine is known."""
-    _require_dask()
+    require_dask()
     root = Path(opt.dataset)
     check_target(root)
     own = client is None
@@ -195,7 +195,7 @@ def run_fleet(
         )
     finally:
         if own:
-            _close(client)
+            close_client(client)
     if failed is not None:
         if (root / "_dataset.json").exists():
             _clean(root)  # what the tasks were staging when the data set failed them (if it can)

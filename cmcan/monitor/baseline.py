@@ -169,6 +169,8 @@ class Baseline:
         self.started_t_s: float | None = None  # frame time of the first learned tick
         self.finished_t_s: float | None = None
         self.history: list[dict[str, Any]] = []
+        # learn_columns: each row's learned ticks and covered bins after it (for the ticks' progress)
+        self.progress: tuple[NDArray[np.int64], NDArray[np.int64]] = (np.zeros(0, np.int64), np.zeros(0, np.int64))
 
     # -- what it tells ------------------------------------------------------------------------------
 
@@ -179,6 +181,11 @@ class Baseline:
     @property
     def coverage_pct(self) -> float:
         return 100.0 * self.covered / self.p.n_bins
+
+    def progress_of(self, learned_ticks: Any, covered: Any) -> tuple[Any, Any]:
+        """Hours learned and share of the envelope covered (%) from ticks and bins, as :attr:`learned_h`
+        and :attr:`coverage_pct` compute them (the same operations for one value or an array)."""
+        return learned_ticks * self.p.period_s / 3600.0, 100.0 * covered / self.p.n_bins
 
     @property
     def applies(self) -> bool:
@@ -249,8 +256,11 @@ class Baseline:
         predicted: NDArray[np.float64],
     ) -> int:
         """:meth:`learn` for ticks in order (all passed the gate): the same additions in the same order.
-        Returns the index of the tick that ended the learning, or -1."""
-        if self.mode != Mode.LEARNING or not len(t_s):
+        Returns the index of the tick that ended the learning, or -1; :attr:`progress` then holds each
+        tick's learned ticks and covered bins after it."""
+        n_rows = len(t_s)
+        self.progress = (np.full(n_rows, self.learned_ticks), np.full(n_rows, self.covered))
+        if self.mode != Mode.LEARNING or not n_rows:
             return -1
         x = np.asarray(x, dtype=np.float64)
         b = bin_index(self.p, x)
@@ -279,6 +289,12 @@ class Baseline:
         np.add.at(self.sxy, b, phi * r[:, None])
         np.add.at(self.sy, b, r)
         np.add.at(self.n, b, 1)
+        learned, covered = np.zeros(n_rows, dtype=np.int64), np.zeros(n_rows, dtype=np.int64)
+        learned[pos[:end]], covered[pos[:end]] = ticks[:end], onehot_cum[:end]
+        self.progress = (
+            np.maximum.accumulate(np.maximum(learned, self.learned_ticks)),
+            np.maximum.accumulate(np.maximum(covered, self.covered)),
+        )
         self.covered = int(onehot_cum[end - 1])
         self.learned_ticks += end
         if self.started_t_s is None:

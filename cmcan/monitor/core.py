@@ -491,9 +491,20 @@ class Monitor:
             time_below_s=m.time_below_s,
             run_shift_s=self.run_shift_s,
             **{role: mean[role] for role in OPERATING_POINT},
-            baseline_state=0 if self.baseline is None else int(self.baseline.mode),
+            **self._baseline_fields(),
         )
         return self.last_tick
+
+    def _baseline_fields(self) -> dict[str, Any]:
+        bl = self.baseline
+        if bl is None:
+            return {}
+        return {
+            "baseline_state": int(bl.mode),
+            "baseline_learned_h": bl.learned_h,
+            "baseline_coverage_pct": bl.coverage_pct,
+            "baseline_distance_lpm": bl.distance_lpm,
+        }
 
     def _emit(self, k: int, tick: Tick) -> list[Frame]:
         """The output frames of an evaluated tick: CM frames, and DM1 where configured; frames for
@@ -641,44 +652,57 @@ class Monitor:
         pts = self.ratio.points(mean, count, gates)
         bl = self.baseline
         if bl is None:
-            self._filter_and_judge(ks, pts, mean, np.zeros(len(ks), dtype=np.int8), out)
+            self._filter_and_judge(ks, pts, mean, {}, out)
             return
-        split = len(ks)  # the stretch's ticks from here on are judged after the learning ended
+        n = len(ks)
+        split = n  # the stretch's ticks from here on are judged after the learning ended
+        mode_before, distance_before = bl.mode, bl.distance_lpm
+        learned, covered = np.full(n, bl.learned_ticks), np.full(n, bl.covered)
         if bl.mode == Mode.LEARNING:
             cand = np.flatnonzero(pts.gate == Gate.EVALUATING)
             if len(cand):
                 x = np.column_stack([mean[r][cand] for r in MODEL_INPUTS])
                 t_k = ks[cand].astype(np.float64) * self.period
                 k = bl.learn_columns(t_k, x, pts.measured[cand], pts.predicted[cand])
+                learned[cand], covered[cand] = bl.progress
+                learned, covered = np.maximum.accumulate(learned), np.maximum.accumulate(covered)
                 if k >= 0:
                     split = int(cand[k]) + 1
-        if split == len(ks):
+        # each tick's state and progress after it: the tick that ends the learning has the new state
+        state = np.full(n, int(mode_before), dtype=np.int8)
+        distance = np.full(n, distance_before)
+        state[split - 1 :], distance[split - 1 :] = int(bl.mode), bl.distance_lpm
+        learned_h, coverage = bl.progress_of(learned, covered)
+        cols = {
+            "baseline_state": state,
+            "baseline_learned_h": learned_h,
+            "baseline_coverage_pct": coverage,
+            "baseline_distance_lpm": distance,
+        }
+        if split == n:
             pts = self._corrected_columns(pts, mean) if bl.applies else pts
-            self._filter_and_judge(ks, pts, mean, np.full(len(ks), int(bl.mode), dtype=np.int8), out)
+            self._filter_and_judge(ks, pts, mean, cols, out)
             return
-        # the learning ended at tick split - 1 (judged on the type model, its state the new one)
-        state = np.full(split, int(Mode.LEARNING), dtype=np.int8)
-        state[-1] = int(bl.mode)
-        self._filter_and_judge(ks[:split], _take(pts, 0, split), _cut(mean, 0, split), state, out)
+        # the learning ended at tick split - 1, judged on the type model
+        self._filter_and_judge(ks[:split], _take(pts, 0, split), _cut(mean, 0, split), _cut(cols, 0, split), out)
         self._baseline_changed()
-        if split < len(ks):
-            rest, rest_mean = _take(pts, split, len(ks)), _cut(mean, split, len(ks))
+        if split < n:
+            rest, rest_mean = _take(pts, split, n), _cut(mean, split, n)
             rest = self._corrected_columns(rest, rest_mean) if bl.applies else rest
-            n = len(ks) - split
-            self._filter_and_judge(ks[split:], rest, rest_mean, np.full(n, int(bl.mode), dtype=np.int8), out)
+            self._filter_and_judge(ks[split:], rest, rest_mean, _cut(cols, split, n), out)
 
     def _filter_and_judge(
         self,
         ks: NDArray[np.int64],
         pts: Points,
         mean: Mapping[str, NDArray[np.float64]],
-        baseline_state: NDArray[np.int8],
+        baseline_cols: Mapping[str, NDArray[Any]],
         out: _Out,
     ) -> None:
         filt, filt_leak, valid = self.filter.add_columns(
             pts.ratio_raw_pct[pts.evaluated], pts.leak_lpm, pts.evaluated, len(ks)
         )
-        self._judge_columns(ks, pts, filt, filt_leak, valid, mean, baseline_state, out)
+        self._judge_columns(ks, pts, filt, filt_leak, valid, mean, baseline_cols, out)
 
     def _judge_columns(
         self,
@@ -688,7 +712,7 @@ class Monitor:
         filt_leak: NDArray[np.float64],
         valid: NDArray[np.bool_],
         mean: Mapping[str, NDArray[np.float64]],
-        baseline_state: NDArray[np.int8],
+        baseline_cols: Mapping[str, NDArray[Any]],
         out: _Out,
     ) -> None:
         """:meth:`_judge` and :meth:`_emit` at every tick of a stretch."""
@@ -724,7 +748,7 @@ class Monitor:
             time_below_s=w.time_below_s,
             run_shift_s=np.full(len(ks), self.run_shift_s),  # no clock step within a stretch
             **{role: mean[role] for role in OPERATING_POINT},
-            baseline_state=baseline_state,
+            **baseline_cols,
         )
         self.last_tick = ticks.tick(len(ks) - 1)
         for listener in self.listeners:
@@ -913,8 +937,8 @@ def _take(pts: Points, lo: int, hi: int) -> Points:
     )
 
 
-def _cut(mean: Mapping[str, NDArray[np.float64]], lo: int, hi: int) -> dict[str, NDArray[np.float64]]:
-    return {r: v[lo:hi] for r, v in mean.items()}
+def _cut(cols: Mapping[str, NDArray[Any]], lo: int, hi: int) -> dict[str, NDArray[Any]]:
+    return {r: v[lo:hi] for r, v in cols.items()}
 
 
 def _node_route(node: NodeParams | None, channels: Channels) -> tuple[NodeSlot | None, int]:

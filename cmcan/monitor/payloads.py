@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 
 from cmcan.codec import Layout, encode_all, frame_encoder
 from cmcan.frame import Frame, FrameColumns
+from cmcan.monitor.baseline import Mode
 from cmcan.monitor.gating import EVALUATED, Gate
 from cmcan.monitor.tick import Tick, TickColumns
 from cmcan.monitor.warnings import Level, Reason
@@ -31,6 +32,9 @@ RATIO_SPAN_PCT = (0.0, 200.0)
 # time_below_threshold_s in whole seconds: at least 18 h of a low episode (16 bits of seconds);
 # longer episodes may saturate at the signal's maximum.
 TIME_BELOW_SPAN_S = (0.0, 65535.0)
+# The hours the on-board baseline has learned: a learning that has not ended after this is a
+# configuration to look at, not a number to display exactly.
+BASELINE_LEARNED_SPAN_H = (0.0, 1000.0)
 # The output quantity in normal operation: up to the drive's nominal delivery (nominal pump speed at
 # full displacement, over V_M for motor speed) with this headroom (a load pulling the motor, a pump
 # above its nominal speed). The gate's plausible range is wider still: a bound for broken sensors,
@@ -82,6 +86,10 @@ def output_spans(
         "warning_reason": Span(0.0, float(max(Reason)), "every warning reason"),
         "time_below_threshold_s": Span(*TIME_BELOW_SPAN_S, "18 h of a low episode"),
         "warning_count": Span(0.0, WARNING_COUNT_MODULO - 1.0, f"a count modulo {WARNING_COUNT_MODULO}"),
+        "baseline_state": Span(0.0, float(max(Mode)), "every baseline state"),
+        "baseline_learned_h": Span(*BASELINE_LEARNED_SPAN_H, "a learning of up to 1000 h"),
+        "baseline_coverage_pct": Span(0.0, 100.0, "a share of the envelope"),
+        "baseline_distance_lpm": Span(-leak_max_lpm, leak_max_lpm, "up to the drive's nominal flow either way"),
     }
 
 
@@ -115,21 +123,23 @@ class Outputs:
     warning: OutputMessage
     channel: str = ""
     quantity_signals: tuple[str, str, str, str] = QUANTITY_SIGNALS[MOTOR_SPEED]
+    baseline: OutputMessage | None = None  # CM_BASELINE where the on-board baseline is configured
 
 
 class Payloads:
     """Builds the frames of each tick; keeps the alive counter and the last warning state sent."""
 
-    __slots__ = ("alive", "last_warning", "outputs")
+    __slots__ = ("alive", "last_baseline", "last_warning", "outputs")
 
     def __init__(self, outputs: Outputs) -> None:
         self.outputs = outputs
         self.alive = 0
         self.last_warning: tuple[int, int] | None = None
+        self.last_baseline = -1  # the baseline state last sent (CM_BASELINE goes at once on a change)
 
     def continue_from(self, old: Payloads) -> None:
         """Go on with the alive counter and warning state of the payloads this one replaces."""
-        self.alive, self.last_warning = old.alive, old.last_warning
+        self.alive, self.last_warning, self.last_baseline = old.alive, old.last_warning, old.last_baseline
 
     def _frame(self, t: float, msg: OutputMessage, values: Mapping[str, float]) -> Frame:
         return Frame(t, self.outputs.channel, msg.frame_id, msg.extended, False, False, False, msg.encode(values))
@@ -187,6 +197,10 @@ class Payloads:
                     },
                 )
             )
+        bm = o.baseline
+        if bm is not None and (tick.baseline_state != self.last_baseline or k % bm.every_ticks == 0):
+            self.last_baseline = tick.baseline_state
+            out.append(self._frame(tick.t_s, bm, _baseline_values(tick)))
         return out
 
     def frames_columns(self, ks: NDArray[np.int64], c: TickColumns, wcount: NDArray[np.int64]) -> FrameColumns:
@@ -200,6 +214,7 @@ class Payloads:
         prev = np.empty(len(ks), dtype=np.int64)
         prev[0] = -1 if self.last_warning is None else self.last_warning[0] * 256 + self.last_warning[1]
         prev[1:] = state[:-1]
+        prev_baseline = self.last_baseline
         self.skip_columns(ks, c)
         evaluated = np.isin(c.gate, _EVALUATED).astype(np.float64)
         valid = c.filt_valid
@@ -240,6 +255,8 @@ class Payloads:
                 },
             ),
         )
+        if o.baseline is not None:
+            parts = (*parts, _baseline_part(o.baseline, ks, c, prev_baseline))
         return self._interleave(c.t_s, parts)
 
     def skip_columns(self, ks: NDArray[np.int64], c: TickColumns) -> None:
@@ -247,13 +264,15 @@ class Payloads:
         is_ratio = ks % self.outputs.ratio.every_ticks == 0
         self.alive = int((self.alive + int(is_ratio.sum())) % ALIVE_MODULO)
         self.last_warning = (int(c.level[-1]), int(c.reason[-1]))
+        if self.outputs.baseline is not None:
+            self.last_baseline = int(c.baseline_state[-1])
 
     def _interleave(
         self, t_s: NDArray[np.float64], parts: tuple[tuple[NDArray[np.int64], NDArray[np.uint8]], ...]
     ) -> FrameColumns:
-        """Per tick its ratio, quantity and warning frames, in that order."""
+        """Per tick its ratio, quantity, warning and baseline frames, in that order."""
         o = self.outputs
-        msgs = (o.ratio, o.quantity, o.warning)
+        msgs = (o.ratio, o.quantity, o.warning, *((o.baseline,) if o.baseline is not None else ()))
         tick_of = np.concatenate([rows for rows, _ in parts])
         kind_of = np.concatenate([np.full(len(rows), k, dtype=np.int64) for k, (rows, _) in enumerate(parts)])
         data = np.zeros((len(tick_of), 8), dtype=np.uint8)
@@ -276,6 +295,34 @@ class Payloads:
             dlc=np.array([m.length for m in msgs], dtype=np.int16)[kind_of],
             data=data,
         )
+
+
+def _baseline_values(tick: Tick) -> dict[str, float]:
+    """CM_BASELINE's signals of one tick."""
+    return {
+        "baseline_state": float(tick.baseline_state),
+        "baseline_learned_h": min(tick.baseline_learned_h, BASELINE_LEARNED_SPAN_H[1]),
+        "baseline_coverage_pct": tick.baseline_coverage_pct,
+        "baseline_distance_lpm": tick.baseline_distance_lpm,
+    }
+
+
+def _baseline_part(
+    msg: OutputMessage, ks: NDArray[np.int64], c: TickColumns, prev_state: int
+) -> tuple[NDArray[np.int64], NDArray[np.uint8]]:
+    """CM_BASELINE of a stretch of ticks: on each change of state (``prev_state``: the one last sent)
+    and every ``every_ticks``, as :meth:`Payloads.frames` sends it tick after tick."""
+    state = c.baseline_state.astype(np.int64)
+    prev = np.empty(len(ks), dtype=np.int64)
+    prev[0] = prev_state
+    prev[1:] = state[:-1]
+    values = {
+        "baseline_state": state.astype(np.float64),
+        "baseline_learned_h": np.minimum(c.baseline_learned_h, BASELINE_LEARNED_SPAN_H[1]),
+        "baseline_coverage_pct": c.baseline_coverage_pct,
+        "baseline_distance_lpm": c.baseline_distance_lpm,
+    }
+    return _encode(msg, np.flatnonzero((state != prev) | (ks % msg.every_ticks == 0)), values)
 
 
 def _encode(

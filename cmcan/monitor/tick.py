@@ -22,6 +22,8 @@ from cmcan.roles import MODEL_INPUTS
 
 # A tick's operating point: the model's inputs, each a field of :class:`Tick` under its role's name
 OPERATING_POINT: tuple[str, ...] = MODEL_INPUTS
+# The on-board baseline's progress on every tick: hours learned, envelope covered, distance from the type
+BASELINE_PROGRESS = ("baseline_learned_h", "baseline_coverage_pct", "baseline_distance_lpm")
 LEVEL_NAMES = {Level.OK: "ok", Level.LOW: "low", Level.HIGH: "high", Level.FAULT: "fault"}
 
 
@@ -48,7 +50,11 @@ class Tick:
     pump_disp_cc: float = math.nan
     dp_bar: float = math.nan
     temp_c: float = math.nan
-    baseline_state: int = 0  # the on-board baseline: 0 none configured, else cmcan.monitor.baseline.Mode
+    # the on-board baseline (cmcan.monitor.baseline): 0 none configured, else its Mode; its progress
+    baseline_state: int = 0
+    baseline_learned_h: float = 0.0
+    baseline_coverage_pct: float = 0.0
+    baseline_distance_lpm: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -76,10 +82,16 @@ class TickColumns:
     dp_bar: NDArray[np.float64] = None  # type: ignore[assignment]
     temp_c: NDArray[np.float64] = None  # type: ignore[assignment]
     baseline_state: NDArray[np.int8] = None  # type: ignore[assignment]
+    baseline_learned_h: NDArray[np.float64] = None  # type: ignore[assignment]
+    baseline_coverage_pct: NDArray[np.float64] = None  # type: ignore[assignment]
+    baseline_distance_lpm: NDArray[np.float64] = None  # type: ignore[assignment]
 
     def __post_init__(self) -> None:
         if self.baseline_state is None:
             object.__setattr__(self, "baseline_state", np.zeros(len(self.t_s), dtype=np.int8))
+        for name in BASELINE_PROGRESS:
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, np.zeros(len(self.t_s)))
         if self.run_shift_s is None:
             object.__setattr__(self, "run_shift_s", np.zeros(len(self.t_s)))
         for name in OPERATING_POINT:
@@ -112,6 +124,7 @@ class TickColumns:
             run_shift_s=float(self.run_shift_s[i]),
             **{name: float(getattr(self, name)[i]) for name in OPERATING_POINT},
             baseline_state=int(self.baseline_state[i]),
+            **{name: float(getattr(self, name)[i]) for name in BASELINE_PROGRESS},
         )
 
     @classmethod
@@ -135,6 +148,7 @@ class TickColumns:
             run_shift_s=col("run_shift_s", np.float64),
             **{name: col(name, np.float64) for name in OPERATING_POINT},
             baseline_state=col("baseline_state", np.int8),
+            **{name: col(name, np.float64) for name in BASELINE_PROGRESS},
         )
 
     @classmethod

@@ -13,6 +13,7 @@ import logging
 from collections.abc import Callable
 from typing import Any
 
+from cmcan.monitor.baseline import MODE_NAMES, Mode
 from cmcan.monitor.tick import Tick, TickColumns
 from cmcan.ratelog import RateLimitedLog
 from cmcan.uplink.config import UplinkSettings
@@ -20,9 +21,11 @@ from cmcan.uplink.records import (
     Cumulative,
     SummaryBuilder,
     TickSample,
+    baseline_entry,
     claim_entry,
     clear_entry,
     new_history,
+    num,
     transition_entry,
 )
 from cmcan.uplink.writer import OutboxWriter
@@ -42,6 +45,7 @@ class UplinkFeed:
         clears = monitor.totals.dtc_clears
         self._last_clear = clears[-1] if clears else None  # so are DM3/DM11 clears
         self._last_claim: Any = None  # the J1939 claim's events: all of them are news (it starts with the daemon)
+        self._baseline_state: str | None = None  # the baseline state of the last tick (None: none yet)
         self.summaries = SummaryBuilder(
             summary_every_s, self._cumulative(monitor, {}), quantity=monitor.params.output_role
         )
@@ -71,6 +75,11 @@ class UplinkFeed:
                     leak = sample.extra_leak_lpm if h["t_s"] == sample.t_s else None
                     entries.append(transition_entry(h, tot.warning_count, tot.fault_count, leak))
             entries += self._node_entries(monitor)
+            b = sample.baseline
+            if b is not None and b["state"] != self._baseline_state:
+                if self._baseline_state is not None:  # a change, not the daemon's first tick
+                    entries.append(baseline_entry(sample.t_s, self._baseline_state, b))
+                self._baseline_state = b["state"]
             for e in entries:
                 self.writer.submit(e)
         except Exception:  # the uplink must never take the daemon down
@@ -143,4 +152,16 @@ def _sample(tick: Any) -> TickSample:
         measured=tick.measured,
         predicted=tick.predicted,
         whitebox=tick.whitebox,
+        baseline=_baseline(tick),
     )
+
+
+def _baseline(tick: Any) -> dict[str, Any] | None:
+    if not tick.baseline_state:
+        return None
+    return {
+        "state": MODE_NAMES[Mode(tick.baseline_state)],
+        "learned_h": num(tick.baseline_learned_h, 4),
+        "coverage_pct": num(tick.baseline_coverage_pct, 2),
+        "distance_lpm": num(tick.baseline_distance_lpm, 4),
+    }

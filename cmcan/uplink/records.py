@@ -53,6 +53,8 @@ class TickSample:
     measured: float
     predicted: float
     whitebox: float
+    # the on-board baseline where configured: state, learned_h, coverage_pct, distance_lpm
+    baseline: dict[str, Any] | None = None
 
 
 @dataclass(frozen=True)
@@ -100,6 +102,11 @@ def transition_entry(
             "fault_count": int(fault_count),
         },
     )
+
+
+def baseline_entry(t_s: float, before: str | None, baseline: dict[str, Any]) -> Entry:
+    """The on-board baseline changed state (learning ended, a suspect machine, a reset)."""
+    return Entry(EVENT, float(t_s), {"type": "baseline_change", "from": before, **baseline})
 
 
 def clear_entry(c: dict[str, Any]) -> Entry:
@@ -281,6 +288,8 @@ class SummaryBuilder:
             "counters": counters,
             "counters_total": dict(b.counters),
         }
+        if w.last.baseline is not None:
+            body["baseline"] = w.last.baseline
         return Entry(SUMMARY, w.last_t_s, body)
 
 
