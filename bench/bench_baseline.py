@@ -106,11 +106,19 @@ def fleet_spec(args: argparse.Namespace) -> Any:
 
 
 def fleet(cache: Path, spec: Any) -> Path:
-    """The fleet of ``spec`` under ``cache`` (written once: a folder per spec, renamed into place)."""
+    """The fleet of ``spec`` under ``cache`` (written once: a folder per spec and per shipped DBC and
+    configuration, which the fleet copies, renamed into place)."""
+    from cmcan import __version__
+    from cmcan.config import default_config_path
+    from cmcan.dbc import default_dbc_path
     from cmcan.fleet.simfleet import write_fleet
     from cmcan.sim.fleet import spec_record
 
-    key = hashlib.sha256(json.dumps(spec_record(spec), sort_keys=True, default=str).encode()).hexdigest()[:10]
+    h = hashlib.sha256(json.dumps(spec_record(spec), sort_keys=True, default=str).encode())
+    h.update(__version__.encode())
+    for shipped in (default_dbc_path(), default_config_path()):
+        h.update(shipped.read_bytes())
+    key = h.hexdigest()[:10]
     out = cache / f"baseline-{spec.machines}x{spec.hours:g}h-s{spec.seed}-{key}"
     if (out / "truth.json").exists():
         return out
