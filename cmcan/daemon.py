@@ -40,6 +40,7 @@ from cmcan.config import ChannelConfig, Config
 from cmcan.errors import CmcanError
 from cmcan.frame import Frame, from_message, to_message_kwargs
 from cmcan.j1939 import ids, transport
+from cmcan.monitor.baseline import MODE_NAMES, Mode
 from cmcan.monitor.clock import STEP_BACK_S
 from cmcan.monitor.core import Monitor
 from cmcan.monitor.inputs import InputMessage
@@ -87,6 +88,7 @@ class _LoopState:
     saved_ticks: int = -1
     last_rx_wall: float | None = None  # when the last frame arrived
     last_frame_t: float = math.nan  # and its timestamp
+    baseline_state: str | None = None  # the on-board baseline's state last said
 
 
 @dataclass
@@ -335,11 +337,43 @@ class Daemon:
             self.notifier.status(self._status_text())
             st.next_status = now + self.opt.status_every_s
         ticks = self.monitor.n_ticks
+        changed = self._baseline_news()
         if self.store is not None and (
-            self.monitor.transitions_since_save or (now - st.last_save >= self.save_every_s and ticks != st.saved_ticks)
+            changed
+            or self.monitor.transitions_since_save
+            or (now - st.last_save >= self.save_every_s and ticks != st.saved_ticks)
         ):
             self._save()
             st.last_save, st.saved_ticks = now, ticks
+
+    def _baseline_news(self) -> bool:
+        """Say a change of the on-board baseline's state in the journal (a suspect machine as a
+        warning, with by how much); True on a change, which is saved at once."""
+        bl = self.monitor.baseline
+        state = None if bl is None else MODE_NAMES[bl.mode]
+        before, self.loop.baseline_state = self.loop.baseline_state, state
+        if bl is None or state == before:
+            return False
+        if bl.mode == Mode.SUSPECT:
+            log.warning(
+                "baseline_suspect: this machine lies %+.2f l/min from its type model (units of the type differ by up "
+                "to %.2f l/min): the type model stays its reference; check the drive for a leak or a sensor",
+                bl.distance_lpm,
+                bl.p.suspect_lpm,
+            )
+        elif bl.mode == Mode.MONITORING:
+            log.info(
+                "baseline learned (%.2f h, %.0f %% of the envelope): monitoring against the machine's own baseline, "
+                "%+.2f l/min from its type model",
+                bl.learned_h,
+                bl.coverage_pct,
+                bl.distance_lpm,
+            )
+        else:
+            log.info(
+                "baseline learning (%.2f h learned, %.0f %% of the envelope covered)", bl.learned_h, bl.coverage_pct
+            )
+        return before is not None
 
     def _until_watchdog(self, now: float) -> float:
         """No wait lasts past the next watchdog ping, whatever the links do."""
