@@ -5,6 +5,7 @@ its imports and definitions but not its ``main``; ``--help`` is run as a process
 from __future__ import annotations
 
 import importlib.util
+import json
 import subprocess
 import sys
 
@@ -31,3 +32,19 @@ def test_a_benchmark_imports_and_says_how_to_run_it(path):
         del sys.modules[spec.name]
     r = subprocess.run([sys.executable, str(path), "--help"], capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert r.returncode == 0 and "usage" in r.stdout.lower(), r.stderr
+
+
+def test_the_baseline_benchmark_runs_in_its_quick_mode(tmp_path):
+    """bench_baseline.py end to end on a tiny fleet (4 machines x 20 h): the fleet written to its cache,
+    every arm the monitor has replayed, the table and the fit's cost printed."""
+    path = ROOT / "bench" / "bench_baseline.py"
+    r = subprocess.run(
+        [sys.executable, str(path), "--quick", "--cache", str(tmp_path), "--json", str(tmp_path / "b.json")],
+        capture_output=True, text=True, timeout=300, cwd=ROOT,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr[-2000:]
+    for line in ("false low warnings /100 h, healthy", "arriving leaks flagged", "on-board fit cost", "Baseline.learn"):
+        assert line in r.stdout, r.stdout
+    doc = json.loads((tmp_path / "b.json").read_text())
+    assert doc["spec"]["machines"] == 4 and {"type", "engineer"} <= set(doc["arms"])
+    assert len(doc["machines"]) == 4 and doc["learning_cost"]["ticks"] > 0

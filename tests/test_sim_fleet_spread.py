@@ -290,3 +290,21 @@ def test_cli_writes_a_varied_fleet_of_one_type(tmp_path):
     assert not leaky["degrading"] and 5.0 <= leaky["unit"]["arriving_leak_lpm"] / 156.0 * 100 <= 6.0
     assert all(m["unit"]["motor_disp_cc"] != m["motor_disp_cc"] for m in truth["machines"])
     assert sorted(p.name for p in (out / "types").iterdir()) == ["mid"]
+
+
+def test_degradations_and_their_earliest_onset_are_options_that_move_no_draw():
+    spec = sf.FleetSpec(machines=9, hours=150, seed=4, types=("mid",), degrading_share=1 / 3)
+    plain = sf.plan_fleet(spec)
+    late = sf.plan_fleet(replace(spec, degradations=("motor_wear", "pump_wear"), onset_min_h=60.0))
+    assert [p.degrading for p in plain] == [p.degrading for p in late]
+    kinds = [p.truth["degradation"] for p in late if p.degrading]
+    assert kinds == ["motor_wear", "pump_wear", "motor_wear"]
+    for a, b in zip(plain, late, strict=True):
+        assert a.scenario.seed == b.scenario.seed and a.truth["duty"] == b.truth["duty"]
+        for ea, eb in zip(a.truth["events"], b.truth["events"], strict=True):
+            assert eb["fail_h"] == ea["fail_h"] and eb["start_h"] == max(ea["start_h"], 60.0)
+    rec = sf.spec_record(replace(spec, onset_min_h=60.0))
+    assert rec["onset_min_h"] == 60.0 and "degradations" not in rec
+    for bad in ({"degradations": ()}, {"degradations": ("rust",)}, {"onset_min_h": -1.0}, {"onset_min_h": 104.0}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            replace(spec, **bad).check()

@@ -268,6 +268,11 @@ class FleetSpec:
     # 8 % stands well clear of it and well below a worn unit's loss of function (25 %).
     arriving_leaks: int = 0
     arriving_leak_pct: tuple[float, float] = (4.0, 8.0)
+    # The faults degrading machines develop, in turn (of DEGRADATIONS), and the operating hour before
+    # which none starts (a fleet whose machines first learn a baseline: the fault comes after it). A
+    # later onset only shortens the fault's span: the draws, the failure hours, stay as they were.
+    degradations: tuple[str, ...] = ("motor_wear", "pump_wear", "misposition")
+    onset_min_h: float = 0.0
 
     @property
     def type_names(self) -> tuple[str, ...]:
@@ -302,6 +307,16 @@ class FleetSpec:
                 f"arriving leaks must be between 0 and the {healthy} healthy machines, got {self.arriving_leaks}"
             )
         _check_range("arriving leak", self.arriving_leak_pct, 0.1, 50.0, "% of rated flow")
+        unknown = [k for k in self.degradations if k not in DEGRADATIONS]
+        if not self.degradations or unknown:
+            raise ValueError(f"degradations must name at least one of {', '.join(DEGRADATIONS)}, got {unknown}")
+        # failures fall in 0.70 .. 0.92 of the hours (_degradation): the onset must leave a span
+        latest = FAIL_FROM_SHARE * self.hours - MIN_SPAN_H
+        if not (math.isfinite(self.onset_min_h) and 0.0 <= self.onset_min_h <= latest):
+            raise ValueError(
+                f"onset_min_h must be between 0 and {latest:g} h ({FAIL_FROM_SHARE:g} of the hours less "
+                f"{MIN_SPAN_H:g} h), got {self.onset_min_h}"
+            )
 
     def _check_types(self) -> None:
         if self.types is None:
@@ -320,7 +335,16 @@ def _check_range(what: str, lo_hi: tuple[float, float], lo: float, hi: float, un
 
 # Fields that came with unit-to-unit variation: the sidecar states them only when they are not at
 # their defaults, so a fleet without them is written as before, byte for byte.
-_NEW_SPEC_FIELDS = ("types", "oil_temp_c", "oil_swing_c", "spread", "arriving_leaks", "arriving_leak_pct")
+_NEW_SPEC_FIELDS = (
+    "types",
+    "oil_temp_c",
+    "oil_swing_c",
+    "spread",
+    "arriving_leaks",
+    "arriving_leak_pct",
+    "degradations",
+    "onset_min_h",
+)
 
 
 def spec_record(spec: FleetSpec) -> dict[str, Any]:
@@ -342,11 +366,14 @@ class MachinePlan:
         return self.scenario.start_epoch_s
 
 
-def _degradation(kind: str, t: MachineType, hours: float, rng: np.random.Generator) -> list[dict[str, Any]]:
-    """One fault developing over the machine's hours, failing in the last third of them."""
-    fail_h = round(float(hours * rng.uniform(0.70, 0.92)), 2)
+def _degradation(
+    kind: str, t: MachineType, hours: float, rng: np.random.Generator, onset_min_h: float = 0.0
+) -> list[dict[str, Any]]:
+    """One fault developing over the machine's hours, failing in the last third of them, starting no
+    earlier than ``onset_min_h`` (the same draws whatever it is)."""
+    fail_h = round(float(hours * rng.uniform(FAIL_FROM_SHARE, 0.92)), 2)
     span = float(min(fail_h * 0.8, hours * rng.uniform(0.30, 0.45)))
-    start_h = round(fail_h - span, 2)
+    start_h = max(round(fail_h - span, 2), onset_min_h)
     if kind == "misposition":  # the displacement control drifts (ratio goes up)
         return [
             {
@@ -370,6 +397,8 @@ def _degradation(kind: str, t: MachineType, hours: float, rng: np.random.Generat
 
 
 DEGRADATIONS = ("motor_wear", "pump_wear", "misposition")
+FAIL_FROM_SHARE = 0.70  # a degrading machine fails after this share of its hours
+MIN_SPAN_H = 2.0  # onset_min_h leaves a fault at least this long to develop
 
 
 def plan_fleet(spec: FleetSpec) -> list[MachinePlan]:
@@ -395,9 +424,9 @@ def plan_fleet(spec: FleetSpec) -> list[MachinePlan]:
         events: list[dict[str, Any]] = []
         kind = None
         if i in degrading:
-            kind = DEGRADATIONS[k_deg % len(DEGRADATIONS)]
+            kind = spec.degradations[k_deg % len(spec.degradations)]
             k_deg += 1
-            events = _degradation(kind, mt, spec.hours, rng)
+            events = _degradation(kind, mt, spec.hours, rng, spec.onset_min_h)
         leak = f", arriving with a {unit.arriving_leak_lpm:g} l/min leak" if unit and unit.arriving_leak_lpm else ""
         raw = {
             "name": f"fleet_{name}",
