@@ -43,7 +43,7 @@ learning stage alone (the configuration's baseline parameters, with the gateway'
 fed that machine's evaluated ticks (operating point, measured and type prediction, as the type arm
 computed them) one at a time as the gateway's receive path does (:meth:`Baseline.learn`), cycled until
 the learning ends or ``--cost-ticks`` ticks, and the same ticks as columns
-(:meth:`Baseline.learn_columns`, the replay's path): CPU seconds, microseconds per tick, what that
+(:meth:`Baseline.run_columns`, the replay's path): CPU seconds, microseconds per tick, what that
 makes for ``min_hours`` of a gateway's learned ticks, peak memory (tracemalloc) and the state's size.
 Then the receive path: the first ``--cost-frames`` frames of that machine's first log frame by frame
 (``Monitor.feed``, the daemon's path) with and without the baseline configured (the section above: it
@@ -342,7 +342,9 @@ def learning_cost(params: Any, ev: dict[str, np.ndarray], max_ticks: int) -> dic
         return out
     period = params.period_s
     # the ticks on a gateway's time base: one after another, each a tick period on (cycles follow on)
-    rows = [(ev["x"][i], float(ev["measured"][i]), float(ev["predicted"][i])) for i in range(n)]
+    rows = [
+        (tuple(float(v) for v in ev["x"][i]), float(ev["measured"][i]), float(ev["predicted"][i])) for i in range(n)
+    ]
 
     tracemalloc.start()
     base = tracemalloc.get_traced_memory()[0]
@@ -350,10 +352,12 @@ def learning_cost(params: Any, ev: dict[str, np.ndarray], max_ticks: int) -> dic
     bl = Baseline(params)
     k = 0
     ended = False
-    while k < max_ticks and not ended:
+    while k < max_ticks and not ended:  # as the daemon's core: the tick's start, then its point
         x, mv, pv = rows[k % n]
-        ended = bl.learn(k * period, x, mv, pv)
-        k += 1
+        ended = bl.tick(k, k * period)
+        if not ended:
+            bl.add(k * period, x, mv, pv)
+            k += 1
     per_tick_cpu = time.process_time() - cpu
     peak = tracemalloc.get_traced_memory()[1] - base
     tracemalloc.stop()
@@ -376,11 +380,16 @@ def learning_cost(params: Any, ev: dict[str, np.ndarray], max_ticks: int) -> dic
     bc = Baseline(params)
     t = np.arange(reps * n) * period
     x = np.tile(ev["x"], (reps, 1))
-    end = bc.learn_columns(t[:k], x[:k], np.tile(ev["measured"], reps)[:k], np.tile(ev["predicted"], reps)[:k])
+    ks = np.arange(k + 1, dtype=np.int64)  # and the tick that checks the last block
+    t = np.append(t[:k], k * period)
+    split, _, _ = bc.run_columns(
+        ks, t, np.arange(k), x[:k], np.tile(ev["measured"], reps)[:k], np.tile(ev["predicted"], reps)[:k]
+    )
+    end = split if split <= k else -1
     out["columns_cpu_s"] = time.process_time() - cpu
     out["columns_peak_b"] = tracemalloc.get_traced_memory()[1] - base
     tracemalloc.stop()
-    out["columns_same"] = bool(bc.theta == bl.theta and bc.mode == bl.mode and (end >= 0) == ended)
+    out["columns_same"] = bool(bc.theta == bl.theta and bc.mode == bl.mode and (end == k) == ended)
     return out
 
 
@@ -571,7 +580,7 @@ def print_cost(lc: dict[str, Any], rc: dict[str, Any] | None, params_note: str) 
             f"{lc['gateway_ticks'] * lc['cpu_s'] / lc['ticks']:.1f} CPU s"
         )
         print(
-            f"  the same as columns (Baseline.learn_columns): {lc['columns_cpu_s']:.3f} CPU s, "
+            f"  the same as columns (Baseline.run_columns): {lc['columns_cpu_s']:.3f} CPU s, "
             f"peak {lc['columns_peak_b'] / 1e6:.2f} MB, same result: {lc['columns_same']}"
         )
     if rc is not None:

@@ -729,6 +729,7 @@ def baseline_params(cfg: Config, model: GrayBoxModel) -> BaselineParams | None:
         period_s=1.0 / cfg.rate_hz,
         oil=cfg.oil,
         learning_thresholds=replace(cfg.thresholds, low_pct=b.learning_low_pct, high_pct=b.learning_high_pct),
+        block_ticks=max(1, round(b.check_every_s * cfg.rate_hz)),
     )
 
 

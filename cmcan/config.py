@@ -122,8 +122,10 @@ _BASELINE = Obj(
             rule=_edges_rule,
         ),
         "min_points": Num(1, 10_000_000, "ticks", default=100, integer=True),
-        "coverage_pct": Num(1, 100, "%", default=70.0),
+        "coverage_pct": Num(1, 100, "%", default=20.0),
         "min_hours": Num(0, 10000, "h", default=2.0),
+        # the learning's end is checked this often (tick time): the receive path folds rows in per check
+        "check_every_s": Num(0.1, 3600, "s", default=60.0),
         # a covered bin's mean residual further than this from the type model: baseline_suspect;
         # default: suspect_sigmas x the type's unit-to-unit spread in its metadata, else 2 % of nominal flow
         "suspect_lpm": Num(0.01, 10000, "l/min", default=None),
@@ -452,8 +454,9 @@ class BaselineConfig:
     enabled: bool = False
     edges: dict[str, tuple[float, ...]] = field(default_factory=dict)
     min_points: int = 100
-    coverage_pct: float = 70.0
+    coverage_pct: float = 20.0
     min_hours: float = 2.0
+    check_every_s: float = 60.0
     suspect_lpm: float | None = None
     suspect_sigmas: float = 4.0
     learning_low_pct: float = 95.0

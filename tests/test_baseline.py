@@ -32,6 +32,7 @@ def params(**kw) -> BaselineParams:
         suspect_lpm=3.0,
         lpm_per_unit=1.0,
         period_s=0.1,
+        block_ticks=100,
     )
     return BaselineParams(**{**base, **kw})
 

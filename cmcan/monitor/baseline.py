@@ -84,7 +84,7 @@ class BaselineParams:
     ref_dp_bar: float = 300.0
     ref_temp_c: float = 50.0
     ridge: float = 1e-3  # relative to the mean diagonal: keeps an unexcited term near the type model
-    block_ticks: int = 100  # the learning's end is checked once per block of this many ticks (10 s)
+    block_ticks: int = 600  # the learning's end is checked once per block of this many ticks (a minute)
     # the warning thresholds while the type model judges alone (learning, suspect): wider
     learning_thresholds: Thresholds | None = None
 

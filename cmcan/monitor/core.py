@@ -203,6 +203,8 @@ class Monitor:
         self.run_shift_s = 0.0
         # the machine's own baseline where configured (:mod:`.baseline`); why it restarted, if it did
         self.baseline, self.baseline_note = _baseline_from(baseline, self.totals.baseline)
+        self._baseline_key: tuple[Any, ...] | None = None  # what the tick fields below were made of
+        self._baseline_tick: dict[str, Any] = {}
         level, reason = _CONDITION[self.totals.condition]
         self.machine = WarningMachine(self._thresholds(), condition=level, condition_reason=reason)
         n = p.filter_samples
@@ -494,16 +496,21 @@ class Monitor:
         return self.last_tick
 
     def _baseline_fields(self) -> dict[str, Any]:
+        """The baseline's fields of a tick: made again only when they change (once per block at most)."""
         bl = self.baseline
         if bl is None:
             return {}
-        learned_h, coverage = bl.shown_progress
-        return {
-            "baseline_state": int(bl.mode),
-            "baseline_learned_h": learned_h,
-            "baseline_coverage_pct": coverage,
-            "baseline_distance_lpm": bl.distance_lpm,
-        }
+        key = (bl.mode, bl.shown, bl.distance_lpm)
+        if key != self._baseline_key:
+            learned_h, coverage = bl.shown_progress
+            self._baseline_key = key
+            self._baseline_tick = {
+                "baseline_state": int(bl.mode),
+                "baseline_learned_h": learned_h,
+                "baseline_coverage_pct": coverage,
+                "baseline_distance_lpm": bl.distance_lpm,
+            }
+        return self._baseline_tick
 
     def _emit(self, k: int, tick: Tick) -> list[Frame]:
         """The output frames of an evaluated tick: CM frames, and DM1 where configured; frames for
