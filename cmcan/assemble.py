@@ -33,6 +33,7 @@ from cmcan.monitor.health import HealthSpec
 from cmcan.monitor.inputs import MEMO_MAX, Channels, InputMessage, Matcher, overlap
 from cmcan.monitor.node import NodeParams
 from cmcan.monitor.payloads import OutputMessage, Outputs, output_span, output_spans
+from cmcan.monitor.prognosis import PrognosisParams
 from cmcan.monitor.totals import Totals
 from cmcan.monitor.windows import Affine, DpFromHighLow, dp_affine, role_affine
 from cmcan.roles import (
@@ -686,6 +687,24 @@ def build_monitor(
         own_address=cfg.j1939.source_address if cfg.j1939.enabled else None,
         node=node_params(cfg, db),
         baseline=baseline_params(cfg, model),
+        prognosis=prognosis_params(cfg),
+    )
+
+
+def prognosis_params(cfg: Config) -> PrognosisParams | None:
+    """The prognosis where the configuration enables it, on the warning's threshold and the oil."""
+    p = cfg.prognosis
+    if not p.enabled:
+        return None
+    return PrognosisParams(
+        low_pct=cfg.thresholds.low_pct,
+        eol_kind=p.eol_kind,
+        eol_value=p.eol_value,
+        imminent_h=p.imminent_h,
+        dp_ref_bar=p.ref_dp_bar,
+        temp_ref_c=p.ref_temp_c,
+        oil=cfg.oil,
+        estimate_every_h=p.estimate_every_h,
     )
 
 

@@ -108,6 +108,35 @@ def _baseline_rule(b: dict[str, Any]) -> tuple[str, str] | None:
     return None
 
 
+def _prognosis_rule(p: dict[str, Any]) -> tuple[str, str] | None:
+    kind, value = p["end_of_life"]["kind"], p["end_of_life"]["value"]
+    if kind == "ratio_pct" and not 50.0 <= value < 100.0:
+        return "end_of_life", f"a ratio end of life must lie in [50, 100) %, got {value:g}"
+    return None
+
+
+# The prognosis: operating hours to the low warning and to end of life (cmcan.monitor.prognosis;
+# docs/prognosis.md). End of life: 10 % of the flow lost (ratio 90 %) unless the machine's is known.
+_PROGNOSIS = Obj(
+    {
+        "enabled": Bool(default=False),
+        "end_of_life": Obj(
+            {
+                "kind": Str(default="ratio_pct", choices=("ratio_pct", "leak_lpm")),
+                "value": Num(0.01, 10000, "(% or l/min at the reference conditions)", default=90.0),
+            },
+            default={},
+        ),
+        "ref_dp_bar": Num(10, 1000, "bar", default=480.0),  # the extra leakage is referred to these
+        "ref_temp_c": Num(-20, 150, "C", default=60.0),
+        "imminent_h": Num(0, 100000, "h", default=24.0),
+        "estimate_every_h": Num(0.01, 100, "h", default=0.5),
+    },
+    default={},
+    rule=_prognosis_rule,
+)
+
+
 # The machine's own baseline, learned on board (cmcan.monitor.baseline; docs/commissioning.md).
 _BASELINE = Obj(
     {
@@ -260,6 +289,7 @@ _CONFIG = Obj(
         ),
         "uplink": UPLINK,  # validated by cmcan.uplink.config, disabled by default
         "baseline": _BASELINE,
+        "prognosis": _PROGNOSIS,
     },
     rule=_config_rule,
 )
@@ -464,6 +494,19 @@ class BaselineConfig:
 
 
 @dataclass(frozen=True)
+class PrognosisConfig:
+    """The ``prognosis`` section (docs/prognosis.md)."""
+
+    enabled: bool = False
+    eol_kind: str = "ratio_pct"
+    eol_value: float = 90.0
+    ref_dp_bar: float = 480.0
+    ref_temp_c: float = 60.0
+    imminent_h: float = 24.0
+    estimate_every_h: float = 0.5
+
+
+@dataclass(frozen=True)
 class FilterConfig:
     samples: int
     min_samples: int
@@ -588,6 +631,7 @@ class Config:
     input_health: HealthConfig = field(default_factory=HealthConfig)
     j1939: J1939Config = field(default_factory=J1939Config)
     baseline: BaselineConfig = field(default_factory=BaselineConfig)
+    prognosis: PrognosisConfig = field(default_factory=PrognosisConfig)
 
     def output_items(self) -> list[tuple[str, OutputMessageConfig]]:
         """The output messages this machine sends (:meth:`OutputsConfig.items`)."""
@@ -722,8 +766,15 @@ def from_dict(data: Any, source: str, base_dir: Path) -> Config:
         uplink=UplinkSettings.from_raw(raw["uplink"], state_dir, base_dir, source),
         points=_points(raw, drive, source),
         baseline=_baseline(raw["baseline"]),
+        prognosis=_prognosis(raw["prognosis"]),
     )
     return _with_bus_sections(cfg, raw, source)
+
+
+def _prognosis(p: dict[str, Any]) -> PrognosisConfig:
+    eol = p["end_of_life"]
+    rest = {k: v for k, v in p.items() if k != "end_of_life"}
+    return PrognosisConfig(**rest, eol_kind=eol["kind"], eol_value=float(eol["value"]))
 
 
 def _baseline(b: dict[str, Any]) -> BaselineConfig:

@@ -57,6 +57,11 @@ EMPTY: dict[str, dict[str, str]] = {
         "baseline_learned_h": _F,
         "baseline_coverage_pct": _F,
         "baseline_distance_lpm": _F,
+        "prognosis_state": _I,
+        "prognosis_to_low_h": _F,
+        "prognosis_to_eol_p10_h": _F,
+        "prognosis_to_eol_p50_h": _F,
+        "prognosis_to_eol_p90_h": _F,
         **_PROV,
     },
     "events": {

@@ -48,6 +48,7 @@ paths give the same ticks, frames and state, bit for bit.
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
@@ -67,6 +68,7 @@ from cmcan.monitor.health import NOT_AVAILABLE, OK, OUT_OF_RANGE, Health, Stream
 from cmcan.monitor.inputs import NODE, Channels, InputMessage, Router, payload_rows
 from cmcan.monitor.node import Clear, Node, NodeParams
 from cmcan.monitor.payloads import Outputs, Payloads
+from cmcan.monitor.prognosis import PrognosisParams, Stage
 from cmcan.monitor.ratio import Point, Points, Predictor, Ratio
 from cmcan.monitor.release import OutputQueue
 from cmcan.monitor.tick import LEVEL_NAMES, OPERATING_POINT, Tick, TickColumns, TickListener
@@ -167,6 +169,7 @@ class Monitor:
         own_address: int | None = None,
         node: NodeParams | None = None,
         baseline: BaselineParams | None = None,
+        prognosis: PrognosisParams | None = None,
     ) -> None:
         p = self.params = params
         self.inputs = tuple(inputs)
@@ -201,10 +204,7 @@ class Monitor:
         # The wall clock's steps undone: frame time t is ``t + run_shift_s`` on the run's own continuous
         # time base (a clock correction is no time the machine ran), which operating hours count on.
         self.run_shift_s = 0.0
-        # the machine's own baseline where configured (:mod:`.baseline`); why it restarted, if it did
-        self.baseline, self.baseline_note = _baseline_from(baseline, self.totals.baseline)
-        self._baseline_key: tuple[Any, ...] | None = None  # what the tick fields below were made of
-        self._baseline_tick: dict[str, Any] = {}
+        self._stages(baseline, prognosis)
         level, reason = _CONDITION[self.totals.condition]
         self.machine = WarningMachine(self._thresholds(), condition=level, condition_reason=reason)
         n = p.filter_samples
@@ -402,6 +402,15 @@ class Monitor:
 
     # -- the on-board baseline ---------------------------------------------------------------------
 
+    def _stages(self, baseline: BaselineParams | None, prognosis: PrognosisParams | None) -> None:
+        """The stages a configuration may add, their state from the totals."""
+        # the machine's own baseline where configured (:mod:`.baseline`); why it restarted, if it did
+        self.baseline, self.baseline_note = _baseline_from(baseline, self.totals.baseline)
+        self._baseline_key: tuple[Any, ...] | None = None  # what the tick fields below were made of
+        self._baseline_tick: dict[str, Any] = {}
+        # the prognosis where configured (:mod:`.prognosis`), its history from the totals
+        self.prognosis = Stage(prognosis, self.totals.prognosis) if prognosis is not None else None
+
     def _thresholds(self) -> Thresholds:
         """The warning thresholds now: wider while the type model judges a machine still learning."""
         bl = self.baseline
@@ -413,6 +422,8 @@ class Monitor:
         """The reference changed (learning ended, or a reset): the thresholds follow, and the filter
         starts afresh when its ratios were against another reference."""
         self.machine = replace(self.machine, th=self._thresholds())
+        if self.prognosis is not None:  # the leakage is against another reference from here on
+            self.prognosis.restart()
         bl = self.baseline
         if bl is not None and (bl.applies or bl.mode == Mode.LEARNING):
             p = self.params
@@ -429,6 +440,8 @@ class Monitor:
         if was_applied:
             p = self.params
             self.filter = RatioFilter(p.filter_samples, p.filter_min_samples, [], [])
+        if self.prognosis is not None:
+            self.prognosis.restart()
         return True
 
     def _corrected(self, pt: Point, mean: Mapping[str, float]) -> Point:
@@ -476,6 +489,16 @@ class Monitor:
         level = m.level
         tot.tick(level, evaluated, self.period)
         self.n_ticks += 1
+        pg = self.prognosis
+        progn: dict[str, Any] = {}
+        if pg is not None:
+            hour = (t + self.run_shift_s) / 3600.0
+            if cond_before == Level.LOW and m.condition == Level.OK:  # the worn unit was replaced
+                pg.restart()
+            pg.tick(hour)
+            if evaluated:
+                pg.add(hour, pt.leak_lpm, pt.ratio_raw_pct, mean[DP], mean[TEMP])
+            progn = pg.fields(hour)
         self.last_tick = Tick(
             t_s=t,
             gate=pt.gate,
@@ -492,8 +515,43 @@ class Monitor:
             run_shift_s=self.run_shift_s,
             **{role: mean[role] for role in OPERATING_POINT},
             **self._baseline_fields(),
+            **progn,
         )
         return self.last_tick
+
+    def _prognosis_columns(
+        self,
+        t_k: NDArray[np.float64],
+        evaluated: NDArray[np.bool_],
+        pts: Points,
+        mean: Mapping[str, NDArray[np.float64]],
+        cond_before: Level,
+        condition: NDArray[np.int8],
+    ) -> dict[str, NDArray[Any]]:
+        """The prognosis at every tick of a stretch, restarted where a low condition cleared (a unit
+        replaced), as :meth:`_judge` tick after tick."""
+        pg = self.prognosis
+        if pg is None:
+            return {}
+        n = len(t_k)
+        leak = np.zeros(n)
+        leak[pts.evaluated] = pts.leak_lpm
+        hours = (t_k + self.run_shift_s) / 3600.0
+        prev = np.empty(n, dtype=np.int8)
+        prev[0] = cond_before
+        prev[1:] = condition[:-1]
+        cuts = np.flatnonzero((prev == Level.LOW) & (condition == Level.OK)).tolist()
+        parts = []
+        for a, z in itertools.pairwise([0, *cuts, n]):
+            if a in cuts:
+                pg.restart()
+            if z > a:
+                parts.append(
+                    pg.run_columns(
+                        hours[a:z], evaluated[a:z], leak[a:z], pts.ratio_raw_pct[a:z], mean[DP][a:z], mean[TEMP][a:z]
+                    )
+                )
+        return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
     def _baseline_fields(self) -> dict[str, Any]:
         """The baseline's fields of a tick: made again only when they change (once per block at most)."""
@@ -720,9 +778,11 @@ class Monitor:
         evaluated = np.zeros(len(ks), dtype=bool)
         evaluated[pts.evaluated] = True
         ratio_arg = np.where(valid & evaluated, filt, np.nan)
+        cond_before = self.machine.condition
         w = self.machine.run_columns(
             t_k, pts.gate, ratio_arg, self.period, (tot.warning_count, tot.fault_count), self._record
         )
+        progn = self._prognosis_columns(t_k, evaluated, pts, mean, cond_before, w.condition)
         tot.warning_count, tot.fault_count = w.warnings, w.faults
         dm1 = None
         if self.dm1_producer is not None:
@@ -748,6 +808,7 @@ class Monitor:
             run_shift_s=np.full(len(ks), self.run_shift_s),  # no clock step within a stretch
             **{role: mean[role] for role in OPERATING_POINT},
             **baseline_cols,
+            **progn,
         )
         self.last_tick = ticks.tick(len(ks) - 1)
         for listener in self.listeners:
@@ -772,6 +833,8 @@ class Monitor:
         p = self.params
         self.totals = old.totals
         self.baseline, self.baseline_note = _baseline_taken(self.baseline, old.baseline)
+        if self.prognosis is not None and old.prognosis is not None:  # the history goes on
+            self.prognosis = Stage(self.prognosis.params, old.prognosis.to_dict())
         ratios, leaks = old.filter.saved()
         n = p.filter_samples
         self.filter = RatioFilter(n, p.filter_min_samples, ratios[-n:], leaks[-n:])
@@ -820,6 +883,7 @@ class Monitor:
         self.totals.filter_ratios, self.totals.filter_leaks = self.filter.saved()
         self.totals.condition = LEVEL_NAMES[self.machine.condition]
         self.totals.baseline = None if self.baseline is None else self.baseline.to_dict()
+        self.totals.prognosis = None if self.prognosis is None else self.prognosis.to_dict()
         self.transitions_since_save = 0
         return self.totals
 
@@ -844,6 +908,7 @@ class Monitor:
             ],
             "dtcs_active": list(self.totals.dtc_active),
             **({"baseline": self.baseline.describe()} if self.baseline is not None else {}),
+            **({"prognosis": _prognosis_snapshot(self.prognosis)} if self.prognosis is not None else {}),
             **({"j1939_node": self.node.describe()} if self.node is not None else {}),
         }
 
@@ -896,6 +961,23 @@ class _Out:
         if not self.pieces:
             return None
         return self.pieces[0] if len(self.pieces) == 1 else FrameColumns.concat(self.pieces)
+
+
+def _prognosis_snapshot(pg: Stage) -> dict[str, Any]:
+    e = pg.est
+    return {
+        "state": e.state,
+        "at_h": e.at_h if math.isfinite(e.at_h) else None,
+        "to_low_h": [_hours(v) for v in e.to_low_h],
+        "to_eol_h": [_hours(v) for v in e.to_eol_h],
+        "history_points": len(pg.history.points),
+        **({"note": pg.note} if pg.note else {}),
+    }
+
+
+def _hours(v: float) -> float | str | None:
+    """Hours for JSON: None without an estimate, "never" where the curve never gets there."""
+    return None if math.isnan(v) else "never" if math.isinf(v) else v
 
 
 def _baseline_from(p: BaselineParams | None, saved: dict[str, Any] | None) -> tuple[Baseline | None, str | None]:

@@ -110,6 +110,9 @@ class PrognosisParams:
     oil: Oil = VG46  # the configured oil's viscosity law (Config.oil)
     # Below this pressure a tick's leakage is model error more than wear (a gap flow vanishes with dp)
     min_dp_bar: float = 20.0
+    # The stage (:class:`Stage`) estimates once per this many operating hours (an estimate is a grid
+    # fit of some tens of milliseconds: not on every tick)
+    estimate_every_h: float = 0.5
 
     def __post_init__(self) -> None:
         if self.eol_kind not in EOL_KINDS:
@@ -610,3 +613,141 @@ def _quantiles(t: NDArray[np.float64]) -> Triple:
     q = np.quantile(t, (0.1, 0.5, 0.9))
     a, b, c = (math.inf if x >= _NEVER_H else float(x) for x in q.tolist())
     return (a, b, c)
+
+
+# -- the stage on the evaluated ticks ------------------------------------------------------------------
+
+# A tick's prognosis state (the CAN signal's values): 0 where no prognosis is configured
+STATE_CODES = {NONE: 1, TREND: 2, IMMINENT: 3}
+FIELDS = (
+    "prognosis_state",
+    "prognosis_to_low_h",
+    "prognosis_to_eol_p10_h",
+    "prognosis_to_eol_p50_h",
+    "prognosis_to_eol_p90_h",
+)
+
+
+class Stage:
+    """The prognosis at every tick: the evaluated ticks' rows wait in a list and go into the history,
+    and the estimate is made, at the first tick of each ``every_h`` of operating hours (the same ticks
+    in both forms); between estimates the hours count down. One tick at a time (:meth:`tick`) or a
+    stretch of ticks (:meth:`run_columns`), the same state and fields."""
+
+    def __init__(self, params: PrognosisParams, saved: Any = None) -> None:
+        self.params = params
+        self.every_h = params.estimate_every_h
+        self.note = ""  # why a saved history was not continued
+        self.history = Prognosis(params)
+        if saved is not None:
+            try:
+                self.history = Prognosis.from_dict(saved, params)
+                self.note = self.history.restarted
+            except ValueError as exc:  # the rest of the state is good: a new history, said
+                self.note = f"the saved prognosis history could not be used ({exc}): a new history begins"
+        self.block: int | None = None
+        self._rows: list[tuple[float, float, float, float, float]] = []
+        self.est = self.history.estimate() if self.history.points else Estimate()
+
+    def tick(self, hour: float) -> None:
+        """The start of a tick at operating ``hour``: at a new block of hours the rows so far go into
+        the history and a new estimate is made."""
+        blk = math.floor(hour / self.every_h) if math.isfinite(hour) else self.block
+        if blk == self.block or blk is None:
+            return
+        first = self.block is None
+        self.block = blk
+        if not first:
+            self.fold()
+            self.est = self.history.estimate()
+
+    def add(self, hour: float, leak_lpm: float, ratio_pct: float, dp_bar: float, temp_c: float) -> None:
+        """An evaluated tick's row (its raw leakage and ratio, its dp and oil temperature)."""
+        self._rows.append((hour, leak_lpm, ratio_pct, dp_bar, temp_c))
+
+    def fold(self) -> None:
+        if self._rows:
+            a = np.array(self._rows, dtype=np.float64)
+            self._rows = []
+            self.history.add_columns(a[:, 0], a[:, 1], a[:, 2], a[:, 3], a[:, 4], np.ones(len(a), dtype=bool))
+
+    def restart(self) -> None:
+        """A replaced unit or a new reference: the wear so far no longer applies."""
+        self._rows = []
+        self.history.restart()
+        self.est = Estimate()
+
+    def fields(self, hour: float) -> dict[str, Any]:
+        """A tick's fields: the state and the hours of the last estimate, less the hours since."""
+        e = self.est
+        since = hour - e.at_h if math.isfinite(e.at_h) else 0.0
+        return {
+            "prognosis_state": STATE_CODES[e.state],
+            "prognosis_to_low_h": _left(e.to_low_h[1], since),
+            "prognosis_to_eol_p10_h": _left(e.to_eol_h[0], since),
+            "prognosis_to_eol_p50_h": _left(e.to_eol_h[1], since),
+            "prognosis_to_eol_p90_h": _left(e.to_eol_h[2], since),
+        }
+
+    def run_columns(
+        self,
+        hours: NDArray[np.float64],
+        evaluated: NDArray[np.bool_],
+        leak_lpm: NDArray[np.float64],
+        ratio_pct: NDArray[np.float64],
+        dp_bar: NDArray[np.float64],
+        temp_c: NDArray[np.float64],
+    ) -> dict[str, NDArray[Any]]:
+        """:meth:`tick`, :meth:`add` and :meth:`fields` at every tick of a stretch (``leak_lpm`` and
+        ``ratio_pct`` at every tick, used where ``evaluated``)."""
+        n = len(hours)
+        fin = np.isfinite(hours)
+        blk = np.floor(np.where(fin, hours, 0.0) / self.every_h)
+        # as tick() one after another: a tick without a finite hour stays in the block before it
+        have = np.flatnonzero(fin)
+        eff = np.full(n, np.nan if self.block is None else float(self.block))
+        if len(have):
+            fill = np.maximum.accumulate(np.where(fin, np.arange(n), -1))
+            eff = np.where(fill >= 0, blk[np.maximum(fill, 0)], eff)
+        before = np.concatenate([[np.nan if self.block is None else float(self.block)], eff[:-1]])
+        change = np.flatnonzero(~np.isnan(eff) & (eff != before))
+        out: dict[str, NDArray[Any]] = {name: np.empty(n) for name in FIELDS}
+        out["prognosis_state"] = np.empty(n, dtype=np.int8)
+        cols = (hours, leak_lpm, ratio_pct, dp_bar, temp_c)
+        starts = set(change.tolist())
+        edges = [0, *sorted(starts - {0}), n]
+        for a, z in itertools.pairwise(edges):
+            if a in starts:
+                first = self.block is None
+                self.block = int(eff[a])
+                if not first:
+                    self.fold()
+                    self.est = self.history.estimate()
+            if z <= a:
+                continue
+            sel = np.flatnonzero(evaluated[a:z]) + a
+            if len(sel):
+                self._rows.extend(zip(*(v[sel].tolist() for v in cols), strict=True))
+            e = self.est
+            since = hours[a:z] - e.at_h if math.isfinite(e.at_h) else np.zeros(z - a)
+            out["prognosis_state"][a:z] = STATE_CODES[e.state]
+            for name, v in zip(FIELDS[1:], (e.to_low_h[1], *e.to_eol_h), strict=True):
+                out[name][a:z] = _left_columns(v, since)
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        self.fold()
+        return self.history.to_dict()
+
+
+def _left(hours: float, since: float) -> float:
+    """Hours left of an estimate ``since`` hours ago (NaN: no estimate; inf: never)."""
+    if math.isnan(hours) or math.isinf(hours):
+        return hours
+    return max(hours - since, 0.0)
+
+
+def _left_columns(hours: float, since: NDArray[np.float64]) -> NDArray[np.float64]:
+    if math.isnan(hours) or math.isinf(hours):
+        return np.full(len(since), hours)
+    return np.maximum(hours - since, 0.0)

@@ -44,6 +44,8 @@ class Totals:
     dtc_clears: list[dict[str, Any]] = field(default_factory=list)  # newest last, at most CLEARS_MAX
     # the on-board baseline (cmcan.monitor.baseline's document, checked there), None where not configured
     baseline: dict[str, Any] | None = None
+    # the prognosis's history (cmcan.monitor.prognosis's document, checked there), None where not configured
+    prognosis: dict[str, Any] | None = None
 
     def record(self, tr: Transition, run_shift_s: float) -> None:
         """A level change, with its time on the run's continuous time base (``Monitor.run_shift_s``)."""
@@ -139,6 +141,10 @@ class Totals:
         if bl is not None and not isinstance(bl, dict):
             raise StateError(f"field 'baseline': expected a mapping or null, got {bl!r:.80}")
         t.baseline = bl
+        pg = d.get("prognosis")  # absent before the prognosis
+        if pg is not None and not isinstance(pg, dict):
+            raise StateError(f"field 'prognosis': expected a mapping or null, got {pg!r:.80}")
+        t.prognosis = pg
         return t
 
 
