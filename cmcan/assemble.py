@@ -580,6 +580,7 @@ def outputs(cfg: Config, db: Database) -> Outputs:
         channel=cfg.output_channel,
         quantity_signals=QUANTITY_SIGNALS[q],
         baseline=message("cm_baseline") if cfg.baseline.enabled else None,
+        prognosis=message("cm_prognosis") if cfg.prognosis.enabled else None,
     )
 
 

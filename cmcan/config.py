@@ -281,6 +281,7 @@ _CONFIG = Obj(
                 "cm_flow": _output("CM_FLOW", 100),
                 "warning": _output("CM_WARNING", 1000),
                 "cm_baseline": _output("CM_BASELINE", 1000),
+                "cm_prognosis": _output("CM_PROGNOSIS", 1000),
             },
             default={},
         ),
@@ -525,13 +526,17 @@ class OutputsConfig:
     warning: OutputMessageConfig
     cm_flow: OutputMessageConfig = OutputMessageConfig("CM_FLOW", 100)
     cm_baseline: OutputMessageConfig = OutputMessageConfig("CM_BASELINE", 1000)
+    cm_prognosis: OutputMessageConfig = OutputMessageConfig("CM_PROGNOSIS", 1000)
 
-    def items(self, quantity: str = MOTOR_SPEED, baseline: bool = False) -> list[tuple[str, OutputMessageConfig]]:
+    def items(
+        self, quantity: str = MOTOR_SPEED, baseline: bool = False, prognosis: bool = False
+    ) -> list[tuple[str, OutputMessageConfig]]:
         """The messages a machine of this output quantity sends (CM_SPEED or CM_FLOW in the middle),
-        and CM_BASELINE last where the on-board baseline is enabled."""
+        then CM_BASELINE and CM_PROGNOSIS where the on-board baseline and the prognosis are enabled."""
         key = QUANTITY_OUTPUT[quantity]
         out = [("cm_ratio", self.cm_ratio), (key, getattr(self, key)), ("warning", self.warning)]
-        return [*out, ("cm_baseline", self.cm_baseline)] if baseline else out
+        out += [("cm_baseline", self.cm_baseline)] if baseline else []
+        return out + ([("cm_prognosis", self.cm_prognosis)] if prognosis else [])
 
 
 @dataclass(frozen=True)
@@ -635,7 +640,7 @@ class Config:
 
     def output_items(self) -> list[tuple[str, OutputMessageConfig]]:
         """The output messages this machine sends (:meth:`OutputsConfig.items`)."""
-        return self.outputs.items(self.quantity, self.baseline.enabled)
+        return self.outputs.items(self.quantity, self.baseline.enabled, self.prognosis.enabled)
 
     @property
     def channel_list(self) -> tuple[ChannelConfig, ...]:

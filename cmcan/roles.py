@@ -115,4 +115,12 @@ OUTPUT_SIGNALS: dict[str, tuple[str, ...]] = {
     "warning": ("warning_level", "warning_reason", "time_below_threshold_s", "warning_count"),
     # the on-board baseline's state and progress, where the configuration enables it
     "cm_baseline": ("baseline_state", "baseline_learned_h", "baseline_coverage_pct", "baseline_distance_lpm"),
+    # the prognosis, where the configuration enables it
+    "cm_prognosis": (
+        "prognosis_state",
+        "prognosis_to_low_h",
+        "prognosis_to_eol_p10_h",
+        "prognosis_to_eol_p50_h",
+        "prognosis_to_eol_p90_h",
+    ),
 }

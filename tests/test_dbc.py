@@ -27,6 +27,7 @@ def test_loads_strictly_with_expected_messages(db):
         "CM_FLOW",
         "CM_WARNING",
         "CM_BASELINE",
+        "CM_PROGNOSIS",
     } == names
     assert all(not m.is_extended_frame and m.frame_id <= 0x7FF for m in db.messages)
     assert {m.frame_id for m in db.messages if "DRIVE_CTRL" in m.senders} == INPUT_IDS

@@ -83,3 +83,25 @@ def test_the_history_survives_a_restart(rig):
     snap = again.snapshot()["prognosis"]
     assert snap["state"] in ("trend", "imminent") and snap["history_points"] == len(mon.prognosis.history.points)
     assert all(v is None or v == "never" or (isinstance(v, float) and math.isfinite(v)) for v in snap["to_eol_h"])
+
+
+def test_cm_prognosis_carries_the_estimate_decoded_from_the_dbc(rig):
+    import cantools
+
+    from tests.conftest import ROOT
+
+    _, frames = rig
+    db = cantools.database.load_file(str(ROOT / "dbc" / "cmcan.dbc"))
+    msg = db.get_message_by_name("CM_PROGNOSIS")
+    tl, out, _ = _run(_cfg(), frames, "columnar")
+    sent = [f for f in out if f.arbitration_id == msg.frame_id]
+    assert sent
+    by_t = {round(t, 3): i for i, t in enumerate(tl.t_s)}
+    for f in sent:
+        d = msg.decode(f.data, decode_choices=False)
+        i = by_t[round(f.timestamp_s, 3)]
+        assert d["prognosis_state"] == tl.prognosis_state[i]
+        p50 = tl.prognosis_to_eol_p50_h[i]
+        assert d["prognosis_to_eol_p50_h"] == pytest.approx(0.0 if np.isnan(p50) else min(p50, 4000.0), abs=0.25)
+    states = [msg.decode(f.data)["prognosis_state"] for f in sent]
+    assert {str(s) for s in states} >= {"none", "trend", "imminent"}

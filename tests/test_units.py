@@ -235,7 +235,13 @@ def test_every_output_signal_has_a_span():
 
     for q, names in QUANTITY_SIGNALS.items():
         spans = output_spans(names, (0.0, 1.0), 1.0)
-        keys = ("cm_ratio", "warning", "cm_speed" if q == "motor_speed_rpm" else "cm_flow", "cm_baseline")
+        keys = (
+            "cm_ratio",
+            "warning",
+            "cm_speed" if q == "motor_speed_rpm" else "cm_flow",
+            "cm_baseline",
+            "cm_prognosis",
+        )
         assert {s for k in keys for s in OUTPUT_SIGNALS[k]} == set(spans)
 
 

@@ -19,7 +19,7 @@ from cmcan.codec import Layout, encode_all, frame_encoder
 from cmcan.frame import Frame, FrameColumns
 from cmcan.monitor.baseline import Mode
 from cmcan.monitor.gating import EVALUATED, Gate
-from cmcan.monitor.tick import Tick, TickColumns
+from cmcan.monitor.tick import PROGNOSIS_HOURS, Tick, TickColumns
 from cmcan.monitor.warnings import Level, Reason
 from cmcan.roles import MOTOR_SPEED, QUANTITY_SIGNALS
 
@@ -35,6 +35,9 @@ TIME_BELOW_SPAN_S = (0.0, 65535.0)
 # The hours the on-board baseline has learned: a learning that has not ended after this is a
 # configuration to look at, not a number to display exactly.
 BASELINE_LEARNED_SPAN_H = (0.0, 1000.0)
+# The prognosis's hours: further out than this is "not for a long time" (sent as this, saturated),
+# as is a curve that never gets there; without a trend they are sent as 0 with the state none.
+PROGNOSIS_SPAN_H = (0.0, 4000.0)
 # The output quantity in normal operation: up to the drive's nominal delivery (nominal pump speed at
 # full displacement, over V_M for motor speed) with this headroom (a load pulling the motor, a pump
 # above its nominal speed). The gate's plausible range is wider still: a bound for broken sensors,
@@ -90,6 +93,8 @@ def output_spans(
         "baseline_learned_h": Span(*BASELINE_LEARNED_SPAN_H, "a learning of up to 1000 h"),
         "baseline_coverage_pct": Span(0.0, 100.0, "a share of the envelope"),
         "baseline_distance_lpm": Span(-leak_max_lpm, leak_max_lpm, "up to the drive's nominal flow either way"),
+        "prognosis_state": Span(0.0, 3.0, "every prognosis state"),
+        **{name: Span(*PROGNOSIS_SPAN_H, "up to 4000 operating hours") for name in PROGNOSIS_HOURS},
     }
 
 
@@ -124,22 +129,25 @@ class Outputs:
     channel: str = ""
     quantity_signals: tuple[str, str, str, str] = QUANTITY_SIGNALS[MOTOR_SPEED]
     baseline: OutputMessage | None = None  # CM_BASELINE where the on-board baseline is configured
+    prognosis: OutputMessage | None = None  # CM_PROGNOSIS where the prognosis is configured
 
 
 class Payloads:
     """Builds the frames of each tick; keeps the alive counter and the last warning state sent."""
 
-    __slots__ = ("alive", "last_baseline", "last_warning", "outputs")
+    __slots__ = ("alive", "last_baseline", "last_prognosis", "last_warning", "outputs")
 
     def __init__(self, outputs: Outputs) -> None:
         self.outputs = outputs
         self.alive = 0
         self.last_warning: tuple[int, int] | None = None
         self.last_baseline = -1  # the baseline state last sent (CM_BASELINE goes at once on a change)
+        self.last_prognosis = -1  # the prognosis state last sent (likewise CM_PROGNOSIS)
 
     def continue_from(self, old: Payloads) -> None:
         """Go on with the alive counter and warning state of the payloads this one replaces."""
         self.alive, self.last_warning, self.last_baseline = old.alive, old.last_warning, old.last_baseline
+        self.last_prognosis = old.last_prognosis
 
     def _frame(self, t: float, msg: OutputMessage, values: Mapping[str, float]) -> Frame:
         return Frame(t, self.outputs.channel, msg.frame_id, msg.extended, False, False, False, msg.encode(values))
@@ -197,11 +205,19 @@ class Payloads:
                     },
                 )
             )
-        bm = o.baseline
+        if o.baseline is not None or o.prognosis is not None:
+            self._stage_frames(k, tick, out)
+        return out
+
+    def _stage_frames(self, k: int, tick: Tick, out: list[Frame]) -> None:
+        """CM_BASELINE and CM_PROGNOSIS where configured: on each change of their state, and periodically."""
+        bm, pm = self.outputs.baseline, self.outputs.prognosis
         if bm is not None and (tick.baseline_state != self.last_baseline or k % bm.every_ticks == 0):
             self.last_baseline = tick.baseline_state
             out.append(self._frame(tick.t_s, bm, _baseline_values(tick)))
-        return out
+        if pm is not None and (tick.prognosis_state != self.last_prognosis or k % pm.every_ticks == 0):
+            self.last_prognosis = tick.prognosis_state
+            out.append(self._frame(tick.t_s, pm, _prognosis_values(tick)))
 
     def frames_columns(self, ks: NDArray[np.int64], c: TickColumns, wcount: NDArray[np.int64]) -> FrameColumns:
         """The frames of the ticks ``ks`` (their values ``c``, the warning count after each
@@ -214,7 +230,7 @@ class Payloads:
         prev = np.empty(len(ks), dtype=np.int64)
         prev[0] = -1 if self.last_warning is None else self.last_warning[0] * 256 + self.last_warning[1]
         prev[1:] = state[:-1]
-        prev_baseline = self.last_baseline
+        prev_baseline, prev_prognosis = self.last_baseline, self.last_prognosis
         self.skip_columns(ks, c)
         evaluated = np.isin(c.gate, _EVALUATED).astype(np.float64)
         valid = c.filt_valid
@@ -257,6 +273,8 @@ class Payloads:
         )
         if o.baseline is not None:
             parts = (*parts, _baseline_part(o.baseline, ks, c, prev_baseline))
+        if o.prognosis is not None:
+            parts = (*parts, _prognosis_part(o.prognosis, ks, c, prev_prognosis))
         return self._interleave(c.t_s, parts)
 
     def skip_columns(self, ks: NDArray[np.int64], c: TickColumns) -> None:
@@ -266,13 +284,15 @@ class Payloads:
         self.last_warning = (int(c.level[-1]), int(c.reason[-1]))
         if self.outputs.baseline is not None:
             self.last_baseline = int(c.baseline_state[-1])
+        if self.outputs.prognosis is not None:
+            self.last_prognosis = int(c.prognosis_state[-1])
 
     def _interleave(
         self, t_s: NDArray[np.float64], parts: tuple[tuple[NDArray[np.int64], NDArray[np.uint8]], ...]
     ) -> FrameColumns:
         """Per tick its ratio, quantity, warning and baseline frames, in that order."""
         o = self.outputs
-        msgs = (o.ratio, o.quantity, o.warning, *((o.baseline,) if o.baseline is not None else ()))
+        msgs = (o.ratio, o.quantity, o.warning, *(m for m in (o.baseline, o.prognosis) if m is not None))
         tick_of = np.concatenate([rows for rows, _ in parts])
         kind_of = np.concatenate([np.full(len(rows), k, dtype=np.int64) for k, (rows, _) in enumerate(parts)])
         data = np.zeros((len(tick_of), 8), dtype=np.uint8)
@@ -322,6 +342,34 @@ def _baseline_part(
         "baseline_coverage_pct": c.baseline_coverage_pct,
         "baseline_distance_lpm": c.baseline_distance_lpm,
     }
+    return _encode(msg, np.flatnonzero((state != prev) | (ks % msg.every_ticks == 0)), values)
+
+
+def _prognosis_hours(h: float) -> float:
+    """Hours as CM_PROGNOSIS carries them: 0 without an estimate, saturated where far or never."""
+    return 0.0 if math.isnan(h) else min(h, PROGNOSIS_SPAN_H[1])
+
+
+def _prognosis_values(tick: Tick) -> dict[str, float]:
+    """CM_PROGNOSIS's signals of one tick."""
+    return {
+        "prognosis_state": float(tick.prognosis_state),
+        **{name: _prognosis_hours(getattr(tick, name)) for name in PROGNOSIS_HOURS},
+    }
+
+
+def _prognosis_part(
+    msg: OutputMessage, ks: NDArray[np.int64], c: TickColumns, prev_state: int
+) -> tuple[NDArray[np.int64], NDArray[np.uint8]]:
+    """CM_PROGNOSIS of a stretch of ticks, on each change of state and every ``every_ticks``."""
+    state = c.prognosis_state.astype(np.int64)
+    prev = np.empty(len(ks), dtype=np.int64)
+    prev[0] = prev_state
+    prev[1:] = state[:-1]
+    values = {"prognosis_state": state.astype(np.float64)}
+    for name in PROGNOSIS_HOURS:
+        h = getattr(c, name)
+        values[name] = np.where(np.isnan(h), 0.0, np.minimum(h, PROGNOSIS_SPAN_H[1]))
     return _encode(msg, np.flatnonzero((state != prev) | (ks % msg.every_ticks == 0)), values)
 
 
