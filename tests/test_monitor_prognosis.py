@@ -105,3 +105,27 @@ def test_cm_prognosis_carries_the_estimate_decoded_from_the_dbc(rig):
         assert d["prognosis_to_eol_p50_h"] == pytest.approx(0.0 if np.isnan(p50) else min(p50, 4000.0), abs=0.25)
     states = [msg.decode(f.data)["prognosis_state"] for f in sent]
     assert {str(s) for s in states} >= {"none", "trend", "imminent"}
+
+
+def test_the_uplink_summaries_carry_the_prognosis():
+    from cmcan.monitor.gating import Gate
+    from cmcan.monitor.tick import Tick
+    from cmcan.monitor.warnings import Level, Reason
+    from cmcan.uplink.feed import _sample
+    from cmcan.uplink.records import Cumulative, SummaryBuilder
+
+    def tick(t: float, state: int, p50: float) -> Tick:
+        return Tick(
+            t_s=t, gate=Gate.EVALUATING, measured=1.0, predicted=1.0, whitebox=1.0, ratio_raw_pct=100.0,
+            ratio_filt_pct=100.0, extra_leak_lpm=0.0, filt_valid=True, level=Level.OK, reason=Reason.NONE,
+            time_below_s=0.0, prognosis_state=state, prognosis_to_low_h=math.nan,
+            prognosis_to_eol_p10_h=p50 - 2, prognosis_to_eol_p50_h=p50, prognosis_to_eol_p90_h=math.inf,
+        )  # fmt: skip
+
+    cum = Cumulative({}, 0.0, 0, 0, {})
+    sb = SummaryBuilder(60.0, cum)
+    sb.add(_sample(tick(10.0, 2, 30.0)), cum)
+    (entry,) = sb.add(_sample(tick(70.0, 3, 20.0)), cum)
+    body = entry.body
+    assert body["prognosis"] == {"state": "trend", "to_low_h": None, "to_eol_h": [28.0, 30.0, "never"]}
+    assert _sample(tick(80.0, 0, math.nan)).prognosis is None  # not configured: no key

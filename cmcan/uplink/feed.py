@@ -10,10 +10,12 @@ It never blocks and never raises: a failure is counted and logged with a rate li
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable
 from typing import Any
 
 from cmcan.monitor.baseline import MODE_NAMES, Mode
+from cmcan.monitor.prognosis import STATE_CODES
 from cmcan.monitor.tick import Tick, TickColumns
 from cmcan.ratelog import RateLimitedLog
 from cmcan.uplink.config import UplinkSettings
@@ -153,7 +155,26 @@ def _sample(tick: Any) -> TickSample:
         predicted=tick.predicted,
         whitebox=tick.whitebox,
         baseline=_baseline(tick),
+        prognosis=_prognosis(tick),
     )
+
+
+_PROGNOSIS_STATES = {v: k for k, v in STATE_CODES.items()}
+
+
+def _prognosis(tick: Any) -> dict[str, Any] | None:
+    """The tick's prognosis for JSON: hours rounded, None without an estimate, "never" past any."""
+    if not tick.prognosis_state:
+        return None
+
+    def hours(v: float) -> float | str | None:
+        return "never" if math.isinf(v) else num(v, 2)
+
+    return {
+        "state": _PROGNOSIS_STATES.get(tick.prognosis_state, str(tick.prognosis_state)),
+        "to_low_h": hours(tick.prognosis_to_low_h),
+        "to_eol_h": [hours(getattr(tick, f"prognosis_to_eol_{q}_h")) for q in ("p10", "p50", "p90")],
+    }
 
 
 def _baseline(tick: Any) -> dict[str, Any] | None:

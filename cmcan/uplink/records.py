@@ -55,6 +55,8 @@ class TickSample:
     whitebox: float
     # the on-board baseline where configured: state, learned_h, coverage_pct, distance_lpm
     baseline: dict[str, Any] | None = None
+    # the prognosis where configured: state, hours to the low warning and to end of life (p10/p50/p90)
+    prognosis: dict[str, Any] | None = None
 
 
 @dataclass(frozen=True)
@@ -290,6 +292,8 @@ class SummaryBuilder:
         }
         if w.last.baseline is not None:
             body["baseline"] = w.last.baseline
+        if w.last.prognosis is not None:
+            body["prognosis"] = w.last.prognosis
         return Entry(SUMMARY, w.last_t_s, body)
 
 
