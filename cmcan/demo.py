@@ -46,6 +46,9 @@ HEALTHY_UNTIL_H = 200.0
 # The demo's machine learns its own baseline on board (docs/commissioning.md) over about this many
 # operating hours of the time-lapse, from an envelope around the rig's one operating point.
 LEARNING_H = 20.0
+# The prognosis is judged this many hours before each failure, within this share of the truth
+PROGNOSIS_BEFORE_H = 10.0
+PROGNOSIS_WITHIN = 0.2
 
 
 @dataclass
@@ -131,6 +134,61 @@ def with_baseline(cfg: cfgmod.Config, s: scn.Scenario, burst_s: float, every_min
     learned_h = LEARNING_H * burst_s / (every_min * 60.0)
     b = replace(cfg.baseline, enabled=True, edges=edges, min_hours=round(0.8 * learned_h, 6), coverage_pct=100.0)
     return replace(cfg, baseline=b)
+
+
+def with_prognosis(cfg: cfgmod.Config, s: scn.Scenario) -> cfgmod.Config:
+    """The prognosis on, with the rig's known end of life: the wear leakage at which its units lose
+    function (the scenario's ``fail_extra_lpm``, stated at its reference pressure and oil temperature)."""
+    wear = [e for e in s.events if e["type"] == "wear"]
+    if not wear:
+        return cfg
+    e = wear[0]
+    p = cfgmod.PrognosisConfig(
+        enabled=True,
+        eol_kind="leak_lpm",
+        eol_value=float(e["fail_extra_lpm"]),
+        ref_dp_bar=float(e["ref_dp_bar"]),
+        ref_temp_c=float(e["ref_temp_c"]),
+        estimate_every_h=1.0,
+    )
+    return replace(cfg, prognosis=p)
+
+
+def prognosis_at(
+    received: list[Frame], db: Any, cfg: cfgmod.Config, start_epoch_s: float, outputs: Outputs | None = None
+) -> list[tuple[float, str, float, float, float]]:
+    """CM_PROGNOSIS as a telematics unit reads it: (operating h, state, p10, p50, p90 h to end of life)."""
+    if not cfg.prognosis.enabled:
+        return []
+    msg = db.get_message_by_name(cfg.outputs.cm_prognosis.message)
+    fid = outputs.prognosis.frame_id if outputs is not None and outputs.prognosis is not None else msg.frame_id
+    out = []
+    for m in received:
+        if m.arbitration_id == fid:
+            d = msg.decode(m.data, decode_choices=False)
+            state = {1: "none", 2: "trend", 3: "imminent"}.get(int(d["prognosis_state"]), "?")
+            p10, p50, p90 = (float(d[f"prognosis_to_eol_{q}_h"]) for q in ("p10", "p50", "p90"))
+            out.append(((m.timestamp_s - start_epoch_s) / 3600.0, state, p10, p50, p90))
+    return sorted(out)
+
+
+def judge_prognosis(report: list[dict[str, Any]], seen: list[tuple[float, str, float, float, float]]) -> None:
+    """Beside each failure: the estimate :data:`PROGNOSIS_BEFORE_H` before it against the truth."""
+    for f in report:
+        at = f["fail_h"] - PROGNOSIS_BEFORE_H
+        near = [x for x in seen if abs(x[0] - at) <= 0.5]
+        best = min(near, key=lambda x: abs(x[0] - at)) if near else None
+        if best is None or best[1] == "none":
+            f["prognosis"] = {"at_h": at, "state": best[1] if best else None, "ok": False}
+            continue
+        truth = f["fail_h"] - best[0]
+        f["prognosis"] = {
+            "at_h": best[0],
+            "state": best[1],
+            "to_eol_h": [best[2], best[3], best[4]],
+            "truth_h": truth,
+            "ok": abs(best[3] - truth) <= PROGNOSIS_WITHIN * truth,
+        }
 
 
 def demo_scenario(burst_s: float, every_min: float) -> scn.Scenario:
@@ -363,6 +421,7 @@ def run_demo(
     t0 = time.monotonic()
     s = demo_scenario(burst_s, every_min)
     cfg = with_baseline(scale_windows(cfgmod.load(config_path), burst_s, every_min), s, burst_s, every_min)
+    cfg = with_prognosis(cfg, s)
     if cfg.quantity != MOTOR_SPEED:
         raise CmcanError(
             f"{cfg.source}: drive.quantity is {cfg.quantity}: the demo simulates a closed-circuit drive, whose "
@@ -392,6 +451,13 @@ def run_demo(
     failures = run.meta["scheduled_failures"]
     transitions, report, checks, rh, rp = analyse(received, db, cfg, run.start_epoch_s, failures, outputs)
     baseline = baseline_states(received, db, cfg, run.start_epoch_s, outputs)
+    judge_prognosis(report, prognosis_at(received, db, cfg, run.start_epoch_s, outputs))
+    for f in report:
+        if f["kind"] == "wear" and "prognosis" in f:
+            checks[
+                f"hours to end of life {PROGNOSIS_BEFORE_H:g} h before the {f['component']} wear failure "
+                f"within {PROGNOSIS_WITHIN:.0%}"
+            ] = f["prognosis"]["ok"]
     res = DemoResult(
         s.name,
         f"virtual:{channel}",

@@ -117,6 +117,15 @@ def run(args: argparse.Namespace) -> int:
                     f"  {f['fail_h']:8.1f} h  {f['component']} {f['kind']}: {f['level']} warning at "
                     f"{f['first_warning_h']:.1f} h, lead time {f['lead_h']:.1f} h"
                 )
+            pg = f.get("prognosis")
+            if pg is not None and pg.get("to_eol_h"):
+                p10, p50, p90 = pg["to_eol_h"]
+                print(
+                    f"             CM_PROGNOSIS at {pg['at_h']:.1f} h: {pg['state']}, {p50:.1f} h to end of life "
+                    f"(10-90 %: {p10:.1f}-{p90:.1f} h), truth {pg['truth_h']:.1f} h"
+                )
+            elif pg is not None:
+                print(f"             CM_PROGNOSIS at {pg['at_h']:.1f} h: {pg['state'] or 'nothing'} (no wear trend)")
         for name, ok in res.checks.items():
             print(f"  [{'ok' if ok else 'FAIL'}] {name}")
         if not args.no_plot:
