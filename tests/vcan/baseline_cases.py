@@ -212,6 +212,7 @@ def test_baseline_learns_across_sigterm_and_kill_9_reaches_monitoring_and_resets
         running.append(player)
         deadline = time.monotonic() + 120
         while not (_saved(tmp)["n"][1] >= _MIN_POINTS and _saved(tmp)["learned_ticks"] > learned_1):
+            assert d.proc.poll() is None, d.stderr()
             assert time.monotonic() < deadline, "no periodic save with the second point's bin covered"
             time.sleep(0.2)
         d.proc.kill()
