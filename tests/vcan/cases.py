@@ -752,5 +752,7 @@ def test_the_daemon_keeps_sending_through_wall_clock_steps(tmp_path):
     ), log
 
 
-# -- cmcan as a J1939 node and two drives on one bus (tests/vcan/node_cases.py) -------------------------
-from tests.vcan.node_cases import *  # noqa: E402, F403 - collected with these cases, in the same VM
+# -- cmcan as a J1939 node and two drives on one bus (tests/vcan/node_cases.py); the on-board baseline:
+#    learning, SIGTERM and kill -9, monitoring, reset (tests/vcan/baseline_cases.py) -----------------------
+from tests.vcan.baseline_cases import *  # noqa: E402, F403 - collected with these cases, in the same VM
+from tests.vcan.node_cases import *  # noqa: E402, F403

@@ -125,7 +125,7 @@ def run_vcan_tests_in_vm(pytest_args: list[str] | None = None, echo: bool = True
     ]
     run = VmRun()
     try:
-        res = run_in_vm(guest_script(PROJECT, results, cmd), PROJECT, results, timeout_s=900, echo=echo)
+        res = run_in_vm(guest_script(PROJECT, results, cmd), PROJECT, results, timeout_s=1500, echo=echo)
     except VmError as exc:
         run.error = str(exc)
         return run
