@@ -46,7 +46,7 @@ from cmcan.monitor.core import Monitor
 from cmcan.monitor.inputs import InputMessage
 from cmcan.ratelog import RateLimitedLog
 from cmcan.sdnotify import Notifier
-from cmcan.statefile import StateStore, take_baseline_request, write_node_status
+from cmcan.statefile import StateStore, done_baseline_request, read_baseline_request, write_node_status
 
 if TYPE_CHECKING:  # only for the type hint: the uplink's feed is an application beside this one
     from cmcan.uplink.feed import UplinkFeed
@@ -600,17 +600,17 @@ class Daemon:
         reload): carried out by this, the state's only writer, and saved at once."""
         if self.store is None:
             return
-        req = take_baseline_request(self.store.dir)
+        req = read_baseline_request(self.store.dir)
         if req is None:
             return
         if req.get("bad"):
             log.error("baseline reset not carried out: %s", req["reason"])
-            return
-        if self.monitor.reset_baseline(req["reason"], req["at"] or None):
+        elif self.monitor.reset_baseline(req["reason"], req["at"] or None):
             log.info("baseline reset (%s): learning afresh, the old baseline kept in the history", req["reason"])
             self._save()
         else:
             log.error("baseline reset asked for, but the configuration has no baseline section enabled")
+        done_baseline_request(self.store.dir)  # after the save: the waiting command reads the state next
 
     # -- bus handling ----------------------------------------------------------------------------------
 

@@ -109,9 +109,10 @@ def write_baseline_request(directory: str | Path, reason: str, at: str) -> Path:
     return path
 
 
-def take_baseline_request(directory: str | Path) -> dict[str, str] | None:
-    """The reset a ``cmcan baseline reset`` left, removed as it is taken; None when there is none. A
-    file that is not such a request is removed too, and said in ``reason`` (it must not block resets)."""
+def read_baseline_request(directory: str | Path) -> dict[str, str] | None:
+    """The reset a ``cmcan baseline reset`` left; None when there is none. A file that is not such a
+    request says so in ``reason`` with ``bad`` set (remove it with :func:`done_baseline_request`: it
+    must not block later resets)."""
     path = Path(directory) / BASELINE_REQUEST_FILE
     try:
         raw = path.read_bytes()
@@ -119,13 +120,17 @@ def take_baseline_request(directory: str | Path) -> dict[str, str] | None:
         return None
     except OSError as exc:
         return {"reason": f"unreadable request {path} ({exc.strerror})", "at": "", "bad": "1"}
-    with contextlib.suppress(OSError):
-        path.unlink()
     try:
         doc = json.loads(raw.decode("utf-8"))
         return {"reason": str(doc["reason"])[:200], "at": str(doc.get("at", ""))[:40]}
     except (ValueError, KeyError, TypeError):
         return {"reason": f"unreadable request {path}", "at": "", "bad": "1"}
+
+
+def done_baseline_request(directory: str | Path) -> None:
+    """The request carried out and saved (the command waiting for it sees the file go only now)."""
+    with contextlib.suppress(OSError):
+        (Path(directory) / BASELINE_REQUEST_FILE).unlink()
 
 
 def write_node_status(directory: str | Path, status: dict[str, object]) -> None:

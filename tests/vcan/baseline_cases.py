@@ -274,13 +274,7 @@ def test_baseline_learns_across_sigterm_and_kill_9_reaches_monitoring_and_resets
         # the learning went on from the killed daemon's last save up to the tick that ended it
         assert done["learned_ticks"] == after_kill["learned_ticks"] + bus.evaluating(rows[:ended])
         mark("play 3, monitoring")
-        r = _cli("status", "--config", str(cfg), "--json")
-        assert r.returncode == 0, r.stderr
-        status = json.loads(r.stdout)
-        assert status["state"] == "monitoring" and status["coverage_pct"] == 100.0, status
-        assert status["learned_h"] == pytest.approx(done["learned_ticks"] * _H_PER_TICK)
-
-        mark("status")
+        # (cmcan baseline status reads this same file: its own tests are on the host, one start less here)
 
         # 4. a reset beside the running daemon (through its reload): learning again, the old one kept
         n_before = len(bus.rows())
