@@ -373,7 +373,6 @@ class Baseline:
             "sy": self.sy.tolist(),
             "learned_ticks": self.learned_ticks,
             "block": self.block,
-            "shown": list(self.shown),
             "theta": list(self.theta),
             "distance_lpm": self.distance_lpm,
             "started_t_s": self.started_t_s,
@@ -427,11 +426,11 @@ class Baseline:
         bl.distance_lpm = distance
         bl.started_t_s, bl.finished_t_s = started, finished
         bl.history = hist[-HISTORY_MAX:]
-        block, shown = d.get("block"), d.get("shown", [ticks, bl.covered])
+        block = d.get("block")
         if block is not None and (isinstance(block, bool) or not isinstance(block, int)):
             raise BaselineStateError(f"baseline.block: expected a block number or null, got {block!r:.40}")
         bl.block = block
-        bl.shown = tuple(_ints(shown, "baseline.shown", 2))  # type: ignore[assignment]
+        bl.shown = (bl.learned_ticks, bl.covered)  # after a restart the ticks carry all that was saved
         return bl, None
 
 

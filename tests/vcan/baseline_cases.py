@@ -46,6 +46,7 @@ _BASELINE = {
     "min_points": _MIN_POINTS,
     "coverage_pct": 100,  # all three bins
     "min_hours": 0.004,  # 144 ticks: reached by the time the three bins hold 50 each
+    "check_every_s": 1,  # the learning's end (and the progress the ticks carry) checked every second
 }
 _H_PER_TICK = 0.1 / 3600.0
 
