@@ -68,6 +68,8 @@ class Result:
     seconds: float = 0.0
     max_t: float = 0.0
     max_rise: float = 0.0
+    max_t_pct: float = 0.0
+    max_rise_pct: float = 0.0
 
 
 def wear_cases(n: int, seed: int) -> list[Case]:
@@ -198,6 +200,8 @@ def run_case(case: Case, normalized: bool = True, cache: str | None = None) -> R
             break
         res.max_t = max(res.max_t, e.t_stat)
         res.max_rise = max(res.max_rise, e.rise_lpm)
+        res.max_t_pct = max(res.max_t_pct, e.t_stat_pct)
+        res.max_rise_pct = max(res.max_rise_pct, e.rise_pct)
         if e.state != "none":
             res.estimates.append((e.at_h, e.state, *e.to_eol_h))
     res.seconds = time.perf_counter() - t_start
@@ -426,13 +430,17 @@ def report(wear: list[Result], healthy: list[Result], wall: float) -> None:
             f"{m['ph_h']:6.1f} {m['ph_const_h']:6.1f} {cover:>9}  {r.case.describe}"
         )
     print()
-    print("healthy runs (100 h): state reported, largest rise (l/min) and t of the rise tested")
+    print("healthy runs (100 h): state reported, largest rise and t of the rise tested, of the leakage (l/min)")
+    print("and of the high side (the share of displacement the motor lacks, %)")
     false = 0
     for r in healthy:
         bad = len(r.estimates)
         false += bad > 0
         state = f"TREND x{bad}" if bad else "none"
-        print(f"  {r.case.name:20} {state:>10}  rise {r.max_rise:5.2f}  t {r.max_t:5.1f}  {r.case.describe}")
+        print(
+            f"  {r.case.name:20} {state:>10}  rise {r.max_rise:5.2f}  t {r.max_t:5.1f}"
+            f"  high: rise {r.max_rise_pct:5.2f}  t {r.max_t_pct:5.1f}  {r.case.describe}"
+        )
     print()
     groups = [("all", [True] * len(wear))]
     swing = [float(r.case.doc["oil"]["swing_c"]) for r in wear]

@@ -699,8 +699,10 @@ def prognosis_params(cfg: Config) -> PrognosisParams | None:
         return None
     return PrognosisParams(
         low_pct=cfg.thresholds.low_pct,
+        high_pct=cfg.thresholds.high_pct,
         eol_kind=p.eol_kind,
         eol_value=p.eol_value,
+        eol_high_pct=p.eol_high_pct,
         imminent_h=p.imminent_h,
         dp_ref_bar=p.ref_dp_bar,
         temp_ref_c=p.ref_temp_c,

@@ -116,7 +116,8 @@ def _prognosis_rule(p: dict[str, Any]) -> tuple[str, str] | None:
 
 
 # The prognosis: operating hours to the low warning and to end of life (cmcan.monitor.prognosis;
-# docs/prognosis.md). End of life: 10 % of the flow lost (ratio 90 %) unless the machine's is known.
+# docs/prognosis.md). End of life: 10 % of the flow lost (ratio 90 %) unless the machine's is known;
+# on the high side (the ratio rising) 110 %.
 _PROGNOSIS = Obj(
     {
         "enabled": Bool(default=False),
@@ -124,6 +125,9 @@ _PROGNOSIS = Obj(
             {
                 "kind": Str(default="ratio_pct", choices=("ratio_pct", "leak_lpm")),
                 "value": Num(0.01, 10000, "(% or l/min at the reference conditions)", default=90.0),
+                # the high side (a ratio rising: a drifting displacement control), a ratio above the
+                # high warning; default the mirror of 90 %: the motor 10 % off its commanded speed
+                "high_pct": Num(100.5, 200, "%", default=110.0),
             },
             default={},
         ),
@@ -501,6 +505,7 @@ class PrognosisConfig:
     enabled: bool = False
     eol_kind: str = "ratio_pct"
     eol_value: float = 90.0
+    eol_high_pct: float = 110.0
     ref_dp_bar: float = 480.0
     ref_temp_c: float = 60.0
     imminent_h: float = 24.0
@@ -748,6 +753,11 @@ def from_dict(data: Any, source: str, base_dir: Path) -> Config:
     ages = raw["max_signal_age_s"]
     th = raw["thresholds"]
     out = raw["outputs"]
+    eol_high = raw["prognosis"]["end_of_life"]["high_pct"]
+    if raw["prognosis"]["enabled"] and not eol_high > th["high_pct"]:
+        raise SchemaError(
+            source, "prognosis.end_of_life.high_pct", f"must lie above thresholds.high_pct ({th['high_pct']:g})"
+        )
     # relative to the configuration file like every path in it (not to the working directory, which is
     # / under systemd); the uplink's outbox is relative to this directory
     state_dir = _path(base_dir, raw["state"]["directory"])
@@ -779,7 +789,9 @@ def from_dict(data: Any, source: str, base_dir: Path) -> Config:
 def _prognosis(p: dict[str, Any]) -> PrognosisConfig:
     eol = p["end_of_life"]
     rest = {k: v for k, v in p.items() if k != "end_of_life"}
-    return PrognosisConfig(**rest, eol_kind=eol["kind"], eol_value=float(eol["value"]))
+    return PrognosisConfig(
+        **rest, eol_kind=eol["kind"], eol_value=float(eol["value"]), eol_high_pct=float(eol["high_pct"])
+    )
 
 
 def _baseline(b: dict[str, Any]) -> BaselineConfig:

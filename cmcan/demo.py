@@ -137,21 +137,39 @@ def with_baseline(cfg: cfgmod.Config, s: scn.Scenario, burst_s: float, every_min
 
 
 def with_prognosis(cfg: cfgmod.Config, s: scn.Scenario) -> cfgmod.Config:
-    """The prognosis on, with the rig's known end of life: the wear leakage at which its units lose
-    function (the scenario's ``fail_extra_lpm``, stated at its reference pressure and oil temperature)."""
+    """The prognosis on, with the rig's known ends of life: the wear leakage at which its units lose
+    function (the scenario's ``fail_extra_lpm``, stated at its reference pressure and oil temperature)
+    and the ratio at which its mispositioned motor does (:func:`misposition_eol_pct`)."""
     wear = [e for e in s.events if e["type"] == "wear"]
     if not wear:
         return cfg
     e = wear[0]
+    high = misposition_eol_pct(s.events)
     p = cfgmod.PrognosisConfig(
         enabled=True,
         eol_kind="leak_lpm",
         eol_value=float(e["fail_extra_lpm"]),
+        **({"eol_high_pct": high} if high is not None else {}),
         ref_dp_bar=float(e["ref_dp_bar"]),
         ref_temp_c=float(e["ref_temp_c"]),
         estimate_every_h=1.0,
     )
     return replace(cfg, prognosis=p)
+
+
+def misposition_eol_pct(events: list[dict[str, Any]]) -> float | None:
+    """The ratio at the failure of the first misposition that raises it: the motor's displacement
+    short by the drift reached at ``fail_h``, so it turns (and the ratio reads) 1 / (1 + pct/100)."""
+    for e in events:
+        if e["type"] != "misposition" or e.get("fail_h") is None:
+            continue
+        reached = 1.0
+        if e["mode"] != "step":
+            reached = min(max((e["fail_h"] - e["start_h"]) / (e["end_h"] - e["start_h"]), 0.0), 1.0)
+        factor = 1.0 + float(e["pct"]) / 100.0 * reached
+        if factor < 1.0:
+            return 100.0 / factor
+    return None
 
 
 def prognosis_at(
@@ -453,9 +471,9 @@ def run_demo(
     baseline = baseline_states(received, db, cfg, run.start_epoch_s, outputs)
     judge_prognosis(report, prognosis_at(received, db, cfg, run.start_epoch_s, outputs))
     for f in report:
-        if f["kind"] == "wear" and "prognosis" in f:
+        if f["kind"] in ("wear", "misposition") and "prognosis" in f:
             checks[
-                f"hours to end of life {PROGNOSIS_BEFORE_H:g} h before the {f['component']} wear failure "
+                f"hours to end of life {PROGNOSIS_BEFORE_H:g} h before the {f['component']} {f['kind']} failure "
                 f"within {PROGNOSIS_WITHIN:.0%}"
             ] = f["prognosis"]["ok"]
     res = DemoResult(

@@ -118,7 +118,8 @@ OUTPUT_SIGNALS: dict[str, tuple[str, ...]] = {
     # the prognosis, where the configuration enables it
     "cm_prognosis": (
         "prognosis_state",
-        "prognosis_to_low_h",
+        "prognosis_direction",
+        "prognosis_to_warning_h",
         "prognosis_to_eol_p10_h",
         "prognosis_to_eol_p50_h",
         "prognosis_to_eol_p90_h",

@@ -72,6 +72,40 @@ def test_both_engines_alike_and_the_estimate_before_the_motor_wear_failure(rig):
     assert np.all(np.isnan(tl.prognosis_to_eol_p50_h[after]))
 
 
+def test_a_misposition_is_a_high_trend_in_both_engines_and_ends_with_the_replacement():
+    """The motor's displacement control drifts 10 % short from 40 h until it fails at 60 h (the paper's
+    misposition, earlier): the trend is on the high side, the hours to its end of life (the ratio at
+    which it fails, 111 %) 10 h before within 20 %; the replacement at 61 h clears it."""
+    from cmcan.demo import misposition_eol_pct
+
+    events = [
+        {"type": "misposition", "mode": "drift", "start_h": 40, "end_h": 60, "pct": -10, "fail_h": 60},
+        {"type": "replace", "component": "motor", "at_h": 61},
+    ]
+    sampling = {"mode": "bursts", "burst_s": 2.0, "every_min": 20.0}
+    run, frames = sim_frames("run_to_failure", duration_h=70.0, events=events, sampling=sampling)
+    frames = as_frames(frames)
+    cfg = scale_windows(cfgmod.load(), 2.0, 20.0)
+    p = cfgmod.PrognosisConfig(enabled=True, eol_high_pct=misposition_eol_pct(events))
+    cfg = dataclasses.replace(cfg, prognosis=p)
+    a = _run(cfg, frames, "streaming")
+    b = _run(cfg, frames, "columnar")
+    for name in a[0].__dataclass_fields__:
+        assert np.array_equal(getattr(a[0], name), getattr(b[0], name), equal_nan=True), name
+    assert a[1] == b[1]
+    tl = a[0]
+    hours = (tl.t_s - run.start_epoch_s) / 3600.0
+    assert np.all(tl.prognosis_state[hours < 40.0] == 1)
+    near = (hours > 49.0) & (hours < 51.0)
+    assert near.any() and np.all(tl.prognosis_state[near] >= 2) and np.all(tl.prognosis_direction[near] == 2)
+    p50 = float(np.median(tl.prognosis_to_eol_p50_h[near]))
+    assert abs(p50 - 10.0) <= 0.2 * 10.0, p50
+    cleared = np.flatnonzero((hours > 60.0) & (tl.level == 0))
+    assert len(cleared)
+    after = np.arange(len(hours)) >= cleared[0]
+    assert np.all(tl.prognosis_state[after] == 1) and np.all(tl.prognosis_direction[after] == 0)
+
+
 def test_the_history_survives_a_restart(rig):
     _, frames = rig
     cfg = _cfg()
@@ -101,6 +135,7 @@ def test_cm_prognosis_carries_the_estimate_decoded_from_the_dbc(rig):
         d = msg.decode(f.data, decode_choices=False)
         i = by_t[round(f.timestamp_s, 3)]
         assert d["prognosis_state"] == tl.prognosis_state[i]
+        assert d["prognosis_direction"] == tl.prognosis_direction[i]
         p50 = tl.prognosis_to_eol_p50_h[i]
         assert d["prognosis_to_eol_p50_h"] == pytest.approx(0.0 if np.isnan(p50) else min(p50, 4000.0), abs=0.25)
     states = [msg.decode(f.data)["prognosis_state"] for f in sent]
@@ -118,7 +153,8 @@ def test_the_uplink_summaries_carry_the_prognosis():
         return Tick(
             t_s=t, gate=Gate.EVALUATING, measured=1.0, predicted=1.0, whitebox=1.0, ratio_raw_pct=100.0,
             ratio_filt_pct=100.0, extra_leak_lpm=0.0, filt_valid=True, level=Level.OK, reason=Reason.NONE,
-            time_below_s=0.0, prognosis_state=state, prognosis_to_low_h=math.nan,
+            time_below_s=0.0, prognosis_state=state, prognosis_direction=1 if state > 1 else 0,
+            prognosis_to_warning_h=math.nan,
             prognosis_to_eol_p10_h=p50 - 2, prognosis_to_eol_p50_h=p50, prognosis_to_eol_p90_h=math.inf,
         )  # fmt: skip
 
@@ -127,5 +163,23 @@ def test_the_uplink_summaries_carry_the_prognosis():
     sb.add(_sample(tick(10.0, 2, 30.0)), cum)
     (entry,) = sb.add(_sample(tick(70.0, 3, 20.0)), cum)
     body = entry.body
-    assert body["prognosis"] == {"state": "trend", "to_low_h": None, "to_eol_h": [28.0, 30.0, "never"]}
+    want = {"state": "trend", "direction": "low", "to_warning_h": None, "to_eol_h": [28.0, 30.0, "never"]}
+    assert body["prognosis"] == want
     assert _sample(tick(80.0, 0, math.nan)).prognosis is None  # not configured: no key
+
+
+def test_the_high_end_of_life_is_configured_and_checked():
+    from cmcan.assemble import prognosis_params
+    from cmcan.schema import SchemaError, load_yaml
+
+    path = cfgmod.default_config_path()
+
+    def config(prognosis):
+        return cfgmod.from_dict({**load_yaml(path), "prognosis": prognosis}, str(path), path.parent)
+
+    cfg = config({"enabled": True, "end_of_life": {"high_pct": 112.5}})
+    params = prognosis_params(cfg)
+    assert params is not None and params.eol_high_pct == 112.5 and params.high_pct == cfg.thresholds.high_pct
+    assert prognosis_params(config({"enabled": True})).eol_high_pct == 110.0  # the documented default
+    with pytest.raises(SchemaError, match=r"prognosis\.end_of_life\.high_pct.*thresholds\.high_pct"):
+        config({"enabled": True, "end_of_life": {"high_pct": 101.5}})

@@ -11,11 +11,11 @@ import pytest
 from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
-from cmcan.monitor.prognosis import IMMINENT, NONE, TREND, Prognosis, PrognosisParams
+from cmcan.monitor.prognosis import HIGH, IMMINENT, LOW, NONE, TREND, Prognosis, PrognosisParams
 from cmcan.oil import VG46, oil_from_grade
 
 FLOW_LPM = 234.0  # 78 cm3/rev at 3000 rpm: the extra leakage's share of it is the ratio's deficit
-SMALL = PrognosisParams(bin_h=0.25, max_points=12, min_ticks=2, min_points=4, onsets=4, draws=50)
+SMALL = PrognosisParams(bin_h=0.25, max_points=12, min_ticks=2, min_points=4, onsets=4, onset_ratio=1.5, draws=50)
 REF = PrognosisParams()
 
 
@@ -331,11 +331,65 @@ def test_hours_to_the_low_warning_follow_the_ratio():
         p.add_columns(*(c[:upto] for c in cols))
         e = p.estimate()
         assert e.state == TREND
-        lo, _, hi = e.to_low_h
+        lo, _, hi = e.to_warning_h
         inside += lo <= truth_h - e.at_h <= hi
         p.add_columns(*(c[upto:] for c in cols))
-        assert p.estimate().to_low_h[1] == 0.0
+        assert p.estimate().to_warning_h[1] == 0.0
     assert inside >= 7, inside
+
+
+def ratio_ticks(hours, ratio_pct, seed=0, noise_pct=0.2):
+    """Evaluated ticks at the reference conditions from a ratio (with correlated noise): the leakage
+    is its deficit's share of the flow, negative above 100 %."""
+    rng = np.random.default_rng(seed)
+    n = len(hours)
+    white = rng.normal(0.0, noise_pct, n)
+    ratio = ratio_pct + np.convolve(white, np.ones(8) / 8, mode="same") * math.sqrt(8)
+    leak = (100.0 - ratio) / 100.0 * FLOW_LPM
+    return hours, leak, ratio, np.full(n, REF.dp_ref_bar), np.full(n, REF.temp_ref_c), np.ones(n, bool)
+
+
+@pytest.mark.parametrize(("span_h", "k", "seed"), [(20.0, 1.0, 0), (40.0, 1.0, 1), (60.0, 2.0, 2)])
+def test_a_drifting_displacement_control_is_a_high_trend(span_h, k, seed):
+    """The motor's displacement drifts short by up to 10 % (the ratio rises to 111 %, its loss of
+    function) over ``span_h`` from 200 h: the trend is on the high side, and 10 h before the end the
+    median hours to end of life are within 20 % of the truth."""
+    onset = 200.0
+    fail = onset + span_h
+    h = np.arange(0.0, fail - 10.0, 0.01)
+    short = 0.1 * np.clip((h - onset) / span_h, 0, 1) ** k
+    cols = ratio_ticks(h, 100.0 / (1.0 - short), seed=seed)
+    p = Prognosis(PrognosisParams(eol_high_pct=100.0 / 0.9))
+    p.add_columns(*cols)
+    e = p.estimate()
+    assert e.state != NONE and e.direction == HIGH, e
+    assert abs(e.to_eol_h[1] - 10.0) <= 2.0, e
+    assert e.to_eol_h[0] <= e.to_eol_h[1] <= e.to_eol_h[2]
+    assert e.rise_lpm == 0.0  # the leakage falls: no wear
+
+
+def test_wear_is_a_low_trend():
+    h = np.arange(0.0, 130.0, 0.01)
+    p = Prognosis()
+    p.add_columns(*ticks(h, 40.0 * np.clip((h - 30) / 120, 0, 1) ** 3, seed=3))
+    e = p.estimate()
+    assert e.state != NONE and e.direction == LOW and e.rise_pct == 0.0, e
+
+
+@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize(
+    ("level_pct", "swing_pct", "period_h"), [(100.0, 0.4, 10.0), (101.5, 0.8, 24.0), (100.5, 1.2, 16.0)]
+)
+def test_no_high_trend_on_a_ratio_about_or_above_100(seed, level_pct, swing_pct, period_h):
+    """A healthy unit reads a little high (unit-to-unit spread) and its ratio swings with the oil: no
+    trend on either side, at every estimate."""
+    h = np.arange(0.0, 100.0, 0.01)
+    cols = ratio_ticks(h, level_pct + swing_pct * np.sin(2 * np.pi * h / period_h + seed), seed=seed)
+    p = Prognosis()
+    for a in range(0, len(h), 200):
+        p.add_columns(*(c[a : a + 200] for c in cols))
+        e = p.estimate()
+        assert e.state == NONE and e.direction == "", e
 
 
 def test_the_estimate_is_the_same_every_time():
@@ -350,3 +404,5 @@ def test_params_are_checked():
         PrognosisParams(eol_kind="hours")
     with pytest.raises(ValueError):
         PrognosisParams(bin_h=0.0)
+    with pytest.raises(ValueError):  # the high end of life must lie beyond the high warning
+        PrognosisParams(high_pct=102.0, eol_high_pct=101.0)

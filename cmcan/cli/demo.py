@@ -125,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
                     f"(10-90 %: {p10:.1f}-{p90:.1f} h), truth {pg['truth_h']:.1f} h"
                 )
             elif pg is not None:
-                print(f"             CM_PROGNOSIS at {pg['at_h']:.1f} h: {pg['state'] or 'nothing'} (no wear trend)")
+                print(f"             CM_PROGNOSIS at {pg['at_h']:.1f} h: {pg['state'] or 'nothing'} (no trend)")
         for name, ok in res.checks.items():
             print(f"  [{'ok' if ok else 'FAIL'}] {name}")
         if not args.no_plot:

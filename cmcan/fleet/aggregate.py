@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cmcan.monitor.gating import EVALUATED
-from cmcan.monitor.tick import BASELINE_PROGRESS, OPERATING_POINT, PROGNOSIS_HOURS, TickColumns
+from cmcan.monitor.tick import BASELINE_PROGRESS, OPERATING_POINT, PROGNOSIS_CODES, PROGNOSIS_HOURS, TickColumns
 
 _EVALUATED = np.array(sorted(int(g) for g in EVALUATED), dtype=np.int8)  # a ratio, inside the envelope or not
 
@@ -52,7 +52,7 @@ REDUCTIONS: dict[str, tuple[str, str]] = {
     **{role: (role, "mean_eval") for role in OPERATING_POINT},
     "baseline_state": ("baseline_state", "last"),
     **{name: (name, "last") for name in BASELINE_PROGRESS},
-    "prognosis_state": ("prognosis_state", "last"),
+    **{name: (name, "last") for name in PROGNOSIS_CODES},
     **{name: (name, "last") for name in PROGNOSIS_HOURS},
 }
 

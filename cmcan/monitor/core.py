@@ -493,7 +493,7 @@ class Monitor:
         progn: dict[str, Any] = {}
         if pg is not None:
             hour = (t + self.run_shift_s) / 3600.0
-            if cond_before == Level.LOW and m.condition == Level.OK:  # the worn unit was replaced
+            if _cleared(cond_before, m.condition):  # the worn or mispositioned unit was replaced
                 pg.restart()
             pg.tick(hour)
             if evaluated:
@@ -528,8 +528,8 @@ class Monitor:
         cond_before: Level,
         condition: NDArray[np.int8],
     ) -> dict[str, NDArray[Any]]:
-        """The prognosis at every tick of a stretch, restarted where a low condition cleared (a unit
-        replaced), as :meth:`_judge` tick after tick."""
+        """The prognosis at every tick of a stretch, restarted where a low or high condition cleared
+        (a unit replaced), as :meth:`_judge` tick after tick."""
         pg = self.prognosis
         if pg is None:
             return {}
@@ -540,7 +540,7 @@ class Monitor:
         prev = np.empty(n, dtype=np.int8)
         prev[0] = cond_before
         prev[1:] = condition[:-1]
-        cuts = np.flatnonzero((prev == Level.LOW) & (condition == Level.OK)).tolist()
+        cuts = np.flatnonzero(_cleared(prev, condition)).tolist()
         parts = []
         for a, z in itertools.pairwise([0, *cuts, n]):
             if a in cuts:
@@ -963,12 +963,19 @@ class _Out:
         return self.pieces[0] if len(self.pieces) == 1 else FrameColumns.concat(self.pieces)
 
 
+def _cleared(before: Any, now: Any) -> Any:
+    """A low or high condition back to ok: the unit was replaced (or repaired), its trend is over.
+    Scalars or arrays of levels."""
+    return ((before == Level.LOW) | (before == Level.HIGH)) & (now == Level.OK)
+
+
 def _prognosis_snapshot(pg: Stage) -> dict[str, Any]:
     e = pg.est
     return {
         "state": e.state,
+        "direction": e.direction or None,
         "at_h": e.at_h if math.isfinite(e.at_h) else None,
-        "to_low_h": [_hours(v) for v in e.to_low_h],
+        "to_warning_h": [_hours(v) for v in e.to_warning_h],
         "to_eol_h": [_hours(v) for v in e.to_eol_h],
         "history_points": len(pg.history.points),
         **({"note": pg.note} if pg.note else {}),

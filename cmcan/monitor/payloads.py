@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -94,6 +95,7 @@ def output_spans(
         "baseline_coverage_pct": Span(0.0, 100.0, "a share of the envelope"),
         "baseline_distance_lpm": Span(-leak_max_lpm, leak_max_lpm, "up to the drive's nominal flow either way"),
         "prognosis_state": Span(0.0, 3.0, "every prognosis state"),
+        "prognosis_direction": Span(0.0, 2.0, "every trend direction"),
         **{name: Span(*PROGNOSIS_SPAN_H, "up to 4000 operating hours") for name in PROGNOSIS_HOURS},
     }
 
@@ -142,7 +144,7 @@ class Payloads:
         self.alive = 0
         self.last_warning: tuple[int, int] | None = None
         self.last_baseline = -1  # the baseline state last sent (CM_BASELINE goes at once on a change)
-        self.last_prognosis = -1  # the prognosis state last sent (likewise CM_PROGNOSIS)
+        self.last_prognosis = -1  # the prognosis state and direction last sent (likewise CM_PROGNOSIS)
 
     def continue_from(self, old: Payloads) -> None:
         """Go on with the alive counter and warning state of the payloads this one replaces."""
@@ -215,8 +217,9 @@ class Payloads:
         if bm is not None and (tick.baseline_state != self.last_baseline or k % bm.every_ticks == 0):
             self.last_baseline = tick.baseline_state
             out.append(self._frame(tick.t_s, bm, _baseline_values(tick)))
-        if pm is not None and (tick.prognosis_state != self.last_prognosis or k % pm.every_ticks == 0):
-            self.last_prognosis = tick.prognosis_state
+        key = _prognosis_key(tick.prognosis_state, tick.prognosis_direction)
+        if pm is not None and (key != self.last_prognosis or k % pm.every_ticks == 0):
+            self.last_prognosis = key
             out.append(self._frame(tick.t_s, pm, _prognosis_values(tick)))
 
     def frames_columns(self, ks: NDArray[np.int64], c: TickColumns, wcount: NDArray[np.int64]) -> FrameColumns:
@@ -285,7 +288,7 @@ class Payloads:
         if self.outputs.baseline is not None:
             self.last_baseline = int(c.baseline_state[-1])
         if self.outputs.prognosis is not None:
-            self.last_prognosis = int(c.prognosis_state[-1])
+            self.last_prognosis = int(_prognosis_key(c.prognosis_state[-1], c.prognosis_direction[-1]))
 
     def _interleave(
         self, t_s: NDArray[np.float64], parts: tuple[tuple[NDArray[np.int64], NDArray[np.uint8]], ...]
@@ -354,6 +357,7 @@ def _prognosis_values(tick: Tick) -> dict[str, float]:
     """CM_PROGNOSIS's signals of one tick."""
     return {
         "prognosis_state": float(tick.prognosis_state),
+        "prognosis_direction": float(tick.prognosis_direction),
         **{name: _prognosis_hours(getattr(tick, name)) for name in PROGNOSIS_HOURS},
     }
 
@@ -363,14 +367,23 @@ def _prognosis_part(
 ) -> tuple[NDArray[np.int64], NDArray[np.uint8]]:
     """CM_PROGNOSIS of a stretch of ticks, on each change of state and every ``every_ticks``."""
     state = c.prognosis_state.astype(np.int64)
+    key = _prognosis_key(state, c.prognosis_direction.astype(np.int64))
     prev = np.empty(len(ks), dtype=np.int64)
     prev[0] = prev_state
-    prev[1:] = state[:-1]
-    values = {"prognosis_state": state.astype(np.float64)}
+    prev[1:] = key[:-1]
+    values = {
+        "prognosis_state": state.astype(np.float64),
+        "prognosis_direction": c.prognosis_direction.astype(np.float64),
+    }
     for name in PROGNOSIS_HOURS:
         h = getattr(c, name)
         values[name] = np.where(np.isnan(h), 0.0, np.minimum(h, PROGNOSIS_SPAN_H[1]))
-    return _encode(msg, np.flatnonzero((state != prev) | (ks % msg.every_ticks == 0)), values)
+    return _encode(msg, np.flatnonzero((key != prev) | (ks % msg.every_ticks == 0)), values)
+
+
+def _prognosis_key(state: Any, direction: Any) -> Any:
+    """What a change of sends CM_PROGNOSIS at once: its state or its direction (scalars or arrays)."""
+    return state * 4 + direction
 
 
 def _encode(

@@ -49,7 +49,7 @@ from __future__ import annotations
 import functools
 import itertools
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -60,6 +60,7 @@ from cmcan.oil import VG46, Oil
 FORMAT = "cmcan-prognosis/2"
 _FORMAT_V1 = "cmcan-prognosis/1"  # leakage as measured, not referred to reference conditions
 NONE, TREND, IMMINENT = "none", "trend", "imminent"
+LOW, HIGH = "low", "high"  # a trend's direction: the ratio to the low warning (wear) or the high one
 EOL_KINDS = ("leak_lpm", "ratio_pct")
 _NEVER_H = 1e6  # a drawn curve that never reaches a threshold; reported as inf
 # Power-law exponents tried: 2^(i/8) from 1 to 8 (9 % apart; given as literals so every platform has
@@ -77,20 +78,35 @@ class PrognosisParams:
     max_points: int = 256  # history bound (at least 64 h at full resolution; older merged in pairs)
     min_ticks: int = 10  # a bin with fewer valid ticks is too short to average and is dropped
     low_pct: float = 98.0  # the low warning's ratio (Thresholds.low_pct)
+    high_pct: float = 102.0  # the high warning's ratio (Thresholds.high_pct)
     # End of life. Default: the ratio at 90 %, 10 % of the delivered flow lost to extra leakage beyond
     # a new unit's, a volumetric-efficiency loss at which hydrostatic units are commonly replaced (a
     # rule of thumb, short of loss of function: the simulated rig loses function at some 17 %). A
     # machine whose end of life is known configures it (l/min, or a ratio).
     eol_kind: str = "ratio_pct"
     eol_value: float = 90.0
+    # End of life on the high side: a ratio rising (the displacement control drifting, a misposition)
+    # grows no leak; by default the mirror of the low side, the motor 10 % off its commanded speed, at
+    # which a drive's speed control no longer holds the machine's travel or implement speed.
+    eol_high_pct: float = 110.0
     imminent_h: float = 24.0  # p10 to end of life within this: imminent (service within a few shifts)
     min_points: int = 12  # the rising stretch must hold at least this many points (6 h)
-    onsets: int = 48  # onset candidates on the grid (some 3 h apart on a 300 h history)
+    # No estimate on a shorter history: it need not hold one whole cycle of the oil and the duty (a
+    # shift, a day), whose rising half a short history cannot tell from a trend
+    min_history_h: float = 24.0
+    # Onset candidates on the grid: ``onsets`` evenly over the history (some 3 h apart on 300 h) and
+    # rises from min_points long each ``onset_ratio`` times longer: an onset's rounding errs the
+    # extrapolation by its share of the rise's length, and a recent ramp of 10 h needs a finer grid
+    # than one of 100 h
+    onsets: int = 48
+    onset_ratio: float = 1.07
     t_min: float = 6.0  # significance of the rise (grid search and autocorrelation make 2 too lax)
     min_rise_lpm: float = 1.5  # the smallest rise reported as a trend
+    min_rise_pct: float = 1.0  # ... of the ratio, on the high side (half the high warning's margin)
     rise_sigmas: float = 5.0  # ... and at least this many times the residuals' spread
     draws: int = 400  # curves drawn for the interval
     sigma_floor_lpm: float = 0.05  # the noise assumed at least (a history smoother than the filter's)
+    sigma_floor_pct: float = 0.01  # ... of the ratio
     # The wear law is an assumption: a field curve is no exact power law, and onset and shape are
     # picked from a grid. Hours to a threshold carry this relative error (lognormal) on top of the fit's.
     model_rel: float = 0.1
@@ -117,6 +133,10 @@ class PrognosisParams:
     def __post_init__(self) -> None:
         if self.eol_kind not in EOL_KINDS:
             raise ValueError(f"eol_kind {self.eol_kind!r} is not one of {', '.join(EOL_KINDS)}")
+        if not self.low_pct < 100.0 < self.high_pct < self.eol_high_pct:
+            raise ValueError("the ratios must lie low_pct < 100 < high_pct < eol_high_pct")
+        if not self.onset_ratio > 1.0:
+            raise ValueError("onset_ratio must be above 1")
         if not self.bin_h > 0 or self.max_points < 2 * self.min_points:
             raise ValueError("bin_h must be positive and max_points at least twice min_points")
         if not (self.dp_ref_bar > 0 and self.min_dp_bar >= 0 and _TEMP_LO_C <= self.temp_ref_c <= _TEMP_HI_C):
@@ -135,18 +155,23 @@ _NAN3: Triple = (math.nan, math.nan, math.nan)
 
 @dataclass(frozen=True)
 class Estimate:
-    """State (none / trend / imminent), hours until the low warning and until end of life as
-    (p10, p50, p90) (NaN without a trend, inf where the curve never gets there), and the fit."""
+    """State (none / trend / imminent), the trend's direction (low: the ratio falls with a growing
+    leak, wear; high: it rises, a displacement control drifting; "" without a trend), hours until that
+    side's warning and until its end of life as (p10, p50, p90) (NaN without a trend, inf where the
+    curve never gets there), and the fits."""
 
     state: str = NONE
     at_h: float = math.nan  # the last history point's operating hour
-    to_low_h: Triple = _NAN3
+    to_warning_h: Triple = _NAN3
     to_eol_h: Triple = _NAN3
-    rise_lpm: float = 0.0  # the fitted rise from the onset until now (at the reference conditions)
+    direction: str = ""
+    rise_lpm: float = 0.0  # the leakage's fitted rise from the onset until now (at the reference conditions)
     t_stat: float = 0.0
     onset_h: float = math.nan
     shape_k: float = math.nan
     noise_lpm: float = 0.0  # the residuals' spread
+    rise_pct: float = 0.0  # the high side's fitted rise: of the share of displacement the motor lacks
+    t_stat_pct: float = 0.0
 
 
 @dataclass
@@ -404,36 +429,93 @@ def _thin(points: list[Point], keep: int) -> list[Point]:
 def estimate(
     p: PrognosisParams, h: NDArray[np.float64], leak: NDArray[np.float64], ratio: NDArray[np.float64]
 ) -> Estimate:
-    """The prognosis from a history (hours increasing): see the module's description."""
+    """The prognosis from a history (hours increasing): see the module's description. Two sides are
+    tracked: the leakage growing (wear; the ratio falls to the low warning) and the ratio rising (a
+    drifting displacement control; to the high warning). Where both trend, the one ending sooner."""
     n = len(h)
-    if n < p.min_points + 2 or not h[-1] > h[0]:
+    if n < p.min_points + 2 or not h[-1] - h[0] >= p.min_history_h:
         return Estimate(at_h=float(h[-1]) if n else math.nan)
     T = float(h[-1])
-    d = _detect(p, h, leak)
-    base = Estimate(at_h=T, rise_lpm=d.c, t_stat=d.t_stat, onset_h=d.onset_h, shape_k=d.shape_k, noise_lpm=d.sigma)
-    if not d.trend:
+    d_low = _detect(p, h, leak, _LEAK)
+    # The high side follows the ratio above 100 %: flow a healthy drive cannot deliver, which a leak,
+    # however it swings with the oil and the pressure, never gives (it only lowers the ratio). As the
+    # share of displacement the motor lacks (1 - 100 / ratio), linear in a drifting control
+    excess = _short_pct(ratio)
+    d_high = _detect(p, h, excess, _RATIO)
+    base = Estimate(
+        at_h=T,
+        rise_lpm=d_low.c,
+        t_stat=d_low.t_stat,
+        onset_h=d_low.onset_h,
+        shape_k=d_low.shape_k,
+        noise_lpm=d_low.sigma,
+        rise_pct=d_high.c,
+        t_stat_pct=d_high.t_stat,
+    )
+    sides = []
+    if d_low.trend:
+        sides.append((LOW, d_low, _track_hours(p, h, leak, d_low, _leak_thresholds(p, leak, ratio), _LEAK)))
+    if d_high.trend:
+        ys = (float(_short_pct(np.array(p.high_pct))), float(_short_pct(np.array(p.eol_high_pct))))
+        sides.append((HIGH, d_high, _track_hours(p, h, excess, d_high, ys, _RATIO)))
+    if not sides:
         return base
-    low_y, eol_y = _leak_thresholds(p, leak, ratio)
-    # Pooled with the estimates of the last few hours (each less the hours since): one taken on a
-    # warm or a cold stretch of the oil's cycle no longer decides alone. Near the end the pool
-    # shrinks (to a quarter of the hours left): older estimates lag an accelerating wear.
-    tl, te = _draw_hours(p, d, h, leak, (low_y, eol_y), p.seed)
-    lows, eols = [tl], [te]
+    side, d, (q_warn, q_eol) = min(sides, key=lambda s: _sooner(s[2][1]))
+    state = IMMINENT if q_eol[0] <= p.imminent_h else TREND
+    onset = {"onset_h": d.onset_h, "shape_k": d.shape_k}
+    return replace(base, state=state, to_warning_h=q_warn, to_eol_h=q_eol, direction=side, **onset)
+
+
+def _short_pct(ratio_pct: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The share of its displacement (%) a motor turning at ``ratio_pct`` of the predicted speed lacks;
+    0 at or below 100 %."""
+    return np.maximum(100.0 - 1e4 / ratio_pct, 0.0)
+
+
+def _sooner(q: Triple) -> float:
+    return math.inf if math.isnan(q[1]) else q[1]
+
+
+def _track_hours(
+    p: PrognosisParams,
+    h: NDArray[np.float64],
+    y: NDArray[np.float64],
+    d: _Detected,
+    ys: tuple[float, float],
+    track: _Track,
+) -> tuple[Triple, Triple]:
+    """Hours (p10, p50, p90) until a trending side reaches its warning and its end of life, ``ys``.
+    Pooled with the estimates of the last few hours (each less the hours since): one taken on a warm
+    or a cold stretch of the oil's cycle no longer decides alone. Near the end the pool shrinks (to a
+    quarter of the hours left): older estimates lag an accelerating wear."""
+    T = float(h[-1])
+    tw, te = _draw_hours(p, d, h, y, ys, track, p.seed)
+    warns, eols = [tw], [te]
     pool_h = min(p.pool_h, 0.25 * float(np.median(te)))
     for i, lag in enumerate(np.arange(p.pool_every_h, pool_h + 1e-9, p.pool_every_h).tolist(), start=1):
         m = int(np.searchsorted(h, T - lag, side="right"))
         if m < p.min_points + 2:
             break
-        di = _detect(p, h[:m], leak[:m])
+        di = _detect(p, h[:m], y[:m], track)
         if not di.trend:
             continue
-        tl, te = _draw_hours(p, di, h[:m], leak[:m], (low_y, eol_y), p.seed + i)
+        tw, te = _draw_hours(p, di, h[:m], y[:m], ys, track, p.seed + i)
         since = T - float(h[m - 1])
-        lows.append(np.where(tl < _NEVER_H, np.maximum(tl - since, 0.0), tl))
+        warns.append(np.where(tw < _NEVER_H, np.maximum(tw - since, 0.0), tw))
         eols.append(np.where(te < _NEVER_H, np.maximum(te - since, 0.0), te))
-    q_low, q_eol = _quantiles(np.concatenate(lows)), _quantiles(np.concatenate(eols))
-    state = IMMINENT if q_eol[0] <= p.imminent_h else TREND
-    return Estimate(state, T, q_low, q_eol, d.c, d.t_stat, d.onset_h, d.shape_k, d.sigma)
+    return _quantiles(np.concatenate(warns)), _quantiles(np.concatenate(eols))
+
+
+@dataclass(frozen=True)
+class _Track:
+    """What a side's values are: the smallest rise reported, the noise assumed at least."""
+
+    min_rise: str  # the PrognosisParams field
+    sigma_floor: str
+
+
+_LEAK = _Track("min_rise_lpm", "sigma_floor_lpm")  # the leakage at the reference conditions, l/min
+_RATIO = _Track("min_rise_pct", "sigma_floor_pct")  # the ratio, %
 
 
 @dataclass(frozen=True)
@@ -453,17 +535,17 @@ class _Detected:
     resid: NDArray[np.float64]
 
 
-def _detect(p: PrognosisParams, h: NDArray[np.float64], leak: NDArray[np.float64]) -> _Detected:
+def _detect(p: PrognosisParams, h: NDArray[np.float64], y: NDArray[np.float64], track: _Track) -> _Detected:
     n = len(h)
     t0s, ks, basis = _grid(p, h)
-    f = _fit(basis, leak)
+    f = _fit(basis, y)
     g = int(np.argmin(f.sse))
     c = float(f.c[g])
-    resid = leak - (f.b[g] + c * basis[g])
+    resid = y - (f.b[g] + c * basis[g])
     sigma = float(np.sqrt(f.sse[g] / max(n - 4, 1)))
     se = sigma * math.sqrt(_inflation(resid) / f.suu[g]) if f.suu[g] > 0 else math.inf
     t_stat = c / se if se > 0 else (math.inf if c > 0 else 0.0)
-    trend = c > 0 and t_stat >= p.t_min and c >= max(p.min_rise_lpm, p.rise_sigmas * sigma)
+    trend = c > 0 and t_stat >= p.t_min and c >= max(getattr(p, track.min_rise), p.rise_sigmas * sigma)
     return _Detected(trend, c, t_stat, t0s[g], ks[g], sigma, g, t0s, ks, basis, resid)
 
 
@@ -471,8 +553,9 @@ def _draw_hours(
     p: PrognosisParams,
     d: _Detected,
     h: NDArray[np.float64],
-    leak: NDArray[np.float64],
+    y: NDArray[np.float64],
     ys: tuple[float, float],
+    track: _Track,
     seed: int,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Hours from the last point until each drawn curve reaches each of ``ys`` (with the model's
@@ -481,7 +564,7 @@ def _draw_hours(
     n, T = len(h), float(h[-1])
     before = d.basis[d.g] == 0.0
     floor = float(np.sqrt(np.mean(d.resid[before] ** 2))) if np.count_nonzero(before) >= 4 else 0.0
-    floor = max(floor, p.sigma_floor_lpm)
+    floor = max(floor, getattr(p, track.sigma_floor))
     # The share of the wear leakage the points scatter by on top of the floor, from the worn stretch's
     # residuals (referred to reference conditions little is left of the oil's swing), at most
     # level_rel. From successive differences: a smooth misfit of the law is no scatter, and taken
@@ -493,17 +576,17 @@ def _draw_hours(
         scatter2 = 0.5 * float(np.mean(np.diff(d.resid[worn]) ** 2))
         rel2 = max(scatter2 - floor**2, 0.0) / float(np.mean(u[worn] ** 2))
     w = 1.0 / (floor**2 + min(rel2, p.level_rel**2) * u**2)
-    f = _fit(d.basis, leak, w)
+    f = _fit(d.basis, y, w)
     gw = int(np.argmin(f.sse))
-    resid_w = (leak - (f.b[gw] + f.c[gw] * d.basis[gw])) * np.sqrt(w)
+    resid_w = (y - (f.b[gw] + f.c[gw] * d.basis[gw])) * np.sqrt(w)
     s2 = float(f.sse[gw]) / max(n - 4, 1) * _inflation(resid_w)
     rng = np.random.default_rng(seed)
     cell, bs, cs = _draws(p, f, s2, rng)
     t0a, ka = np.array(d.t0s)[cell], np.array(d.ks)[cell]
     spread = np.exp(rng.normal(0.0, p.model_rel, len(cell)))
     out = []
-    for y in ys:
-        t = _hours_to(y, bs, cs, t0a, ka, T)
+    for target in ys:
+        t = _hours_to(target, bs, cs, t0a, ka, T)
         out.append(np.where(t < _NEVER_H, t * spread, t))
     return out[0], out[1]
 
@@ -523,11 +606,10 @@ class _Fits:
 
 def _grid(p: PrognosisParams, h: NDArray[np.float64]) -> tuple[list[float], list[float], NDArray[np.float64]]:
     """Onsets x shapes, and each cell's basis ((h - t0) / (T - t0))^k, 0 before the onset."""
-    n = len(h)
     T = float(h[-1])
-    idx = np.unique(np.round(np.linspace(0, n - p.min_points, p.onsets)).astype(np.int64))
+    idx = _onsets(h, p.min_points, p.onsets, p.onset_ratio)
     t0s, ks, rows = [], [], []
-    for i in idx.tolist():
+    for i in idx:
         t0 = float(h[i])
         s = np.clip((h - t0) / max(T - t0, 1e-9), 0.0, 1.0)
         for k in _SHAPES:
@@ -535,6 +617,22 @@ def _grid(p: PrognosisParams, h: NDArray[np.float64]) -> tuple[list[float], list
             ks.append(k)
             rows.append(s**k)
     return t0s, ks, np.array(rows)
+
+
+def _onsets(h: NDArray[np.float64], min_points: int, even: int, ratio: float) -> list[int]:
+    """Indices of the onset candidates: ``even`` evenly spaced from the first point to ``min_points``
+    before the last, and rises from ``min_points`` points long to the whole history, each ``ratio``
+    times the one before in hours, at the point nearest. Products and comparisons only: the same
+    indices on every platform."""
+    n, T = len(h), float(h[-1])
+    newest, oldest = T - float(h[n - min_points]), T - float(h[0])
+    out = set(np.round(np.linspace(0, n - min_points, even)).astype(np.int64).tolist())
+    d = newest * ratio
+    while d < oldest:
+        i = int(np.searchsorted(h, T - d))  # the first point at or after T - d, or the one before it
+        out.add(i - 1 if i > 0 and (T - d) - float(h[i - 1]) < float(h[i]) - (T - d) else i)
+        d *= ratio
+    return sorted(out)
 
 
 def _fit(basis: NDArray[np.float64], y: NDArray[np.float64], w: NDArray[np.float64] | None = None) -> _Fits:
@@ -617,11 +715,14 @@ def _quantiles(t: NDArray[np.float64]) -> Triple:
 
 # -- the stage on the evaluated ticks ------------------------------------------------------------------
 
-# A tick's prognosis state (the CAN signal's values): 0 where no prognosis is configured
+# A tick's prognosis state and direction (the CAN signals' values): 0 where no prognosis is
+# configured, and the direction 0 without a trend
 STATE_CODES = {NONE: 1, TREND: 2, IMMINENT: 3}
+DIRECTION_CODES = {"": 0, LOW: 1, HIGH: 2}
 FIELDS = (
     "prognosis_state",
-    "prognosis_to_low_h",
+    "prognosis_direction",
+    "prognosis_to_warning_h",
     "prognosis_to_eol_p10_h",
     "prognosis_to_eol_p50_h",
     "prognosis_to_eol_p90_h",
@@ -683,7 +784,8 @@ class Stage:
         since = hour - e.at_h if math.isfinite(e.at_h) else 0.0
         return {
             "prognosis_state": STATE_CODES[e.state],
-            "prognosis_to_low_h": _left(e.to_low_h[1], since),
+            "prognosis_direction": DIRECTION_CODES[e.direction],
+            "prognosis_to_warning_h": _left(e.to_warning_h[1], since),
             "prognosis_to_eol_p10_h": _left(e.to_eol_h[0], since),
             "prognosis_to_eol_p50_h": _left(e.to_eol_h[1], since),
             "prognosis_to_eol_p90_h": _left(e.to_eol_h[2], since),
@@ -713,6 +815,7 @@ class Stage:
         change = np.flatnonzero(~np.isnan(eff) & (eff != before))
         out: dict[str, NDArray[Any]] = {name: np.empty(n) for name in FIELDS}
         out["prognosis_state"] = np.empty(n, dtype=np.int8)
+        out["prognosis_direction"] = np.empty(n, dtype=np.int8)
         cols = (hours, leak_lpm, ratio_pct, dp_bar, temp_c)
         starts = set(change.tolist())
         edges = [0, *sorted(starts - {0}), n]
@@ -731,7 +834,8 @@ class Stage:
             e = self.est
             since = hours[a:z] - e.at_h if math.isfinite(e.at_h) else np.zeros(z - a)
             out["prognosis_state"][a:z] = STATE_CODES[e.state]
-            for name, v in zip(FIELDS[1:], (e.to_low_h[1], *e.to_eol_h), strict=True):
+            out["prognosis_direction"][a:z] = DIRECTION_CODES[e.direction]
+            for name, v in zip(FIELDS[2:], (e.to_warning_h[1], *e.to_eol_h), strict=True):
                 out[name][a:z] = _left_columns(v, since)
         return out
 

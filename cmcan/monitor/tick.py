@@ -24,8 +24,14 @@ from cmcan.roles import MODEL_INPUTS
 OPERATING_POINT: tuple[str, ...] = MODEL_INPUTS
 # The on-board baseline's progress on every tick: hours learned, envelope covered, distance from the type
 BASELINE_PROGRESS = ("baseline_learned_h", "baseline_coverage_pct", "baseline_distance_lpm")
-# The prognosis's hours on every tick (cmcan.monitor.prognosis.FIELDS but the state)
-PROGNOSIS_HOURS = ("prognosis_to_low_h", "prognosis_to_eol_p10_h", "prognosis_to_eol_p50_h", "prognosis_to_eol_p90_h")
+# The prognosis's codes and hours on every tick (together cmcan.monitor.prognosis.FIELDS)
+PROGNOSIS_CODES = ("prognosis_state", "prognosis_direction")
+PROGNOSIS_HOURS = (
+    "prognosis_to_warning_h",
+    "prognosis_to_eol_p10_h",
+    "prognosis_to_eol_p50_h",
+    "prognosis_to_eol_p90_h",
+)
 LEVEL_NAMES = {Level.OK: "ok", Level.LOW: "low", Level.HIGH: "high", Level.FAULT: "fault"}
 
 
@@ -58,10 +64,12 @@ class Tick:
     baseline_coverage_pct: float = 0.0
     baseline_distance_lpm: float = 0.0
     # the prognosis where configured (cmcan.monitor.prognosis): 0 none configured, else 1 none, 2 trend,
-    # 3 imminent; operating hours to the low warning (p50) and to end of life (p10, p50, p90), NaN
-    # without a trend, inf where the estimate never gets there
+    # 3 imminent; the trend's direction (0 none, 1 low: wear, 2 high: the ratio rising); operating
+    # hours to that side's warning (p50) and to end of life (p10, p50, p90), NaN without a trend, inf
+    # where the estimate never gets there
     prognosis_state: int = 0
-    prognosis_to_low_h: float = math.nan
+    prognosis_direction: int = 0
+    prognosis_to_warning_h: float = math.nan
     prognosis_to_eol_p10_h: float = math.nan
     prognosis_to_eol_p50_h: float = math.nan
     prognosis_to_eol_p90_h: float = math.nan
@@ -96,14 +104,16 @@ class TickColumns:
     baseline_coverage_pct: NDArray[np.float64] = None  # type: ignore[assignment]
     baseline_distance_lpm: NDArray[np.float64] = None  # type: ignore[assignment]
     prognosis_state: NDArray[np.int8] = None  # type: ignore[assignment]
-    prognosis_to_low_h: NDArray[np.float64] = None  # type: ignore[assignment]
+    prognosis_direction: NDArray[np.int8] = None  # type: ignore[assignment]
+    prognosis_to_warning_h: NDArray[np.float64] = None  # type: ignore[assignment]
     prognosis_to_eol_p10_h: NDArray[np.float64] = None  # type: ignore[assignment]
     prognosis_to_eol_p50_h: NDArray[np.float64] = None  # type: ignore[assignment]
     prognosis_to_eol_p90_h: NDArray[np.float64] = None  # type: ignore[assignment]
 
     def __post_init__(self) -> None:
-        if self.prognosis_state is None:
-            object.__setattr__(self, "prognosis_state", np.zeros(len(self.t_s), dtype=np.int8))
+        for name in PROGNOSIS_CODES:
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, np.zeros(len(self.t_s), dtype=np.int8))
         for name in PROGNOSIS_HOURS:
             if getattr(self, name) is None:
                 object.__setattr__(self, name, np.full(len(self.t_s), np.nan))
@@ -145,7 +155,7 @@ class TickColumns:
             **{name: float(getattr(self, name)[i]) for name in OPERATING_POINT},
             baseline_state=int(self.baseline_state[i]),
             **{name: float(getattr(self, name)[i]) for name in BASELINE_PROGRESS},
-            prognosis_state=int(self.prognosis_state[i]),
+            **{name: int(getattr(self, name)[i]) for name in PROGNOSIS_CODES},
             **{name: float(getattr(self, name)[i]) for name in PROGNOSIS_HOURS},
         )
 
@@ -171,7 +181,7 @@ class TickColumns:
             **{name: col(name, np.float64) for name in OPERATING_POINT},
             baseline_state=col("baseline_state", np.int8),
             **{name: col(name, np.float64) for name in BASELINE_PROGRESS},
-            prognosis_state=col("prognosis_state", np.int8),
+            **{name: col(name, np.int8) for name in PROGNOSIS_CODES},
             **{name: col(name, np.float64) for name in PROGNOSIS_HOURS},
         )
 

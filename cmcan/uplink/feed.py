@@ -15,7 +15,7 @@ from collections.abc import Callable
 from typing import Any
 
 from cmcan.monitor.baseline import MODE_NAMES, Mode
-from cmcan.monitor.prognosis import STATE_CODES
+from cmcan.monitor.prognosis import DIRECTION_CODES, STATE_CODES
 from cmcan.monitor.tick import Tick, TickColumns
 from cmcan.ratelog import RateLimitedLog
 from cmcan.uplink.config import UplinkSettings
@@ -160,6 +160,7 @@ def _sample(tick: Any) -> TickSample:
 
 
 _PROGNOSIS_STATES = {v: k for k, v in STATE_CODES.items()}
+_PROGNOSIS_DIRECTIONS = {v: k for k, v in DIRECTION_CODES.items()}
 
 
 def _prognosis(tick: Any) -> dict[str, Any] | None:
@@ -172,7 +173,8 @@ def _prognosis(tick: Any) -> dict[str, Any] | None:
 
     return {
         "state": _PROGNOSIS_STATES.get(tick.prognosis_state, str(tick.prognosis_state)),
-        "to_low_h": hours(tick.prognosis_to_low_h),
+        "direction": _PROGNOSIS_DIRECTIONS.get(tick.prognosis_direction) or None,
+        "to_warning_h": hours(tick.prognosis_to_warning_h),
         "to_eol_h": [hours(getattr(tick, f"prognosis_to_eol_{q}_h")) for q in ("p10", "p50", "p90")],
     }
 
