@@ -11,6 +11,7 @@ import base64
 import math
 import re
 import struct
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -90,8 +91,14 @@ def _constant(root: Path, machine: str, state: int, p10_h: float, p50_h: float, 
 TR, IM, NO = STATE_CODES[TREND], STATE_CODES[IMMINENT], STATE_CODES[NONE]
 
 
+@dataclass(frozen=True)
+class Built:
+    root: Path
+    page: str = field(repr=False)  # a failing test shows the data set, not the page's base64
+
+
 @pytest.fixture(scope="module")
-def fleet(tmp_path_factory) -> tuple[Path, str]:
+def fleet(tmp_path_factory) -> Built:
     root = ds.open_dataset(tmp_path_factory.mktemp("svc") / "ds", create=True)
     # imminent: first, though its p50 is further out than m-soon's; its p90 never gets there
     _constant(root, "m-imminent", IM, 12.0, 80.0, math.inf)
@@ -108,7 +115,7 @@ def fleet(tmp_path_factory) -> tuple[Path, str]:
     # had a trend, none now: "no trend"
     _log(root, "m-flat", 0, 10.0, [TR] * 10 + [NO] * 10, [50.0] * 20, [90.0] * 10 + [math.nan] * 10, [150.0] * 20)
     _constant(root, "m-off", NOT_CONFIGURED, math.nan, math.nan, math.nan)  # no prognosis configured
-    return root, build(root)
+    return Built(root, build(root))
 
 
 def _service_table(page: str) -> list[list[str]]:
@@ -119,7 +126,7 @@ def _service_table(page: str) -> list[list[str]]:
 
 
 def test_machines_are_ordered_imminent_first_then_by_hours_to_end_of_life(fleet):
-    _root, page = fleet
+    page = fleet.page
     rows = _service_table(page)
     assert [r[2] for r in rows] == ["m-imminent", "m-soon-a", "m-soon-b", "m-late", "m-never"]
     assert [r[0] for r in rows] == ["imminent", "trend", "trend", "trend", "trend"]
@@ -127,7 +134,7 @@ def test_machines_are_ordered_imminent_first_then_by_hours_to_end_of_life(fleet)
 
 
 def test_each_row_has_its_interval_and_the_operating_hour_of_its_estimate(fleet):
-    _root, page = fleet
+    page = fleet.page
     by_machine = {r[2]: r for r in _service_table(page)}
     # p50, "p10 - p90", estimated at (operating hours: the log's offset added)
     assert by_machine["m-imminent"][4:7] == ["80.0", "12.0 &ndash; never", "10.0"]
@@ -145,7 +152,7 @@ def _png_size(img_tag: str) -> tuple[int, int]:
 
 
 def test_one_inline_sparkline_per_ranked_machine(fleet):
-    _root, page = fleet
+    page = fleet.page
     table = re.search(r"<table id='service-table'>(.*?)</table>", page, re.S).group(1)
     imgs = re.findall(r"<img [^>]*>", table)
     assert len(imgs) == 5
@@ -156,7 +163,7 @@ def test_one_inline_sparkline_per_ranked_machine(fleet):
 
 
 def test_no_trend_is_listed_and_no_prognosis_is_not_ranked(fleet):
-    _root, page = fleet
+    page = fleet.page
     no_trend = re.search(r"<p id='service-no-trend'>(.*?)</p>", page, re.S).group(1)
     assert "m-flat" in no_trend and "(1)" in no_trend
     off = re.search(r"<p id='service-off'>(.*?)</p>", page, re.S).group(1)
