@@ -22,7 +22,8 @@ pytest.importorskip("duckdb")
 
 from cmcan.cli import main
 from cmcan.fleet import dataset as ds
-from cmcan.fleet.report import build
+from cmcan.fleet.query import connect
+from cmcan.fleet.report import build, service_series
 from cmcan.monitor.prognosis import IMMINENT, NONE, STATE_CODES, TREND
 from cmcan.monitor.tick import PROGNOSIS_HOURS
 
@@ -160,6 +161,20 @@ def test_one_inline_sparkline_per_ranked_machine(fleet):
     w, h = _png_size(imgs[0])
     assert w <= 300 and h <= 80  # sparkline-sized
     assert "<script" not in page and "http" not in page.split("</style>", 1)[1]
+
+
+def test_a_sparkline_draws_the_estimates_on_the_operating_hours(fleet):
+    con = connect(fleet.root)
+    try:
+        traces = service_series(con)
+    finally:
+        con.close()
+    assert set(traces) == {"m-imminent", "m-soon-a", "m-soon-b", "m-never", "m-late", "m-flat"}
+    hours, p10_h, p50_h, p90_h = traces["m-late"]
+    # its second log's rows 10-17 (offset 10 h, 0.5 h apart): neither the NaN row nor the one not evaluated
+    assert hours == pytest.approx([10.0 + 0.5 * i for i in range(10, 18)])
+    assert p50_h == [500.0 - i for i in range(8)] and p10_h[0] == 400.0 and p90_h[-1] == 693.0
+    assert traces["m-never"][2][0] == math.inf  # drawn off the top, not dropped
 
 
 def test_no_trend_is_listed_and_no_prognosis_is_not_ranked(fleet):

@@ -225,13 +225,11 @@ def service_rows(con: Any) -> list[ServiceRow]:
     rows = con.execute(
         f"""
         WITH tl AS ({_PROGNOSIS_TIMELINE}),
-        now AS (SELECT machine, state FROM tl QUALIFY row_number() OVER (PARTITION BY machine ORDER BY op_h DESC) = 1),
-        est AS (SELECT machine, op_h, p10, p50, p90 FROM tl WHERE {_ESTIMATE}
-                QUALIFY row_number() OVER (PARTITION BY machine ORDER BY op_h DESC) = 1)
-        SELECT now.machine, now.state, est.op_h, est.p10, est.p50, est.p90
-        FROM now LEFT JOIN est USING (machine)"""
-    ).fetchall()
-    out = [ServiceRow(r[0], int(r[1]), *(math.nan if v is None else float(v) for v in r[2:])) for r in rows]
+        now AS (SELECT machine, arg_max(state, op_h) AS state FROM tl GROUP BY machine),
+        est AS (SELECT machine, arg_max([op_h, p10, p50, p90], op_h) AS e FROM tl WHERE {_ESTIMATE} GROUP BY machine)
+        SELECT now.machine, now.state, est.e FROM now LEFT JOIN est USING (machine)"""
+    ).fetchall()  # one list per arg_max: the hour and the hours of one row, without sorting the rows
+    out = [ServiceRow(m, int(state), *(math.nan if v is None else float(v) for v in e or ())) for m, state, e in rows]
     # NaN sorts as the largest hour (no estimate after every estimate)
     return sorted(
         out,
@@ -254,13 +252,12 @@ def service_series(con: Any) -> dict[str, tuple[list[float], list[float], list[f
         est AS (SELECT * FROM tl WHERE {_ESTIMATE}),
         span AS (SELECT machine, min(op_h) AS h0, greatest(max(op_h) - min(op_h), 1e-6) AS width_h
                  FROM est GROUP BY machine)
-        SELECT machine, op_h, p10, p50, p90 FROM est JOIN span USING (machine)
-        QUALIFY row_number() OVER (
-            PARTITION BY machine, floor((op_h - h0) / width_h * {SPARK_POINTS}) ORDER BY op_h DESC) = 1
-        ORDER BY machine, op_h"""
+        SELECT machine, arg_max([op_h, p10, p50, p90], op_h) AS e FROM est JOIN span USING (machine)
+        GROUP BY machine, floor((op_h - h0) / width_h * {SPARK_POINTS})
+        ORDER BY machine, e[1]"""
     ).fetchall()
     out: dict[str, tuple[list[float], list[float], list[float], list[float]]] = {}
-    for m, *values in rows:
+    for m, values in rows:
         s = out.setdefault(m, ([], [], [], []))
         for column, v in zip(s, values, strict=True):
             column.append(math.nan if v is None else float(v))
