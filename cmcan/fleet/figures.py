@@ -1,7 +1,8 @@
 """The fleet report's figures (matplotlib, PNG bytes): every machine's ratio over its life, one chart
 per machine. Axis limits come from the data (a ratio at 43 % or 139 % is shown, not clipped), and the
 overview's machine names sit in a column beside the plot, spread so that none overlaps another, each
-joined to the end of its line.
+joined to the end of its line. The hours-to-service table has a sparkline per machine: its hours
+to end of life (p50, p10-p90 band) over its operating hours.
 """
 
 from __future__ import annotations
@@ -148,6 +149,28 @@ def plot_machine(
     ax.set_title(title, fontsize=10)
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, markerscale=4, frameon=False)
     fig.tight_layout()
+    out = _png(fig)
+    plt.close(fig)
+    return out
+
+
+def plot_service_spark(hours: Any, p10_h: Any, p50_h: Any, p90_h: Any) -> bytes:
+    """A sparkline of one machine's operating hours to end of life over its operating hours: the p50
+    as a line in its p10-p90 band (no truth: in the field it is not known). An infinite hour (the
+    estimate never gets there) runs off the top, which is set by the finite values."""
+    plt = _pyplot()
+    h, lo, mid, hi = (np.asarray(x, dtype=float) for x in (hours, p10_h, p50_h, p90_h))
+    finite = np.concatenate([v[np.isfinite(v)] for v in (lo, mid, hi)])
+    top_h = max(float(finite.max()) if finite.size else 1.0, 1.0) * (1 + 2 * PAD_FRACTION)
+    lo, mid, hi = (np.minimum(v, top_h) for v in (lo, mid, hi))  # inf to the top edge
+    fig, ax = plt.subplots(figsize=(2.4, 0.6))
+    ax.fill_between(h, lo, hi, color="tab:blue", alpha=0.25, lw=0)
+    ax.plot(h, mid, "-", lw=1.0, color="tab:blue")
+    ax.set_ylim(0.0, top_h)
+    if len(h) > 1 and h[-1] > h[0]:
+        ax.set_xlim(h[0], h[-1])
+    ax.set_axis_off()
+    fig.subplots_adjust(0.01, 0.04, 0.99, 0.96)
     out = _png(fig)
     plt.close(fig)
     return out

@@ -8,6 +8,14 @@ Each machine then gets its CM ratio over its operating hours with the thresholds
 (the figures are PNG inlined as base64), and the quarantine list closes the page; a data set whose
 every log was quarantined still gets its page, with that list. A machine's operating hours are its
 logged hours: its logs in time order, each one's duration added (``machine_logs.offset_h``).
+
+Between the ranking and the machines, "Hours to service" orders the machines the on-board prognosis
+(:mod:`cmcan.monitor.prognosis`) sees wearing, by their state at their latest evaluated row: imminent
+first, then by the operating hours to end of life (p50, then p10), each with its p10-p90 interval, the
+hour of that estimate and a sparkline of its estimates over operating hours. Machines whose prognosis
+sees no trend are named after the table; those without a prognosis configured (state 0) are named
+apart, not ranked (beyond ``MAX_NAMED`` names, counted). A data set where no machine has one, or
+written before the prognosis, says so in a line.
 """
 
 from __future__ import annotations
@@ -26,9 +34,16 @@ from cmcan.errors import CmcanError, Kind
 from cmcan.fitcheck import DOES_NOT_FIT, FIT_BAND_PCT
 from cmcan.fleet.dataset import writing
 from cmcan.fleet.query import connect, require_duckdb
+from cmcan.monitor.prognosis import IMMINENT, STATE_CODES, TREND
+from cmcan.monitor.tick import PROGNOSIS_HOURS
 
 ATTENTION = {4: "configuration or model does not fit", 3: "warning now", 2: "had warnings", 1: "faults", 0: "ok"}
 MAX_POINTS_PER_MACHINE = 1500
+SPARK_POINTS = 120  # estimates per sparkline: one per bin of a machine's span of estimates
+MAX_NAMED = 50  # machines named in the "no trend" and "not configured" lines, the rest counted
+STATE_NAMES = {code: name for name, code in STATE_CODES.items()}
+# the end-of-life hours among the prognosis's columns, in the order p10, p50, p90
+P10_H, P50_H, P90_H = (c for c in PROGNOSIS_HOURS if "_to_eol_" in c)
 
 
 @dataclass
@@ -173,6 +188,82 @@ def events(con: Any) -> dict[str, list[tuple[float, str]]]:
     return out
 
 
+@dataclass(frozen=True)
+class ServiceRow:
+    """A machine's prognosis at its latest evaluated row; the hours from its latest estimate (NaN: none)."""
+
+    machine: str
+    state: int  # STATE_CODES, 0 not configured
+    at_h: float = math.nan  # operating hour of the estimate
+    p10_h: float = math.nan
+    p50_h: float = math.nan
+    p90_h: float = math.nan
+
+    @property
+    def ranked(self) -> bool:
+        return STATE_NAMES.get(self.state) in (TREND, IMMINENT) and not math.isnan(self.p50_h)
+
+
+def has_prognosis_columns(con: Any) -> bool:
+    """Data sets written before the prognosis have no such column in any timeline file."""
+    names = {d[0] for d in con.execute("SELECT * FROM timeline LIMIT 0").description}
+    return {"prognosis_state", P10_H, P50_H, P90_H} <= names
+
+
+_PROGNOSIS_TIMELINE = f"""
+    SELECT t.machine, ml.offset_h + t.log_time_h AS op_h, coalesce(t.prognosis_state, 0) AS state,
+           t.{P10_H} AS p10, t.{P50_H} AS p50, t.{P90_H} AS p90
+    FROM timeline t JOIN machine_logs ml ON t.machine = ml.machine AND t.log_hash = ml.log_hash
+    WHERE t.evaluated > 0"""
+# a row with an estimate: a trend and a p50 (NaN: no estimate; inf: never gets there, kept)
+_ESTIMATE = f"state IN ({STATE_CODES[TREND]}, {STATE_CODES[IMMINENT]}) AND p50 IS NOT NULL AND NOT isnan(p50)"
+
+
+def service_rows(con: Any) -> list[ServiceRow]:
+    """Every machine with an evaluated row: its state at the latest one and its latest estimate,
+    ordered for a service planner: imminent first, then trend, then the rest; each by p50, p10."""
+    rows = con.execute(
+        f"""
+        WITH tl AS ({_PROGNOSIS_TIMELINE}),
+        now AS (SELECT machine, arg_max(state, op_h) AS state FROM tl GROUP BY machine),
+        est AS (SELECT machine, arg_max([op_h, p10, p50, p90], op_h) AS e FROM tl WHERE {_ESTIMATE} GROUP BY machine)
+        SELECT now.machine, now.state, est.e FROM now LEFT JOIN est USING (machine)"""
+    ).fetchall()  # one list per arg_max: the hour and the hours of one row, without sorting the rows
+    out = [ServiceRow(m, int(state), *(math.nan if v is None else float(v) for v in e or ())) for m, state, e in rows]
+    # NaN sorts as the largest hour (no estimate after every estimate)
+    return sorted(
+        out,
+        key=lambda s: (
+            not s.ranked,
+            -s.state,
+            math.inf if math.isnan(s.p50_h) else s.p50_h,
+            math.inf if math.isnan(s.p10_h) else s.p10_h,
+            s.machine,
+        ),
+    )
+
+
+def service_series(con: Any) -> dict[str, tuple[list[float], list[float], list[float], list[float]]]:
+    """Per machine with estimates: operating hour, p10, p50, p90 of the latest estimate in each of
+    ``SPARK_POINTS`` bins over its span of estimates."""
+    rows = con.execute(
+        f"""
+        WITH tl AS ({_PROGNOSIS_TIMELINE}),
+        est AS (SELECT * FROM tl WHERE {_ESTIMATE}),
+        span AS (SELECT machine, min(op_h) AS h0, greatest(max(op_h) - min(op_h), 1e-6) AS width_h
+                 FROM est GROUP BY machine)
+        SELECT machine, arg_max([op_h, p10, p50, p90], op_h) AS e FROM est JOIN span USING (machine)
+        GROUP BY machine, floor((op_h - h0) / width_h * {SPARK_POINTS})
+        ORDER BY machine, e[1]"""
+    ).fetchall()
+    out: dict[str, tuple[list[float], list[float], list[float], list[float]]] = {}
+    for m, values in rows:
+        s = out.setdefault(m, ([], [], [], []))
+        for column, v in zip(s, values, strict=True):
+            column.append(math.nan if v is None else float(v))
+    return out
+
+
 CSS = """
 body{font-family:system-ui,-apple-system,"Segoe UI",Roboto,sans-serif;margin:24px;color:#222;max-width:1200px}
 h1{font-size:22px;margin-bottom:4px} h2{font-size:18px;margin-top:32px;border-bottom:1px solid #ddd}
@@ -188,6 +279,8 @@ td.l,th.l{text-align:left} tr.a3 td{background:#fff1e0} tr.a2 td{background:#fff
 .t-misfit{background:#555} tr.a4 td{background:#eeeeee}
 p.misfit{background:#f3f3f3;border-left:4px solid #555;padding:6px 10px}
 img{max-width:100%;height:auto;border:1px solid #eee}
+.t-trend{background:#e08a00}.t-imminent{background:#c83a3a}.t-none{background:#4a9a4a}
+tr.imminent td{background:#fdeeee} td.spark{padding:1px 8px} td.spark img{border:0;display:block}
 """
 
 
@@ -215,6 +308,63 @@ def _img(png: bytes, alt: str) -> str:
     return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{base64.b64encode(png).decode()}">'
 
 
+def _hours(x_h: float) -> str:
+    """Hours for the table: inf is an estimate that never gets there, NaN none."""
+    if math.isnan(x_h):
+        return "&ndash;"
+    return "never" if math.isinf(x_h) else f"{x_h:.1f}"
+
+
+def _names(machines: list[str]) -> str:
+    shown = ", ".join(html.escape(m) for m in machines[:MAX_NAMED])
+    return shown + (f" and {len(machines) - MAX_NAMED} more" if len(machines) > MAX_NAMED else "")
+
+
+def service_section(rows: list[ServiceRow], all_machines: list[str], spark: dict[str, bytes]) -> list[str]:
+    """The "Hours to service" section's HTML parts (``spark``: a sparkline PNG per ranked machine)."""
+    parts = ["<h2 id='service'>Hours to service</h2>"]
+    configured = {r.machine for r in rows if r.state > 0}
+    if not configured:
+        parts.append(
+            "<p id='service-none'>No machine in this data set has a prognosis configured "
+            "(<code>prognosis: enabled</code> in its configuration, docs/prognosis.md): no hours to service.</p>"
+        )
+        return parts
+    ranked = [r for r in rows if r.ranked]
+    if ranked:
+        parts.append(
+            "<p class='meta'>Operating hours to end of life as each machine's prognosis estimated them at its "
+            "latest evaluated row: imminent first, then by p50 (then p10). The sparkline: the p50 in its "
+            "p10-p90 band over the machine's operating hours (the truth is not known in the field).</p>"
+            "<table id='service-table'><tr><th>#</th><th class='l'>machine</th><th class='l'>state</th>"
+            "<th>to end of life p50 (h)</th><th>interval p10&ndash;p90 (h)</th><th>estimated at (h)</th>"
+            "<th class='l'>estimates over operating hours</th></tr>"
+        )
+        for i, r in enumerate(ranked, 1):
+            name = STATE_NAMES[r.state]
+            alt = f"{r.machine}: hours to end of life, p50 in its p10-p90 band, over operating hours"
+            parts.append(
+                f"<tr class='{name}'><td>{i}</td><td class='l'><a href='#m-{html.escape(r.machine)}'>"
+                f"{html.escape(r.machine)}</a></td><td class='l'>{_tag(name)}</td><td>{_hours(r.p50_h)}</td>"
+                f"<td>{_hours(r.p10_h)} &ndash; {_hours(r.p90_h)}</td><td>{r.at_h:.1f}</td>"
+                f"<td class='l spark'>{_img(spark[r.machine], alt) if r.machine in spark else ''}</td></tr>"
+            )
+        parts.append("</table>")
+    else:
+        parts.append("<p>No machine's prognosis sees a trend.</p>")
+    flat = [r.machine for r in rows if r.state > 0 and not r.ranked]
+    if flat:
+        parts.append(f"<p id='service-no-trend'>No trend ({len(flat)}): {_names(flat)}.</p>")
+    off = sorted(set(all_machines) - configured)
+    if off:
+        parts.append(
+            f"<p id='service-off'>{len(off)} machine{'s' if len(off) != 1 else ''} without a prognosis configured "
+            f"(state 0 at the latest evaluated row, or none evaluated) {'are' if len(off) != 1 else 'is'} not ranked "
+            f"here: {_names(off)}.</p>"
+        )
+    return parts
+
+
 def build(root: str | Path, trend_h: float = 50.0, max_machines: int = 50) -> str:
     """The report's HTML."""
     con = connect(root)
@@ -225,7 +375,7 @@ def build(root: str | Path, trend_h: float = 50.0, max_machines: int = 50) -> st
 
 
 def _build(con: Any, root: str | Path, trend_h: float, max_machines: int) -> str:
-    from cmcan.fleet.figures import plot_machine, plot_overview
+    from cmcan.fleet.figures import plot_machine, plot_overview, plot_service_spark
 
     ms = machines(con, trend_h)
     total_h = max((m.hours for m in ms), default=1.0)
@@ -298,6 +448,10 @@ def _build(con: Any, root: str | Path, trend_h: float, max_machines: int) -> str
             "<p>No log is committed in this data set"
             + (": every log that was tried is in the quarantine list below.</p>" if quarantine else ".</p>")
         )
+    service = service_rows(con) if has_prognosis_columns(con) else []
+    traces = service_series(con) if any(r.ranked for r in service) else {}
+    spark = {m: plot_service_spark(*traces[m]) for m in (r.machine for r in service if r.ranked) if m in traces}
+    parts += service_section(service, [m.machine for m in ms], spark)
     parts.append("<h2 id='machines'>Machines</h2>")
     for m in ms[:max_machines]:
         h, raw, filt = ser.get(m.machine, ([], [], []))
