@@ -68,6 +68,8 @@ class DemoResult:
     windows: dict[str, float] = field(default_factory=dict)
     # the on-board baseline as CM_BASELINE showed it: (operating h, state name) at each change
     baseline: list[tuple[float, str]] = field(default_factory=list)
+    # CM_PROGNOSIS as :func:`prognosis_at` decodes it, for the figure's panel (not in the JSON: thousands)
+    prognosis: list[tuple[float, str, float, float, float]] = field(default_factory=list)
 
     @property
     def learning_h(self) -> tuple[float, float] | None:
@@ -498,6 +500,7 @@ def run_demo(
         learning is not None and learning[1] < min(HEALTHY_UNTIL_H, first_fail) and baseline[-1][1] == "monitoring"
     )
     res.checks["every frame sent was processed"] = processed == sent
+    res.prognosis = prognosis_at(received, db, cfg, run.start_epoch_s, outputs)  # the figure's (a few ms)
     if plot:
         from cmcan.plots import plot_demo
 

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from cmcan.monitor.prognosis import IMMINENT, TREND
 from cmcan.monitor.tick import LEVEL_NAMES
 from cmcan.monitor.warnings import Level, Thresholds
 
@@ -96,9 +99,83 @@ class DemoFigure:
     legend: tuple[str, ...]  # one entry per kind of line, in drawing order
     title: str
     learning: tuple[float, float] | None = None  # the on-board baseline's learning phase (operating h)
+    # the panel below the ratio where the prognosis is configured: the estimate over each failing stretch
+    prognosis: tuple[PrognosisStretch, ...] = ()
+    prognosis_ylim: tuple[float, float] | None = None  # None: no CM_PROGNOSIS seen, no panel
+    prognosis_legend: tuple[str, ...] = ()
+
+
+# (operating h, p10, p50, p90 h to end of life) of one estimate drawn
+BandPoint = tuple[float, float, float, float]
+
+
+@dataclass(frozen=True)
+class PrognosisStretch:
+    """A failing stretch of the prognosis panel: from the first trend estimate or the first warning,
+    whichever came first, to the failure. Its estimates in runs: an estimate of none (or a frame
+    without finite hours) ends a run, and nothing is drawn there."""
+
+    label: str  # component and kind of the failure
+    start_h: float
+    fail_h: float
+    runs: tuple[tuple[BandPoint, ...], ...]
+
+    @property
+    def band_points(self) -> int:
+        return sum(len(r) for r in self.runs)
 
 
 LEVEL_COLOR = {"low": "tab:orange", "high": "tab:purple"}
+_ESTIMATED = (TREND, IMMINENT)
+
+
+def _estimated(x: Sequence[Any]) -> bool:
+    """A decoded CM_PROGNOSIS (h, state, p10, p50, p90) that carries an estimate."""
+    return x[1] in _ESTIMATED and all(math.isfinite(v) for v in x[2:5])
+
+
+def prognosis_stretches(
+    seen: Sequence[Sequence[Any]], failures: Sequence[dict[str, Any]]
+) -> tuple[PrognosisStretch, ...]:
+    """The failing stretches of ``seen`` (CM_PROGNOSIS as :func:`cmcan.demo.prognosis_at` decodes it,
+    sorted by hour) before each failure: after the previous failure and the estimates still carried over
+    from it (a replaced unit begins anew), from the first estimate or the first warning to the failure.
+    A failure with neither has no stretch."""
+    out = []
+    previous_h = -math.inf
+    for f in failures:
+        fail_h = float(f["fail_h"])
+        inside = [x for x in seen if previous_h < x[0] <= fail_h]
+        if previous_h > -math.inf:  # the failed unit's estimate goes on until its replacement restarts it
+            inside = inside[next((i for i, x in enumerate(inside) if not _estimated(x)), len(inside)) :]
+        previous_h = fail_h
+        first = next((float(x[0]) for x in inside if _estimated(x)), None)
+        starts = [h for h in (first, f.get("first_warning_h")) if h is not None]
+        if not starts:
+            continue
+        start_h = min(starts)
+        runs: list[tuple[BandPoint, ...]] = []
+        run: list[BandPoint] = []
+        for x in inside:
+            if _estimated(x):
+                run.append((float(x[0]), float(x[2]), float(x[3]), float(x[4])))
+            elif run:
+                runs.append(tuple(run))
+                run = []
+        if run:
+            runs.append(tuple(run))
+        out.append(PrognosisStretch(f"{f['component']} {f['kind']}", start_h, fail_h, tuple(runs)))
+    return tuple(out)
+
+
+def prognosis_ylim(stretches: Sequence[PrognosisStretch]) -> tuple[float, float]:
+    """Hours from 0 to above the longest true stretch and its band; a band far above the truth (an
+    early estimate, or the frame's saturated 4000 h) is cut at twice it, the shape near the failure
+    is what the panel is for."""
+    truth_h = max((s.fail_h - s.start_h for s in stretches), default=0.0)
+    p90_h = max((p[3] for s in stretches for r in s.runs for p in r), default=0.0)
+    top_h = max(truth_h, min(p90_h, 2.0 * truth_h))
+    return 0.0, (1.1 * top_h if top_h > 0 else 10.0)
 
 
 def demo_figure(res: Any, thresholds: Thresholds, title: str) -> DemoFigure:
@@ -142,9 +219,29 @@ def demo_figure(res: Any, thresholds: Thresholds, title: str) -> DemoFigure:
     learning = getattr(res, "learning_h", None)
     if learning is not None:
         legend.append(f"learning its own baseline ({learning[1] - learning[0]:.0f} h, type model, wider margins)")
+    seen = getattr(res, "prognosis", [])
+    stretches = prognosis_stretches(seen, res.failures) if seen else ()
     return DemoFigure(
-        (max(lo, 0.0), hi), (lo_t, hi_t), tuple(failures), tuple(warnings), tuple(leads), tuple(legend), title, learning
+        (max(lo, 0.0), hi),
+        (lo_t, hi_t),
+        tuple(failures),
+        tuple(warnings),
+        tuple(leads),
+        tuple(legend),
+        title,
+        learning,
+        stretches,
+        prognosis_ylim(stretches) if seen else None,
+        _PROGNOSIS_LEGEND if seen else (),
     )
+
+
+_PROGNOSIS_LEGEND = (
+    "hours to end of life p50 (CM_PROGNOSIS)",
+    "p10-p90",
+    "true hours left (failure - hour)",
+    "scheduled failure",
+)
 
 
 def plot_demo(res: Any, thresholds: Thresholds, path: str | Path, title: str) -> DemoFigure:
@@ -155,7 +252,11 @@ def plot_demo(res: Any, thresholds: Thresholds, path: str | Path, title: str) ->
     from matplotlib.patches import Patch
 
     spec = demo_figure(res, thresholds, title)
-    fig, ax = plt.subplots(figsize=(11, 5.2))
+    if spec.prognosis_ylim is None:
+        fig, ax = plt.subplots(figsize=(11, 5.2))
+        bottom = ax
+    else:  # the prognosis's panel below, on the same hours
+        fig, (ax, bottom) = plt.subplots(2, 1, figsize=(11, 7.6), sharex=True, gridspec_kw={"height_ratios": (5, 2.4)})
     ax.axhspan(*spec.band, color="tab:green", alpha=0.12, lw=0, zorder=0)
     if spec.learning is not None:
         ax.axvspan(*spec.learning, color="0.6", alpha=0.25, lw=0, zorder=0)
@@ -196,7 +297,7 @@ def plot_demo(res: Any, thresholds: Thresholds, path: str | Path, title: str) ->
         )
     ax.set_ylim(*spec.ylim)
     ax.set_xlim(left=min([0.0, *(res.ratio_h[:1] if len(res.ratio_h) else [])]))
-    ax.set_xlabel("operating hours (h)")
+    bottom.set_xlabel("operating hours (h)")
     ax.set_ylabel("CM ratio (%)")
     ax.set_title(spec.title, fontsize=10, pad=30)
     kinds = [
@@ -216,10 +317,48 @@ def plot_demo(res: Any, thresholds: Thresholds, path: str | Path, title: str) ->
     if spec.learning is not None:
         kinds.append(Patch(color="0.6", alpha=0.25))
     ax.legend(kinds, spec.legend, loc="lower left", fontsize=8, framealpha=0.9)
+    if spec.prognosis_ylim is not None:
+        _draw_prognosis(bottom, spec)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return spec
+
+
+def _draw_prognosis(ax: Any, spec: DemoFigure) -> None:
+    """The estimate's p50 and its p10-p90 band over each failing stretch, the truth dashed."""
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    for x, _ in spec.failures:
+        ax.axvline(x, color="tab:red", lw=1.2, zorder=2)
+    for s in spec.prognosis:
+        ax.plot([s.start_h, s.fail_h], [s.fail_h - s.start_h, 0.0], "--", color="0.1", lw=1.1, zorder=5)
+        for run in s.runs:
+            h, p10, p50, p90 = np.asarray(run, dtype=float).T
+            ax.fill_between(h, p10, p90, color="tab:cyan", alpha=0.3, lw=0, zorder=1)
+            ax.plot(h, p50, "-", color="tab:blue", lw=1.2, zorder=4)
+        if not s.runs:  # the truth alone would read as an estimate on the mark
+            ax.annotate(
+                "no estimate",
+                (s.start_h, s.fail_h - s.start_h),
+                xytext=(-4, 0),
+                textcoords="offset points",
+                fontsize=8,
+                ha="right",
+                va="center",
+                color="0.3",
+            )
+    assert spec.prognosis_ylim is not None  # drawn only where CM_PROGNOSIS was seen
+    ax.set_ylim(*spec.prognosis_ylim)
+    ax.set_ylabel("hours to end of life (h)")
+    kinds = [
+        Line2D([], [], color="tab:blue", lw=1.2),
+        Patch(color="tab:cyan", alpha=0.3),
+        Line2D([], [], color="0.1", ls="--", lw=1.1),
+        Line2D([], [], color="tab:red", lw=1.2),
+    ]
+    ax.legend(kinds, spec.prognosis_legend, loc="upper left", fontsize=8, framealpha=0.9)
 
 
 @dataclass(frozen=True)

@@ -28,14 +28,18 @@ from cmcan.io.candump import Cut, candump_lines, iter_frames
 from cmcan.io.columns import column_chunks
 from cmcan.monitor.core import Monitor
 from cmcan.monitor.gating import EVALUATED, Gate
-from cmcan.monitor.tick import LEVEL_NAMES, TickBuffer, TickColumns
+from cmcan.monitor.prognosis import FIELDS as PROGNOSIS_FIELDS
+from cmcan.monitor.prognosis import STATE_CODES as PROGNOSIS_STATE_CODES
+from cmcan.monitor.tick import LEVEL_NAMES, PROGNOSIS_HOURS, TickBuffer, TickColumns
 from cmcan.monitor.warnings import Level, Reason
 from cmcan.roles import MOTOR_SPEED, QUANTITY_SIGNALS
 
 
-def timeline_columns(quantity: str = MOTOR_SPEED) -> tuple[str, ...]:
-    """The timeline CSV's columns; the output quantity's three named as in its CM frame."""
-    return ("time_s", "operating_h", "gate", *QUANTITY_SIGNALS[quantity][:3], *_TAIL)
+def timeline_columns(quantity: str = MOTOR_SPEED, prognosis: bool = False) -> tuple[str, ...]:
+    """The timeline CSV's columns; the output quantity's three named as in its CM frame; the
+    prognosis's fields (as a tick names them) at the end where it is configured."""
+    tail = PROGNOSIS_FIELDS if prognosis else ()
+    return ("time_s", "operating_h", "gate", *QUANTITY_SIGNALS[quantity][:3], *_TAIL, *tail)
 
 
 _TAIL = (
@@ -101,6 +105,10 @@ class _FileSink:
 _GATE_NAMES = {int(g): g.name.lower() for g in Gate}
 _LEVEL_NAMES = {int(lv): LEVEL_NAMES[lv] for lv in Level}
 _REASON_NAMES = {int(r): r.name.lower() for r in Reason}
+# The prognosis's codes written by name where they have one (the state), as numbers otherwise; its
+# hours with 0.01 h (36 s), inf where the estimate never gets there, empty without one
+_PROGNOSIS_NAMES = {"prognosis_state": {0: "off", **{code: name for name, code in PROGNOSIS_STATE_CODES.items()}}}
+PROGNOSIS_DECIMALS = 2
 
 
 class TimelineWriter(_FileSink):
@@ -108,10 +116,11 @@ class TimelineWriter(_FileSink):
 
     wants_ticks = True
 
-    def __init__(self, path: str | Path, quantity: str = MOTOR_SPEED) -> None:
+    def __init__(self, path: str | Path, quantity: str = MOTOR_SPEED, prognosis: bool = False) -> None:
         super().__init__(path)
-        self.f.write(",".join(timeline_columns(quantity)) + "\r\n")
+        self.f.write(",".join(timeline_columns(quantity, prognosis)) + "\r\n")
         self.decimals = 2 if quantity == MOTOR_SPEED else 4  # 0.01 rpm; flows of small machines need more
+        self.prognosis = PROGNOSIS_FIELDS if prognosis else ()
 
     def ticks(self, c: TickColumns) -> None:
         # The columns formatted with arrays, byte for byte what f"{x:.3f}" and friends write; what a
@@ -152,6 +161,7 @@ class TimelineWriter(_FileSink):
                 tc.Column.of_names(c.reason, _REASON_NAMES),
                 comma,
                 tc.fixed(c.time_below_s, 1),
+                *_prognosis_cells(c, self.prognosis),
             ],
             end=b"\r\n",
         )
@@ -182,7 +192,42 @@ class TimelineWriter(_FileSink):
             return None
         cols.append(native.TextColumn(N, named[0], b",", names=named[1]))
         cols.append(native.TextColumn(F, c.time_below_s, b",", 1))
-        return native.format_rows(len(c), cols, b"\r\n")
+        progn = _prognosis_native(c, self.prognosis)
+        if progn is None:
+            return None
+        return native.format_rows(len(c), [*cols, *progn], b"\r\n")
+
+
+def _prognosis_cells(c: TickColumns, fields: Sequence[str]) -> list[tc.Column | bytes]:
+    """The prognosis's cells of a stretch of ticks (each after a comma), with arrays."""
+    out: list[tc.Column | bytes] = []
+    for name in fields:
+        v = getattr(c, name)
+        if name in PROGNOSIS_HOURS:
+            cell = tc.fixed(v, PROGNOSIS_DECIMALS)
+        elif name in _PROGNOSIS_NAMES:
+            cell = tc.Column.of_names(v, _PROGNOSIS_NAMES[name])
+        else:
+            cell = tc.integers(v.astype(np.int64))
+        out += [b",", cell]
+    return out
+
+
+def _prognosis_native(c: TickColumns, fields: Sequence[str]) -> list[native.TextColumn] | None:
+    """The same cells for the C formatter; None where a code has no name (the arrays then write it)."""
+    out = []
+    for name in fields:
+        v = getattr(c, name)
+        if name in PROGNOSIS_HOURS:
+            out.append(native.TextColumn(native.FIXED, v, b",", PROGNOSIS_DECIMALS))
+        elif name in _PROGNOSIS_NAMES:
+            named = tc.name_indexes(v, _PROGNOSIS_NAMES[name])
+            if named is None:
+                return None
+            out.append(native.TextColumn(native.NAME, named[0], b",", names=named[1]))
+        else:
+            out.append(native.TextColumn(native.INT, v.astype(np.int64), b","))
+    return out
 
 
 _EVALUATED = np.array(sorted(int(g) for g in EVALUATED), dtype=np.int8)

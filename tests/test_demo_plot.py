@@ -119,3 +119,59 @@ def test_the_demo_figure_shades_the_learning_of_the_machines_own_baseline(tmp_pa
     assert plot_demo(res, TH, tmp_path / "demo.png", "t") == spec
     res.baseline = [(0.0, "learning")]  # still learning at the end: no phase that ended
     assert demo_figure(res, TH, "t").learning is None
+
+
+def _with_prognosis(res: DemoResult) -> list[tuple[float, str, float, float, float]]:
+    """CM_PROGNOSIS as the demo decodes it, every quarter hour: none (hours 0, as the frame carries
+    them) but over each wear: a trend from 39 h before the failure, p50 5 % off the truth with a
+    +-15 % band, the motor's estimate carried on for an hour past its failure (until its replacement
+    restarts it) and a lost trend on the pump between 345 and 347 h; the misposition has none."""
+    seen = []
+    for h in np.arange(0.0, 550.0, 0.25).tolist():
+        state, p50 = "none", 0.0
+        if 251.0 <= h <= 291.0:
+            state, p50 = "trend", 1.05 * max(290.0 - h, 0.0)
+        elif 326.0 <= h <= 365.0 and not 345.0 < h < 347.0:
+            state, p50 = ("imminent" if h > 350.0 else "trend"), 0.95 * (365.0 - h)
+        seen.append((h, state, 0.85 * p50, p50, 1.15 * p50))
+    res.prognosis = seen
+    return seen
+
+
+def test_the_demo_figure_shows_the_estimate_and_its_band_over_each_failing_stretch(tmp_path):
+    res = _result()
+    assert demo_figure(res, TH, "t").prognosis_ylim is None  # no CM_PROGNOSIS seen: no panel
+    seen = _with_prognosis(res)
+    spec = demo_figure(res, TH, "t")
+    motor, pump, mis = spec.prognosis
+    assert [s.label for s in spec.prognosis] == ["motor wear", "pump wear", "motor misposition"]
+    # from the first estimate (before the first warning) to the failure; the pump's not from the
+    # motor's estimate carried past its failure
+    assert (motor.start_h, motor.fail_h) == (251.0, 290.0) and (pump.start_h, pump.fail_h) == (326.0, 365.0)
+    # no estimate before the misposition: its stretch from the first warning, nothing drawn
+    assert (mis.start_h, mis.fail_h, mis.runs, mis.band_points) == (520.5, 535.0, (), 0)
+    none_h = {x[0] for x in seen if x[1] == "none"}
+    for s in (motor, pump):
+        points = [p for run in s.runs for p in run]
+        assert s.band_points == len(points) > 100  # a band over each wear failure's stretch ...
+        hours = [p[0] for p in points]
+        assert min(hours) == s.start_h and s.fail_h - 0.5 < max(hours) <= s.fail_h  # ... all of it
+        assert all(p10 <= p50 <= p90 for _, p10, p50, p90 in points)
+        assert not none_h & set(hours)  # nothing drawn where the state is none
+    assert len(motor.runs) == 1 and len(pump.runs) == 2  # the band broken where the trend was lost
+    assert not any(345.0 < p[0] < 347.0 for run in pump.runs for p in run)
+    lo, hi = spec.prognosis_ylim
+    assert lo == 0.0 and 39.0 < hi < 2 * 39.0  # the longest stretch's truth and band in view
+    assert "p10-p90" in spec.prognosis_legend and any("true hours left" in x for x in spec.prognosis_legend)
+    assert plot_demo(res, TH, tmp_path / "demo.png", "t") == spec and (tmp_path / "demo.png").stat().st_size > 20_000
+
+
+def test_a_saturated_or_lost_estimate_does_not_stretch_the_panel():
+    """The frame's 4000 h (far, or never) stays off the scale; a demo where no estimate and no warning
+    came before a failure has no stretch for it."""
+    res = _result()
+    seen = _with_prognosis(res)
+    res.prognosis = [(h, s, *((4000.0,) * 3 if s != "none" and h < 260.0 else (a, b, c))) for h, s, a, b, c in seen]
+    assert demo_figure(res, TH, "t").prognosis_ylim[1] <= 2.2 * 39.0
+    res.failures[2]["first_warning_h"] = None
+    assert [s.label for s in demo_figure(res, TH, "t").prognosis] == ["motor wear", "pump wear"]

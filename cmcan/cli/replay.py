@@ -80,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
     aliases = channel_map(args.channel_map, cfg)
     args.channel_map_names = list(aliases)
     mon = assemble(cfg, args.model, log_aliases=aliases).monitor
-    sinks = _Sinks(outs, cfg.quantity)
+    sinks = _Sinks(outs, cfg.quantity, prognosis=mon.prognosis is not None)
     res, cut = _replay(args, mon, sinks.all)
     assert res.first_t is not None  # a log without frames raised NoFrames, leaving no output behind
     if sinks.plot is not None:
@@ -101,10 +101,10 @@ def run(args: argparse.Namespace) -> int:
 class _Sinks:
     """What the replay writes (timeline, emitted frames, the plot's ticks) and the fit check."""
 
-    def __init__(self, outs: dict[str, Path], quantity: str) -> None:
+    def __init__(self, outs: dict[str, Path], quantity: str, prognosis: bool = False) -> None:
         self.all: list[Any] = []
-        if "out" in outs:
-            self.all.append(TimelineWriter(outs["out"], quantity))
+        if "out" in outs:  # the prognosis's columns where the monitor runs one
+            self.all.append(TimelineWriter(outs["out"], quantity, prognosis))
         if "emit" in outs:
             self.all.append(EmitWriter(outs["emit"]))
         self.plot = TimelineCollector() if "plot" in outs else None
