@@ -28,6 +28,7 @@ from cmcan.io.candump import Cut, candump_lines, iter_frames
 from cmcan.io.columns import column_chunks
 from cmcan.monitor.core import Monitor
 from cmcan.monitor.gating import EVALUATED, Gate
+from cmcan.monitor.prognosis import DIRECTION_CODES as PROGNOSIS_DIRECTION_CODES
 from cmcan.monitor.prognosis import FIELDS as PROGNOSIS_FIELDS
 from cmcan.monitor.prognosis import STATE_CODES as PROGNOSIS_STATE_CODES
 from cmcan.monitor.tick import LEVEL_NAMES, PROGNOSIS_HOURS, TickBuffer, TickColumns
@@ -107,7 +108,10 @@ _LEVEL_NAMES = {int(lv): LEVEL_NAMES[lv] for lv in Level}
 _REASON_NAMES = {int(r): r.name.lower() for r in Reason}
 # The prognosis's codes written by name where they have one (the state), as numbers otherwise; its
 # hours with 0.01 h (36 s), inf where the estimate never gets there, empty without one
-_PROGNOSIS_NAMES = {"prognosis_state": {0: "off", **{code: name for name, code in PROGNOSIS_STATE_CODES.items()}}}
+_PROGNOSIS_NAMES = {
+    "prognosis_state": {0: "off", **{code: name for name, code in PROGNOSIS_STATE_CODES.items()}},
+    "prognosis_direction": {code: name or "none" for name, code in PROGNOSIS_DIRECTION_CODES.items()},
+}
 PROGNOSIS_DECIMALS = 2
 
 

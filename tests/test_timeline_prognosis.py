@@ -73,6 +73,8 @@ def test_both_engines_write_the_prognosis_alike_and_near_the_truth(wear):
     none = state == "none"
     for name in PROGNOSIS_HOURS:
         assert all(rows[i][name] == "" for i in np.flatnonzero(none)), name
+    direction = np.array([r["prognosis_direction"] for r in rows])
+    assert (direction[none] == "none").all() and (direction[~none] == "low").all()  # wear: to the low warning
     eol = np.array([[float(rows[i][n]) for n in EOL] for i in np.flatnonzero(~none)])
     assert (eol[:, 0] <= eol[:, 1]).all() and (eol[:, 1] <= eol[:, 2]).all()
     # 10 h before the end of life the p50 is within 20 % (and the hour's countdown) of the truth
