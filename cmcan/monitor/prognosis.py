@@ -545,7 +545,10 @@ def _detect(p: PrognosisParams, h: NDArray[np.float64], y: NDArray[np.float64], 
     sigma = float(np.sqrt(f.sse[g] / max(n - 4, 1)))
     se = sigma * math.sqrt(_inflation(resid) / f.suu[g]) if f.suu[g] > 0 else math.inf
     t_stat = c / se if se > 0 else (math.inf if c > 0 else 0.0)
-    trend = c > 0 and t_stat >= p.t_min and c >= max(getattr(p, track.min_rise), p.rise_sigmas * sigma)
+    # a rise shorter than min_points fits a fresh ramp as it is (the grid reaches closer: an older
+    # onset forced on it would bend the curve and cut the hours short), but is not reported yet
+    long_enough = t0s[g] <= float(h[n - p.min_points])
+    trend = c > 0 and long_enough and t_stat >= p.t_min and c >= max(getattr(p, track.min_rise), p.rise_sigmas * sigma)
     return _Detected(trend, c, t_stat, t0s[g], ks[g], sigma, g, t0s, ks, basis, resid)
 
 
@@ -604,6 +607,9 @@ class _Fits:
     w_sum: float  # var(level at the basis' mean) = sigma^2 / w_sum
 
 
+_NEWEST_ONSET_POINTS = 4  # the shortest rise on the grid (2 h at the default bin)
+
+
 def _grid(p: PrognosisParams, h: NDArray[np.float64]) -> tuple[list[float], list[float], NDArray[np.float64]]:
     """Onsets x shapes, and each cell's basis ((h - t0) / (T - t0))^k, 0 before the onset."""
     T = float(h[-1])
@@ -621,12 +627,13 @@ def _grid(p: PrognosisParams, h: NDArray[np.float64]) -> tuple[list[float], list
 
 def _onsets(h: NDArray[np.float64], min_points: int, even: int, ratio: float) -> list[int]:
     """Indices of the onset candidates: ``even`` evenly spaced from the first point to ``min_points``
-    before the last, and rises from ``min_points`` points long to the whole history, each ``ratio``
-    times the one before in hours, at the point nearest. Products and comparisons only: the same
-    indices on every platform."""
+    before the last, and rises from :data:`_NEWEST_ONSET_POINTS` points long to the whole history,
+    each ``ratio`` times the one before in hours, at the point nearest. Products and comparisons
+    only: the same indices on every platform."""
     n, T = len(h), float(h[-1])
-    newest, oldest = T - float(h[n - min_points]), T - float(h[0])
+    newest, oldest = T - float(h[n - min(_NEWEST_ONSET_POINTS, min_points)]), T - float(h[0])
     out = set(np.round(np.linspace(0, n - min_points, even)).astype(np.int64).tolist())
+    out.add(n - min(_NEWEST_ONSET_POINTS, min_points))
     d = newest * ratio
     while d < oldest:
         i = int(np.searchsorted(h, T - d))  # the first point at or after T - d, or the one before it
