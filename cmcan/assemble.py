@@ -708,6 +708,7 @@ def prognosis_params(cfg: Config) -> PrognosisParams | None:
         temp_ref_c=p.ref_temp_c,
         oil=cfg.oil,
         estimate_every_h=p.estimate_every_h,
+        max_gap_h=p.max_gap_h,
     )
 
 

@@ -135,6 +135,8 @@ _PROGNOSIS = Obj(
         "ref_temp_c": Num(-20, 150, "C", default=60.0),
         "imminent_h": Num(0, 100000, "h", default=24.0),
         "estimate_every_h": Num(0.01, 100, "h", default=0.5),
+        # a longer gap between ticks is the machine off: no operating hours (docs/prognosis.md)
+        "max_gap_h": Num(0.001, 1000, "h", default=1.0),
     },
     default={},
     rule=_prognosis_rule,
@@ -510,6 +512,7 @@ class PrognosisConfig:
     ref_temp_c: float = 60.0
     imminent_h: float = 24.0
     estimate_every_h: float = 0.5
+    max_gap_h: float = 1.0
 
 
 @dataclass(frozen=True)

@@ -72,6 +72,26 @@ def test_both_engines_alike_and_the_estimate_before_the_motor_wear_failure(rig):
     assert np.all(np.isnan(tl.prognosis_to_eol_p50_h[after]))
 
 
+def test_the_hours_are_operating_hours_a_night_parked_counts_nothing(rig):
+    """The machine parked for 12 h at 150 h (no frames): the estimate 10 h before the motor wear
+    failure (at 290 operating hours) is the same as without the night, not 12 h longer; both engines
+    alike."""
+    run, frames = rig
+    park_s, at_s = 12 * 3600.0, run.start_epoch_s + 150.5 * 3600.0
+    parked = [f._replace(timestamp_s=f.timestamp_s + park_s) if f.timestamp_s > at_s else f for f in frames]
+    cfg = _cfg()
+    a = _run(cfg, parked, "streaming")
+    b = _run(cfg, parked, "columnar")
+    for name in a[0].__dataclass_fields__:
+        assert np.array_equal(getattr(a[0], name), getattr(b[0], name), equal_nan=True), name
+    tl = a[0]
+    op_h = (tl.t_s - run.start_epoch_s - np.where(tl.t_s > at_s, park_s, 0.0)) / 3600.0
+    near = (op_h > 279.0) & (op_h < 281.0)
+    assert near.any() and np.all(tl.prognosis_state[near] >= 2)
+    p50 = float(np.median(tl.prognosis_to_eol_p50_h[near]))
+    assert abs(p50 - 10.0) <= 0.2 * 10.0 + 1.0, p50  # one sampled hour lost with the night at most
+
+
 def test_a_misposition_is_a_high_trend_in_both_engines_and_ends_with_the_replacement():
     """The motor's displacement control drifts 10 % short from 40 h until it fails at 60 h (the paper's
     misposition, earlier): the trend is on the high side, the hours to its end of life (the ratio at

@@ -3,6 +3,7 @@ restarted) and its estimate (no trend on a healthy drive, the truth inside the i
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 
@@ -11,7 +12,7 @@ import pytest
 from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
-from cmcan.monitor.prognosis import HIGH, IMMINENT, LOW, NONE, TREND, Prognosis, PrognosisParams
+from cmcan.monitor.prognosis import HIGH, IMMINENT, LOW, NONE, TREND, Prognosis, PrognosisParams, Stage
 from cmcan.oil import VG46, oil_from_grade
 
 FLOW_LPM = 234.0  # 78 cm3/rev at 3000 rpm: the extra leakage's share of it is the ratio's deficit
@@ -406,3 +407,45 @@ def test_params_are_checked():
         PrognosisParams(bin_h=0.0)
     with pytest.raises(ValueError):  # the high end of life must lie beyond the high warning
         PrognosisParams(high_pct=102.0, eol_high_pct=101.0)
+
+
+# -- the operating clock ------------------------------------------------------------------------------
+
+step = st.sampled_from([0.1, 0.1, 0.1, 600.0, 3600.0, 3600.01, 43200.0, -5.0]) | st.floats(-100.0, 8000.0)
+
+
+@settings(max_examples=200, deadline=None, derandomize=True)
+@given(st.lists(step, min_size=1, max_size=60), st.lists(st.integers(1, 60), max_size=6), st.booleans())
+def test_the_operating_clock_is_alike_tick_by_tick_and_in_columns_and_skips_the_machine_off(steps, cuts, saved):
+    """Hours advance by the time between ticks, except over a gap longer than max_gap_h (the machine
+    off) or back in time; both forms alike, and across a save and a restart."""
+    t = 1.7e9 + np.cumsum(np.array(steps))
+    one = Stage(REF)
+    hours = [one.hours(float(x)) for x in t]
+    other = Stage(REF)
+    got = []
+    edges = sorted({0, len(t), *(c for c in cuts if c < len(t))})
+    for a, z in itertools.pairwise(edges):
+        got += other.hours_columns(t[a:z]).tolist()
+        if saved:  # a daemon restart between two stretches
+            other = Stage(REF, json.loads(json.dumps(other.to_dict())))
+    assert got == hours
+    gaps = np.diff(t)
+    counted = gaps[(gaps > 0) & (gaps <= REF.max_gap_h * 3600.0)]
+    assert hours[-1] * 3600.0 == pytest.approx(float(counted.sum()), abs=1e-6)
+    event(f"gap off: {bool(np.any(gaps > REF.max_gap_h * 3600.0))}, back: {bool(np.any(gaps < 0))}")
+
+
+def test_a_history_saved_without_its_clock_goes_on_from_its_newest_hour():
+    h = np.arange(0.0, 30.0, 0.01)
+    p = Prognosis()
+    p.add_columns(*ticks(h, np.full(len(h), 1.0)))
+    doc = p.to_dict()
+    assert "clock" not in doc
+    st_ = Stage(REF, doc)
+    assert st_.hours(5.0e8) == pytest.approx(p.arrays(with_open=True)[0][-1])
+    with pytest.raises(ValueError, match="clock"):
+        from cmcan.monitor.prognosis import _clock_from
+
+        _clock_from({**doc, "clock": {"operating_s": -1.0}}, p)
+    assert "clock" in Stage(REF, {**doc, "clock": "x"}).note

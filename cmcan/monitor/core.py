@@ -492,7 +492,7 @@ class Monitor:
         pg = self.prognosis
         progn: dict[str, Any] = {}
         if pg is not None:
-            hour = (t + self.run_shift_s) / 3600.0
+            hour = pg.hours(t + self.run_shift_s)
             if _cleared(cond_before, m.condition):  # the worn or mispositioned unit was replaced
                 pg.restart()
             pg.tick(hour)
@@ -536,7 +536,7 @@ class Monitor:
         n = len(t_k)
         leak = np.zeros(n)
         leak[pts.evaluated] = pts.leak_lpm
-        hours = (t_k + self.run_shift_s) / 3600.0
+        hours = pg.hours_columns(t_k + self.run_shift_s)
         prev = np.empty(n, dtype=np.int8)
         prev[0] = cond_before
         prev[1:] = condition[:-1]

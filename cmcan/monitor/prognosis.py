@@ -129,6 +129,10 @@ class PrognosisParams:
     # The stage (:class:`Stage`) estimates once per this many operating hours (an estimate is a grid
     # fit of some tens of milliseconds: not on every tick)
     estimate_every_h: float = 0.5
+    # Operating hours, not calendar hours: a gap between ticks longer than this is the machine switched
+    # off (or the gateway with it) and adds nothing; a shorter one (a daemon restart, a time-lapse's
+    # bursts some minutes apart, each standing for the time to the next) adds itself
+    max_gap_h: float = 1.0
 
     def __post_init__(self) -> None:
         if self.eol_kind not in EOL_KINDS:
@@ -745,17 +749,43 @@ class Stage:
     def __init__(self, params: PrognosisParams, saved: Any = None) -> None:
         self.params = params
         self.every_h = params.estimate_every_h
+        self.max_gap_s = params.max_gap_h * 3600.0
         self.note = ""  # why a saved history was not continued
         self.history = Prognosis(params)
+        # the operating clock: seconds of operation so far, and the run time of the last tick
+        self.operating_s, self.last_t_s = 0.0, math.nan
         if saved is not None:
             try:
-                self.history = Prognosis.from_dict(saved, params)
-                self.note = self.history.restarted
+                history = Prognosis.from_dict(saved, params)
+                self.operating_s, self.last_t_s = _clock_from(saved, history)
+                self.history, self.note = history, history.restarted
             except ValueError as exc:  # the rest of the state is good: a new history, said
                 self.note = f"the saved prognosis history could not be used ({exc}): a new history begins"
         self.block: int | None = None
         self._rows: list[tuple[float, float, float, float, float]] = []
         self.est = self.history.estimate() if self.history.points else Estimate()
+
+    def hours(self, t_run_s: float) -> float:
+        """The operating hour of a tick at ``t_run_s`` (its time on the run's continuous base): the
+        time since the tick before added, unless longer than ``max_gap_h`` (the machine was off) or
+        negative (a clock set back across a restart)."""
+        dt = t_run_s - self.last_t_s  # NaN for the first tick ever: adds nothing
+        if 0.0 < dt <= self.max_gap_s:
+            self.operating_s += dt
+        self.last_t_s = t_run_s
+        return self.operating_s / 3600.0
+
+    def hours_columns(self, t_run_s: NDArray[np.float64]) -> NDArray[np.float64]:
+        """:meth:`hours` at every tick of a stretch: the same additions in the same order."""
+        if not len(t_run_s):
+            return np.empty(0)
+        prev = np.concatenate(([self.last_t_s], t_run_s[:-1]))
+        dt = t_run_s - prev
+        with np.errstate(invalid="ignore"):
+            dt = np.where((dt > 0.0) & (dt <= self.max_gap_s), dt, 0.0)
+        op = np.cumsum(np.concatenate(([self.operating_s], dt)))[1:]
+        self.operating_s, self.last_t_s = float(op[-1]), float(t_run_s[-1])
+        return op / 3600.0
 
     def tick(self, hour: float) -> None:
         """The start of a tick at operating ``hour``: at a new block of hours the rows so far go into
@@ -848,7 +878,21 @@ class Stage:
 
     def to_dict(self) -> dict[str, Any]:
         self.fold()
-        return self.history.to_dict()
+        last = self.last_t_s if math.isfinite(self.last_t_s) else None
+        return {**self.history.to_dict(), "clock": {"operating_s": self.operating_s, "last_t_s": last}}
+
+
+def _clock_from(saved: dict[str, Any], history: Prognosis) -> tuple[float, float]:
+    """The saved operating clock; a history saved without one goes on from its newest hour."""
+    c = saved.get("clock")
+    if c is None:
+        h = history.arrays(with_open=True)[0]
+        return (float(h[-1]) * 3600.0 if len(h) else 0.0), math.nan
+    ok = isinstance(c, dict) and _finite(c.get("operating_s")) and c["operating_s"] >= 0
+    last = c.get("last_t_s") if isinstance(c, dict) else None
+    if not (ok and (last is None or _finite(last))):
+        raise ValueError(f"field 'clock': expected {{operating_s: seconds, last_t_s: seconds or null}}, got {c!r:.80}")
+    return float(c["operating_s"]), math.nan if last is None else float(last)
 
 
 def _left(hours: float, since: float) -> float:

@@ -6,8 +6,8 @@ An estimate needs hours of operation with a wear trend, more than a test can pla
 made by the real core before the daemon starts: a short simulated wear run (bursts of a few seconds
 every operating hour, the motor wearing) replayed through the monitor assembled from the daemon's own
 configuration, its totals saved into the daemon's state directory by the daemon's ``StateStore``.
-The run ends at the present: the stage's hours are the ticks' time (frame time on the run's own time
-base), and the daemon's ticks are stamped with this machine's clock.
+The run ends at the present: the stage's operating clock adds the time between ticks (up to
+``max_gap_h``), and the daemon's ticks are stamped with this machine's clock.
 
 The log canplayer plays is the machine idling (the pump below its minimum speed): ticks, and
 CM_PROGNOSIS with them, but none the gate evaluates, so none adds to the history. Then the history
@@ -163,22 +163,29 @@ class _Bus:
         stop(self.proc)
 
 
-def _expected(est, stamp_s: float) -> dict[str, float]:
-    """The estimate's hours ``stamp_s`` (a tick's time) after its last history point, as sent."""
-    since = stamp_s / 3600.0 - est.at_h
+def _history(state: dict) -> dict:
+    """The saved prognosis without its operating clock."""
+    return {k: v for k, v in state["prognosis"].items() if k != "clock"}
+
+
+def _expected(est, clock: dict, stamp_s: float) -> dict[str, float]:
+    """The estimate's hours at ``stamp_s`` (a tick's time), as sent: less the operating hours since its
+    last history point, the saved operating clock gone on by the time since its last tick (every gap
+    here is far under prognosis.max_gap_h)."""
+    since = (clock["operating_s"] + stamp_s - clock["last_t_s"]) / 3600.0 - est.at_h
     return {
         name: min(max(v - since, 0.0), _SPAN_H) if math.isfinite(v) else _SPAN_H
         for name, v in zip(_HOURS, est.to_eol_h, strict=True)
     }
 
 
-def _carries(est, rows: list[tuple[float, dict]], code: int) -> None:
+def _carries(est, clock: dict, rows: list[tuple[float, dict]], code: int) -> None:
     """Every CM_PROGNOSIS frame says the estimate: its state, and its hours less the hours since its
     last point (to the bus stamp: the ticks' own time base), within the signal's resolution."""
     assert rows
     for t, v in rows:
         assert v["prognosis_state"] == code, (t, v)
-        want = _expected(est, t)
+        want = _expected(est, clock, t)
         got = [v[name] for name in _HOURS]
         assert got == sorted(got), v
         for name in _HOURS:
@@ -233,12 +240,16 @@ def test_prognosis_frame_decoded_from_the_dbc_survives_a_restart(tmp_path_factor
         bus.stop()
         first, gates = bus.rows()
         assert not any(g in _EVALUATED for g in gates), gates  # nothing for the history from the bus
-        _carries(est, first, code)
+        clock = saved["prognosis"]["clock"]
+        _carries(est, clock, first, code)
         mark("play, SIGTERM")
 
         # 2. the history the daemon saved at its stop is the one it started from
         after = json.loads((tmp / "state" / "state.json").read_text())
-        assert after["prognosis"] == saved["prognosis"]
+        assert _history(after) == _history(saved)
+        # the operating clock went on by the daemon's ticks (the idling machine runs), nothing else
+        c0, c1 = clock, after["prognosis"]["clock"]
+        assert c1["operating_s"] - c0["operating_s"] == pytest.approx(c1["last_t_s"] - c0["last_t_s"], abs=1e-3)
         assert after["prognosis"]["points"] and after["condition"] == saved["condition"]
 
         # 3. restarted: its first frames carry the same state and hours, less the hours since
@@ -253,7 +264,7 @@ def test_prognosis_frame_decoded_from_the_dbc_survives_a_restart(tmp_path_factor
         bus.stop()
         kept = _estimate(cfg, json.loads((tmp / "state" / "state.json").read_text()))
         assert (kept.state, kept.at_h, kept.to_eol_h) == (est.state, est.at_h, est.to_eol_h)
-        _carries(est, again, code)
+        _carries(est, clock, again, code)
         (t1, last), (t2, next_) = first[-1], again[0]
         for name in _HOURS:  # the same, less the hours between the two frames
             assert next_[name] == pytest.approx(max(last[name] - (t2 - t1) / 3600.0, 0.0), abs=_RESOLUTION_H + 0.01)
