@@ -85,7 +85,9 @@ def _save_worn_history(cfg_path: Path, state_dir: Path) -> dict:
     s = _scenario(
         "vcan-wear",
         _HISTORY_H,
-        time.time() - _HISTORY_H * 3600.0,
+        # its last burst (one each hour from the start) ends now: the daemon's first tick, a minute
+        # on, continues its operating clock (a gap over max_gap_h would be the machine off)
+        time.time() - (_HISTORY_H - 1.0) * 3600.0 - _BURST_S,
         3000.0,
         480.0,
         sampling={"mode": "bursts", "burst_s": _BURST_S, "every_min": 60.0},
