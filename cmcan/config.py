@@ -757,6 +757,9 @@ def from_dict(data: Any, source: str, base_dir: Path) -> Config:
     th = raw["thresholds"]
     out = raw["outputs"]
     eol_high = raw["prognosis"]["end_of_life"]["high_pct"]
+    if raw["prognosis"]["enabled"] and not th["low_pct"] < 100.0 < th["high_pct"]:
+        field_ = "thresholds.low_pct" if th["low_pct"] >= 100.0 else "thresholds.high_pct"
+        raise SchemaError(source, field_, "the prognosis needs a band around 100 % (low_pct < 100 < high_pct)")
     if raw["prognosis"]["enabled"] and not eol_high > th["high_pct"]:
         raise SchemaError(
             source, "prognosis.end_of_life.high_pct", f"must lie above thresholds.high_pct ({th['high_pct']:g})"

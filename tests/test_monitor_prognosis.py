@@ -73,23 +73,57 @@ def test_both_engines_alike_and_the_estimate_before_the_motor_wear_failure(rig):
 
 
 def test_the_hours_are_operating_hours_a_night_parked_counts_nothing(rig):
-    """The machine parked for 12 h at 150 h (no frames): the estimate 10 h before the motor wear
-    failure (at 290 operating hours) is the same as without the night, not 12 h longer; both engines
-    alike."""
+    """The machine parked for 12 h at 260 h, in the middle of the motor's wear (no frames): the
+    operating clock skips the night, and the estimate 10 h before the failure (at 290 operating hours)
+    is the truth's, not 12 h longer; both engines alike."""
     run, frames = rig
-    park_s, at_s = 12 * 3600.0, run.start_epoch_s + 150.5 * 3600.0
+    park_s, at_s = 12 * 3600.0, run.start_epoch_s + 260.5 * 3600.0
     parked = [f._replace(timestamp_s=f.timestamp_s + park_s) if f.timestamp_s > at_s else f for f in frames]
     cfg = _cfg()
     a = _run(cfg, parked, "streaming")
     b = _run(cfg, parked, "columnar")
     for name in a[0].__dataclass_fields__:
         assert np.array_equal(getattr(a[0], name), getattr(b[0], name), equal_nan=True), name
-    tl = a[0]
+    tl, mon = a[0], a[2]
     op_h = (tl.t_s - run.start_epoch_s - np.where(tl.t_s > at_s, park_s, 0.0)) / 3600.0
+    # the clock: the hours since the first tick less the night and the one sampled hour it swallowed
+    clock_h = mon.prognosis.operating_s / 3600.0
+    assert clock_h == pytest.approx(op_h[-1] - op_h[0] - 1.0, abs=0.01), (clock_h, op_h[-1])
     near = (op_h > 279.0) & (op_h < 281.0)
     assert near.any() and np.all(tl.prognosis_state[near] >= 2)
     p50 = float(np.median(tl.prognosis_to_eol_p50_h[near]))
-    assert abs(p50 - 10.0) <= 0.2 * 10.0 + 1.0, p50  # one sampled hour lost with the night at most
+    assert abs(p50 - 10.0) <= 0.2 * 10.0 + 1.0, p50  # 22 h were it calendar hours
+
+
+def test_a_silent_bus_adds_no_operating_hours():
+    """The daemon's ticks on a silent bus (Monitor.advance: no input) move no clock: a replay of its
+    log, which has no ticks there, counts the same."""
+    mon = assemble(_cfg()).monitor
+    t0 = 1.7e9
+    for k in range(1, 7201):
+        mon.advance(t0 + k)
+    assert mon.prognosis.operating_s == 0.0 and mon.last_tick.gate == 1  # no input
+
+
+@pytest.mark.parametrize(
+    ("before", "ratio", "restart"),
+    [
+        (1, 98.4, False),
+        (1, 99.2, True),
+        (2, 101.6, False),
+        (2, 100.4, True),
+        (1, float("nan"), False),
+        (0, 100.0, False),
+    ],
+)
+def test_a_warning_clearing_restarts_the_history_only_with_the_ratio_back_near_100(before, ratio, restart):
+    """Replaced (the ratio near 100 % again) or a flicker at the band's edge (the history goes on)."""
+    from cmcan.monitor.core import _replaced
+    from cmcan.monitor.warnings import Thresholds
+
+    th = Thresholds()
+    assert bool(_replaced(before, 0, ratio, th)) is restart
+    assert _replaced(np.array([before]), np.array([0]), np.array([ratio]), th).tolist() == [restart]
 
 
 def test_a_misposition_is_a_high_trend_in_both_engines_and_ends_with_the_replacement():
@@ -203,3 +237,7 @@ def test_the_high_end_of_life_is_configured_and_checked():
     assert prognosis_params(config({"enabled": True})).eol_high_pct == 110.0  # the documented default
     with pytest.raises(SchemaError, match=r"prognosis\.end_of_life\.high_pct.*thresholds\.high_pct"):
         config({"enabled": True, "end_of_life": {"high_pct": 101.5}})
+    raw = {**load_yaml(path), "prognosis": {"enabled": True}}
+    raw["thresholds"] = {**raw.get("thresholds", {}), "low_pct": 99.0, "high_pct": 100.0, "hysteresis_pct": 0.2}
+    with pytest.raises(SchemaError, match=r"thresholds\.high_pct.*band around 100"):
+        cfgmod.from_dict(raw, str(path), path.parent)

@@ -415,25 +415,32 @@ step = st.sampled_from([0.1, 0.1, 0.1, 600.0, 3600.0, 3600.01, 43200.0, -5.0]) |
 
 
 @settings(max_examples=200, deadline=None, derandomize=True)
-@given(st.lists(step, min_size=1, max_size=60), st.lists(st.integers(1, 60), max_size=6), st.booleans())
-def test_the_operating_clock_is_alike_tick_by_tick_and_in_columns_and_skips_the_machine_off(steps, cuts, saved):
-    """Hours advance by the time between ticks, except over a gap longer than max_gap_h (the machine
-    off) or back in time; both forms alike, and across a save and a restart."""
-    t = 1.7e9 + np.cumsum(np.array(steps))
+@given(
+    st.lists(st.tuples(step, st.booleans() | st.just(True)), min_size=1, max_size=60),
+    st.lists(st.integers(1, 60), max_size=6),
+    st.booleans(),
+)
+def test_the_operating_clock_is_alike_tick_by_tick_and_in_columns_and_skips_the_machine_off(rows, cuts, saved):
+    """Hours advance by the time between ticks with input, except over a gap longer than max_gap_h
+    (the machine off) or back in time; a tick without input (a silent bus) adds nothing; both forms
+    alike, and across a save and a restart."""
+    t = 1.7e9 + np.cumsum(np.array([r[0] for r in rows]))
+    live = np.array([r[1] for r in rows])
     one = Stage(REF)
-    hours = [one.hours(float(x)) for x in t]
+    hours = [one.hours(float(x), bool(v)) for x, v in zip(t, live, strict=True)]
     other = Stage(REF)
     got = []
     edges = sorted({0, len(t), *(c for c in cuts if c < len(t))})
     for a, z in itertools.pairwise(edges):
-        got += other.hours_columns(t[a:z]).tolist()
+        got += other.hours_columns(t[a:z], live[a:z]).tolist()
         if saved:  # a daemon restart between two stretches
             other = Stage(REF, json.loads(json.dumps(other.to_dict())))
     assert got == hours
-    gaps = np.diff(t)
+    gaps = np.diff(t[live])
     counted = gaps[(gaps > 0) & (gaps <= REF.max_gap_h * 3600.0)]
     assert hours[-1] * 3600.0 == pytest.approx(float(counted.sum()), abs=1e-6)
-    event(f"gap off: {bool(np.any(gaps > REF.max_gap_h * 3600.0))}, back: {bool(np.any(gaps < 0))}")
+    off = bool(np.any(gaps > REF.max_gap_h * 3600.0))
+    event(f"gap off: {off}, back: {bool(np.any(gaps < 0))}, silent ticks: {bool((~live).any())}")
 
 
 def test_a_history_saved_without_its_clock_goes_on_from_its_newest_hour():
@@ -449,3 +456,37 @@ def test_a_history_saved_without_its_clock_goes_on_from_its_newest_hour():
 
         _clock_from({**doc, "clock": {"operating_s": -1.0}}, p)
     assert "clock" in Stage(REF, {**doc, "clock": "x"}).note
+
+
+def test_a_history_saved_with_epoch_hours_and_only_an_open_bin_goes_on():
+    """Saved before the operating clock: hours on the epoch's scale, no closed point yet. The clock
+    goes on from the open bin's hours, so later ticks close it and make points."""
+    h = 472000.0 + np.arange(0.0, 0.3, 0.01)
+    p = Prognosis()
+    p.add_columns(*ticks(h, np.full(len(h), 1.0)))
+    doc = p.to_dict()
+    assert not doc["points"] and doc["open"] is not None
+    stage = Stage(REF, doc)
+    t = 1.7e9 + np.arange(0.0, 2 * 3600.0, 10.0)
+    hours = stage.hours_columns(t, np.ones(len(t), bool))
+    assert hours[0] == pytest.approx(472000.15, abs=0.01) and hours[-1] > hours[0] + 1.9
+    stage.history.add_columns(
+        hours,
+        np.ones(len(t)),
+        np.full(len(t), 99.5),
+        np.full(len(t), 480.0),
+        np.full(len(t), 60.0),
+        np.ones(len(t), bool),
+    )
+    assert len(stage.history.points) >= 3
+
+
+def test_a_saved_history_whose_hours_do_not_increase_is_refused_not_a_hang():
+    h = np.arange(0.0, 30.0, 0.01)
+    p = Prognosis()
+    p.add_columns(*ticks(h, np.full(len(h), 1.0)))
+    doc = json.loads(json.dumps(p.to_dict()))
+    doc["points"] += [[doc["points"][-1][0], 1.0, 99.5, 20, 1.0]] * 4
+    with pytest.raises(ValueError, match="hours must increase"):
+        Prognosis.from_dict(doc)
+    assert "hours must increase" in Stage(REF, doc).note  # the daemon goes on with a new history

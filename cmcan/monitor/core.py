@@ -492,8 +492,8 @@ class Monitor:
         pg = self.prognosis
         progn: dict[str, Any] = {}
         if pg is not None:
-            hour = pg.hours(t + self.run_shift_s)
-            if _cleared(cond_before, m.condition):  # the worn or mispositioned unit was replaced
+            hour = pg.hours(t + self.run_shift_s, pt.gate != Gate.NO_INPUT)
+            if _replaced(cond_before, m.condition, filt, m.th):
                 pg.restart()
             pg.tick(hour)
             if evaluated:
@@ -527,20 +527,21 @@ class Monitor:
         mean: Mapping[str, NDArray[np.float64]],
         cond_before: Level,
         condition: NDArray[np.int8],
+        filt: NDArray[np.float64],
     ) -> dict[str, NDArray[Any]]:
-        """The prognosis at every tick of a stretch, restarted where a low or high condition cleared
-        (a unit replaced), as :meth:`_judge` tick after tick."""
+        """The prognosis at every tick of a stretch, restarted where a unit was replaced
+        (:func:`_replaced`), as :meth:`_judge` tick after tick."""
         pg = self.prognosis
         if pg is None:
             return {}
         n = len(t_k)
         leak = np.zeros(n)
         leak[pts.evaluated] = pts.leak_lpm
-        hours = pg.hours_columns(t_k + self.run_shift_s)
+        hours = pg.hours_columns(t_k + self.run_shift_s, pts.gate != Gate.NO_INPUT)
         prev = np.empty(n, dtype=np.int8)
         prev[0] = cond_before
         prev[1:] = condition[:-1]
-        cuts = np.flatnonzero(_cleared(prev, condition)).tolist()
+        cuts = np.flatnonzero(_replaced(prev, condition, filt, self.machine.th)).tolist()
         parts = []
         for a, z in itertools.pairwise([0, *cuts, n]):
             if a in cuts:
@@ -782,7 +783,7 @@ class Monitor:
         w = self.machine.run_columns(
             t_k, pts.gate, ratio_arg, self.period, (tot.warning_count, tot.fault_count), self._record
         )
-        progn = self._prognosis_columns(t_k, evaluated, pts, mean, cond_before, w.condition)
+        progn = self._prognosis_columns(t_k, evaluated, pts, mean, cond_before, w.condition, filt)
         tot.warning_count, tot.fault_count = w.warnings, w.faults
         dm1 = None
         if self.dm1_producer is not None:
@@ -963,10 +964,15 @@ class _Out:
         return self.pieces[0] if len(self.pieces) == 1 else FrameColumns.concat(self.pieces)
 
 
-def _cleared(before: Any, now: Any) -> Any:
-    """A low or high condition back to ok: the unit was replaced (or repaired), its trend is over.
-    Scalars or arrays of levels."""
-    return ((before == Level.LOW) | (before == Level.HIGH)) & (now == Level.OK)
+def _replaced(before: Any, now: Any, filt_pct: Any, th: Thresholds) -> Any:
+    """A low or high condition back to ok with the filtered ratio near 100 % again (within half the
+    band between 100 and the threshold): the unit was replaced or repaired, its trend is over. A clear
+    at the band's edge (a ratio near a threshold swinging with the oil) keeps the history. Scalars or
+    arrays (levels, the tick's filtered ratio: NaN never counts)."""
+    with np.errstate(invalid="ignore"):
+        low = (before == Level.LOW) & (filt_pct >= 100.0 - (100.0 - th.low_pct) / 2.0)
+        high = (before == Level.HIGH) & (filt_pct <= 100.0 + (th.high_pct - 100.0) / 2.0)
+    return (low | high) & (now == Level.OK)
 
 
 def _prognosis_snapshot(pg: Stage) -> dict[str, Any]:

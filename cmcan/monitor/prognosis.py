@@ -102,11 +102,11 @@ class PrognosisParams:
     onset_ratio: float = 1.07
     t_min: float = 6.0  # significance of the rise (grid search and autocorrelation make 2 too lax)
     min_rise_lpm: float = 1.5  # the smallest rise reported as a trend
-    min_rise_pct: float = 1.0  # ... of the ratio, on the high side (half the high warning's margin)
+    min_rise_pct: float = 1.0  # ... on the high side: of the share of displacement the motor lacks, %
     rise_sigmas: float = 5.0  # ... and at least this many times the residuals' spread
     draws: int = 400  # curves drawn for the interval
     sigma_floor_lpm: float = 0.05  # the noise assumed at least (a history smoother than the filter's)
-    sigma_floor_pct: float = 0.01  # ... of the ratio
+    sigma_floor_pct: float = 0.01  # ... of that share
     # The wear law is an assumption: a field curve is no exact power law, and onset and shape are
     # picked from a grid. Hours to a threshold carry this relative error (lognormal) on top of the fit's.
     model_rel: float = 0.1
@@ -141,6 +141,8 @@ class PrognosisParams:
             raise ValueError("the ratios must lie low_pct < 100 < high_pct < eol_high_pct")
         if not self.onset_ratio > 1.0:
             raise ValueError("onset_ratio must be above 1")
+        if not (self.max_gap_h > 0 and self.min_history_h >= 0):
+            raise ValueError("max_gap_h must be positive and min_history_h not negative")
         if not self.bin_h > 0 or self.max_points < 2 * self.min_points:
             raise ValueError("bin_h must be positive and max_points at least twice min_points")
         if not (self.dp_ref_bar > 0 and self.min_dp_bar >= 0 and _TEMP_LO_C <= self.temp_ref_c <= _TEMP_HI_C):
@@ -289,6 +291,13 @@ class Prognosis:
             return None
         return (self.open_sum_h / n, self.open_sum_lg / self.open_sum_gg, self.open_sum_ratio / n, n, self.open_sum_gg)
 
+    def newest_h(self) -> float:
+        """The newest operating hour the history holds: its last point's, or its open bin's (0: none)."""
+        last = self.points[-1][0] if self.points else 0.0
+        if self.open_bin is None:
+            return last
+        return max(last, self.open_sum_h / self.open_n if self.open_n else self.open_bin * self.params.bin_h)
+
     def estimate(self) -> Estimate:
         """The estimate from the history and the open bin: the newest ticks count as soon as they
         make a point, not only when a later bin begins (half an hour and more sooner near the end)."""
@@ -349,6 +358,9 @@ class Prognosis:
             if not (ok and _finite(q[4]) and q[4] > 0):
                 raise ValueError(f"field 'points[{i}]': expected [hour, leak, ratio, ticks, weight], got {q!r:.60}")
             out.points.append((float(q[0]), float(q[1]), float(q[2]), int(q[3]), float(q[4])))
+        hours = [q[0] for q in out.points]
+        if any(b <= a for a, b in itertools.pairwise(hours)):
+            raise ValueError("field 'points': the hours must increase")
         out.points = out.points[-params.max_points :]
         op = d.get("open")
         if op is not None:
@@ -357,6 +369,8 @@ class Prognosis:
                 raise ValueError(
                     f"field 'open': expected [bin, ticks, sum_h, sum_lg, sum_gg, sum_ratio], got {op!r:.60}"
                 )
+            if out.points and int(op[0]) < math.floor(out.points[-1][0] / params.bin_h):
+                raise ValueError("field 'open': its bin lies before the last point")
             out.open_bin, out.open_n = int(op[0]), int(op[1])
             out.open_sum_h, out.open_sum_lg, out.open_sum_gg, out.open_sum_ratio = (float(x) for x in op[2:])
         return out
@@ -443,7 +457,7 @@ def estimate(
     d_low = _detect(p, h, leak, _LEAK)
     # The high side follows the ratio above 100 %: flow a healthy drive cannot deliver, which a leak,
     # however it swings with the oil and the pressure, never gives (it only lowers the ratio). As the
-    # share of displacement the motor lacks (1 - 100 / ratio), linear in a drifting control
+    # share of displacement the motor lacks (100 - 10^4 / ratio, %), linear in a drifting control
     excess = _short_pct(ratio)
     d_high = _detect(p, h, excess, _RATIO)
     base = Estimate(
@@ -473,7 +487,7 @@ def estimate(
 def _short_pct(ratio_pct: NDArray[np.float64]) -> NDArray[np.float64]:
     """The share of its displacement (%) a motor turning at ``ratio_pct`` of the predicted speed lacks;
     0 at or below 100 %."""
-    return np.maximum(100.0 - 1e4 / ratio_pct, 0.0)
+    return 100.0 - 1e4 / np.maximum(ratio_pct, 100.0)
 
 
 def _sooner(q: Triple) -> float:
@@ -639,7 +653,7 @@ def _onsets(h: NDArray[np.float64], min_points: int, even: int, ratio: float) ->
     out = set(np.round(np.linspace(0, n - min_points, even)).astype(np.int64).tolist())
     out.add(n - min(_NEWEST_ONSET_POINTS, min_points))
     d = newest * ratio
-    while d < oldest:
+    while 0.0 < d < oldest:  # (hours that do not increase give no more onsets)
         i = int(np.searchsorted(h, T - d))  # the first point at or after T - d, or the one before it
         out.add(i - 1 if i > 0 and (T - d) - float(h[i - 1]) < float(h[i]) - (T - d) else i)
         d *= ratio
@@ -756,35 +770,50 @@ class Stage:
         self.operating_s, self.last_t_s = 0.0, math.nan
         if saved is not None:
             try:
-                history = Prognosis.from_dict(saved, params)
-                self.operating_s, self.last_t_s = _clock_from(saved, history)
-                self.history, self.note = history, history.restarted
+                self.history = Prognosis.from_dict(saved, params)
+                self.note = self.history.restarted
+                try:
+                    self.operating_s, self.last_t_s = _clock_from(saved, self.history)
+                except ValueError as exc:  # the history is good: its clock goes on from its newest hour
+                    self.operating_s, self.last_t_s = _clock_from({}, self.history)
+                    self.note = f"the saved operating clock could not be used ({exc}): it goes on from the history"
             except ValueError as exc:  # the rest of the state is good: a new history, said
                 self.note = f"the saved prognosis history could not be used ({exc}): a new history begins"
         self.block: int | None = None
         self._rows: list[tuple[float, float, float, float, float]] = []
         self.est = self.history.estimate() if self.history.points else Estimate()
 
-    def hours(self, t_run_s: float) -> float:
+    def hours(self, t_run_s: float, has_input: bool = True) -> float:
         """The operating hour of a tick at ``t_run_s`` (its time on the run's continuous base): the
-        time since the tick before added, unless longer than ``max_gap_h`` (the machine was off) or
-        negative (a clock set back across a restart)."""
+        time since the last tick with input added, unless longer than ``max_gap_h`` (the machine was
+        off) or negative (a clock set back across a restart). A tick without input (the daemon's
+        ticks on a silent bus; a log has none there) neither adds nor moves the last tick, so the
+        daemon and a replay of its log count the same hours."""
+        if not has_input:
+            return self.operating_s / 3600.0
         dt = t_run_s - self.last_t_s  # NaN for the first tick ever: adds nothing
         if 0.0 < dt <= self.max_gap_s:
             self.operating_s += dt
         self.last_t_s = t_run_s
         return self.operating_s / 3600.0
 
-    def hours_columns(self, t_run_s: NDArray[np.float64]) -> NDArray[np.float64]:
+    def hours_columns(self, t_run_s: NDArray[np.float64], has_input: NDArray[np.bool_]) -> NDArray[np.float64]:
         """:meth:`hours` at every tick of a stretch: the same additions in the same order."""
-        if not len(t_run_s):
+        n = len(t_run_s)
+        if not n:
             return np.empty(0)
-        prev = np.concatenate(([self.last_t_s], t_run_s[:-1]))
-        dt = t_run_s - prev
+        live = np.flatnonzero(has_input)
+        t = t_run_s[live]
+        prev = np.concatenate(([self.last_t_s], t[:-1]))
+        dt = t - prev
         with np.errstate(invalid="ignore"):
             dt = np.where((dt > 0.0) & (dt <= self.max_gap_s), dt, 0.0)
-        op = np.cumsum(np.concatenate(([self.operating_s], dt)))[1:]
-        self.operating_s, self.last_t_s = float(op[-1]), float(t_run_s[-1])
+        op_live = np.cumsum(np.concatenate(([self.operating_s], dt)))
+        # a tick without input keeps the hours of the last tick with input before it
+        at = np.searchsorted(live, np.arange(n), side="right")
+        op = op_live[at]
+        if len(live):
+            self.operating_s, self.last_t_s = float(op_live[-1]), float(t[-1])
         return op / 3600.0
 
     def tick(self, hour: float) -> None:
@@ -886,8 +915,7 @@ def _clock_from(saved: dict[str, Any], history: Prognosis) -> tuple[float, float
     """The saved operating clock; a history saved without one goes on from its newest hour."""
     c = saved.get("clock")
     if c is None:
-        h = history.arrays(with_open=True)[0]
-        return (float(h[-1]) * 3600.0 if len(h) else 0.0), math.nan
+        return history.newest_h() * 3600.0, math.nan
     ok = isinstance(c, dict) and _finite(c.get("operating_s")) and c["operating_s"] >= 0
     last = c.get("last_t_s") if isinstance(c, dict) else None
     if not (ok and (last is None or _finite(last))):
