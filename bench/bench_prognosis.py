@@ -165,7 +165,9 @@ def healthy_cases(seed: int) -> list[Case]:
     return out
 
 
-def run_case(case: Case, normalized: bool = True, cache: str | None = None) -> Result:
+def run_case(
+    case: Case, normalized: bool = True, cache: str | None = None, overrides: dict[str, float] | None = None
+) -> Result:
     from cmcan import config as cfgmod
     from cmcan.monitor.prognosis import Prognosis, PrognosisParams
 
@@ -185,7 +187,7 @@ def run_case(case: Case, normalized: bool = True, cache: str | None = None) -> R
         res.eol_lpm = eol_ref_lpm(case, params)
     else:
         res.eol_lpm = eol_lpm_for(case, ticks)
-    params = replace(params, eol_kind="leak_lpm", eol_value=res.eol_lpm)
+    params = replace(params, eol_kind="leak_lpm", eol_value=res.eol_lpm, **(overrides or {}))
     prog = Prognosis(params)
     res.first_warning_h = float(ticks["first_low_h"]) if math.isfinite(ticks["first_low_h"]) else None
     # fed hour by hour, an estimate after each (the daemon would estimate as each bin closes)
@@ -391,6 +393,9 @@ def main() -> None:
     )
     ap.add_argument("--only", help="run only these wear scenarios, by index: 0,3,7 (iterating on a subset)")
     ap.add_argument("--cache", help="keep each case's evaluated ticks in this folder and reuse them")
+    ap.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="a PrognosisParams field for a what-if"
+    )
     args = ap.parse_args()
     wear = wear_cases(args.scenarios, args.seed)
     if args.only:
@@ -399,12 +404,18 @@ def main() -> None:
     t0 = time.perf_counter()
     n = len(cases)
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as ex:
-        results = list(ex.map(run_case, cases, [not args.without_normalization] * n, [args.cache] * n))
+        sets = dict(_setting(kv) for kv in args.set)
+        results = list(ex.map(run_case, cases, [not args.without_normalization] * n, [args.cache] * n, [sets] * n))
     wall = time.perf_counter() - t0
     if args.dump:
         with open(args.dump, "w", encoding="utf-8") as f:
             json.dump([{"case": r.case.name, "fail_h": r.case.fail_h, "estimates": r.estimates} for r in results], f)
     report([r for r in results if r.case.fail_h is not None], [r for r in results if r.case.fail_h is None], wall)
+
+
+def _setting(kv: str) -> tuple[str, float]:
+    key, _, value = kv.partition("=")
+    return key.strip(), float(value)
 
 
 def report(wear: list[Result], healthy: list[Result], wall: float) -> None:

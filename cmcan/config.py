@@ -115,7 +115,7 @@ def _prognosis_rule(p: dict[str, Any]) -> tuple[str, str] | None:
     return None
 
 
-# The prognosis: operating hours to the low warning and to end of life (cmcan.monitor.prognosis;
+# The prognosis: operating hours to the warning and to end of life (cmcan.monitor.prognosis;
 # docs/prognosis.md). End of life: 10 % of the flow lost (ratio 90 %) unless the machine's is known;
 # on the high side (the ratio rising) 110 %.
 _PROGNOSIS = Obj(

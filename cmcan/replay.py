@@ -106,7 +106,7 @@ class _FileSink:
 _GATE_NAMES = {int(g): g.name.lower() for g in Gate}
 _LEVEL_NAMES = {int(lv): LEVEL_NAMES[lv] for lv in Level}
 _REASON_NAMES = {int(r): r.name.lower() for r in Reason}
-# The prognosis's codes written by name where they have one (the state), as numbers otherwise; its
+# The prognosis's codes written by name (the state, the direction), as numbers where one has none; its
 # hours with 0.01 h (36 s), inf where the estimate never gets there, empty without one
 _PROGNOSIS_NAMES = {
     "prognosis_state": {0: "off", **{code: name for name, code in PROGNOSIS_STATE_CODES.items()}},

@@ -10,12 +10,13 @@ every log was quarantined still gets its page, with that list. A machine's opera
 logged hours: its logs in time order, each one's duration added (``machine_logs.offset_h``).
 
 Between the ranking and the machines, "Hours to service" orders the machines the on-board prognosis
-(:mod:`cmcan.monitor.prognosis`) sees wearing, by their state at their latest evaluated row: imminent
-first, then by the operating hours to end of life (p50, then p10), each with its p10-p90 interval, the
-hour of that estimate and a sparkline of its estimates over operating hours. Machines whose prognosis
-sees no trend are named after the table; those without a prognosis configured (state 0) are named
-apart, not ranked (beyond ``MAX_NAMED`` names, counted). A data set where no machine has one, or
-written before the prognosis, says so in a line.
+(:mod:`cmcan.monitor.prognosis`) sees trending (wear, or a drifting displacement control), by their
+state at their latest evaluated row: imminent first, then by the operating hours to end of life
+(p50, then p10), each with its p10-p90 interval, the hour of that estimate and a sparkline of its
+estimates over operating hours. Machines whose prognosis sees no trend are named after the table;
+those without a prognosis configured (state 0) are named apart, not ranked (beyond ``MAX_NAMED``
+names, counted). A data set where no machine has one, or written before the prognosis, says so in a
+line.
 """
 
 from __future__ import annotations

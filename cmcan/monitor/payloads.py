@@ -382,7 +382,8 @@ def _prognosis_part(
 
 
 def _prognosis_key(state: Any, direction: Any) -> Any:
-    """What a change of sends CM_PROGNOSIS at once: its state or its direction (scalars or arrays)."""
+    """The prognosis's state and direction as one number: a change of either sends CM_PROGNOSIS at
+    once (scalars or arrays)."""
     return state * 4 + direction
 
 

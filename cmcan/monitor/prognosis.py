@@ -1,6 +1,11 @@
-"""Prognosis: operating hours until the low warning and until end of life, each as p10/p50/p90.
+"""Prognosis: operating hours until the warning and until end of life, each as p10/p50/p90, for wear
+(the low side: the extra leakage grows, the ratio falls) and for a drifting displacement control (the
+high side: the ratio rises; see :func:`estimate`).
 
-The time base is operating hours. Evaluated ticks go into a decimated history: one point per
+The time base is operating hours: :class:`Stage` keeps an operating clock (the time between ticks
+with input, gaps over ``max_gap_h`` cut out); no estimate on less than ``min_history_h`` of history.
+
+Evaluated ticks go into a decimated history: one point per
 ``bin_h`` of operating time, the mean hour and ratio of its ticks and its leakage referred to the
 reference conditions (``dp_ref_bar``, ``temp_ref_c``): a worn gap leaks laminar, ``leak = L * g`` with
 ``g = (dp / dp_ref) * (mu(T_ref) / mu(T))`` from the tick's dp and oil temperature, and the bin's ``L``

@@ -55,7 +55,7 @@ class TickSample:
     whitebox: float
     # the on-board baseline where configured: state, learned_h, coverage_pct, distance_lpm
     baseline: dict[str, Any] | None = None
-    # the prognosis where configured: state, hours to the low warning and to end of life (p10/p50/p90)
+    # the prognosis where configured: state, direction, hours to the warning and to end of life (p10/p50/p90)
     prognosis: dict[str, Any] | None = None
 
 
