@@ -68,7 +68,7 @@ class Result:
     seconds: float = 0.0
     max_t: float = 0.0
     max_rise: float = 0.0
-    max_t_pct: float = 0.0
+    max_t_high: float = 0.0
     max_rise_pct: float = 0.0
 
 
@@ -202,7 +202,7 @@ def run_case(
             break
         res.max_t = max(res.max_t, e.t_stat)
         res.max_rise = max(res.max_rise, e.rise_lpm)
-        res.max_t_pct = max(res.max_t_pct, e.t_stat_pct)
+        res.max_t_high = max(res.max_t_high, e.t_stat_high)
         res.max_rise_pct = max(res.max_rise_pct, e.rise_pct)
         if e.state != "none":
             res.estimates.append((e.at_h, e.state, *e.to_eol_h))
@@ -450,7 +450,7 @@ def report(wear: list[Result], healthy: list[Result], wall: float) -> None:
         state = f"TREND x{bad}" if bad else "none"
         print(
             f"  {r.case.name:20} {state:>10}  rise {r.max_rise:5.2f}  t {r.max_t:5.1f}"
-            f"  high: rise {r.max_rise_pct:5.2f}  t {r.max_t_pct:5.1f}  {r.case.describe}"
+            f"  high: rise {r.max_rise_pct:5.2f}  t {r.max_t_high:5.1f}  {r.case.describe}"
         )
     print()
     groups = [("all", [True] * len(wear))]
