@@ -50,44 +50,19 @@ def load_cfg(root: Path, type_name: str) -> Any:
     return cfgmod.from_dict(raw, f"{d / 'cmcan.yaml'} + prognosis section", d)
 
 
-class PrognosisSink:
-    """Every tick's time and prognosis (state, direction, p50 to end of life)."""
-
-    wants_ticks = True
-    wants_frames = False
-
-    def __init__(self) -> None:
-        self.parts: list[tuple[np.ndarray, ...]] = []
-
-    def start(self, t0: float) -> None:
-        pass
-
-    def ticks(self, c: Any) -> None:
-        cols = (c.t_run_s, c.prognosis_state, c.prognosis_direction, c.prognosis_to_eol_p50_h)
-        self.parts.append(tuple(np.asarray(x).copy() for x in cols))
-
-    def frames(self, frames: Any) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
-
-    def abort(self) -> None:
-        pass
-
-
 def run_machine(job: dict[str, Any]) -> dict[str, Any]:
     from cmcan.assemble import assemble
     from cmcan.io.columns import column_chunks
-    from cmcan.replay import replay_columns
+    from cmcan.replay import TimelineCollector, replay_columns
 
     root, m = Path(job["root"]), job["machine"]
     logs = [root / lg["log"] for lg in m["logs"]]
     t0 = time.perf_counter()
     mon = assemble(load_cfg(root, m["type"])).monitor
-    sink = PrognosisSink()
+    sink = TimelineCollector()
     replay_columns(mon, (c for p in logs for c in column_chunks(p)), [sink])
-    t, state, direction, p50 = (np.concatenate(x) for x in zip(*sink.parts, strict=True))
+    tl = sink.timeline
+    t, state, direction, p50 = tl.t_run_s, tl.prognosis_state, tl.prognosis_direction, tl.prognosis_to_eol_p50_h
     h = (t - m["start_epoch_s"]) / 3600.0
     out: dict[str, Any] = {"machine": m["machine"], "seconds": time.perf_counter() - t0}
     trend = np.flatnonzero(state >= 2)
