@@ -209,8 +209,6 @@ def p(**kw):
     base = {
         "spn": 520192,
         "input_spn": 520193,
-        "low_pct": 98.0,
-        "high_pct": 102.0,
         "low_severe_pct": 96.0,
         "high_severe_pct": 104.0,
         "hysteresis_pct": 0.5,

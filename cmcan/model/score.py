@@ -16,7 +16,7 @@ from numpy.typing import NDArray
 
 from cmcan.model.evaluate import auc_lower
 from cmcan.model.features import OperatingPoints
-from cmcan.monitor.gating import EVALUATED, Gate, GateLimits, predictions_ok
+from cmcan.monitor.gating import EVALUATED, Gate, GateLimits, prediction_ok
 
 
 class Predictor(Protocol):
@@ -59,7 +59,7 @@ def score(model: Predictor, op: OperatingPoints, lpm_per_unit: float, limits: Ga
     if idx.size:
         pred, _ = model.predict(op.x[idx])
         pred = np.asarray(pred, dtype=np.float64)
-        ok = predictions_ok(pred, limits) if limits is not None else np.isfinite(pred) & (pred > 0.0)
+        ok = prediction_ok(pred, limits) if limits is not None else np.isfinite(pred) & (pred > 0.0)
         codes[idx[~ok]] = Gate.MODEL_ERROR
         good, p = idx[ok], pred[ok]
         meas = op.measured[good]

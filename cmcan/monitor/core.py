@@ -69,7 +69,7 @@ from cmcan.monitor.inputs import NODE, Channels, InputMessage, Router, payload_r
 from cmcan.monitor.node import Clear, Node, NodeParams
 from cmcan.monitor.payloads import Outputs, Payloads
 from cmcan.monitor.prognosis import PrognosisParams, Stage
-from cmcan.monitor.ratio import Point, Points, Predictor, Ratio
+from cmcan.monitor.ratio import Point, Points, Predictor, Ratio, corrected_prediction, ratio_and_leak
 from cmcan.monitor.release import OutputQueue
 from cmcan.monitor.tick import LEVEL_NAMES, OPERATING_POINT, Tick, TickColumns, TickListener
 from cmcan.monitor.totals import Totals
@@ -446,16 +446,15 @@ class Monitor:
 
     def _corrected(self, pt: Point, mean: Mapping[str, float]) -> Point:
         """A point judged against the machine's own baseline: the type model's prediction plus the
-        machine's correction."""
+        machine's correction (:func:`~cmcan.monitor.ratio.corrected_prediction`)."""
         assert self.baseline is not None
         x = np.array([[mean[r] for r in MODEL_INPUTS]])
         lpu = self.params.lpm_per_unit
-        pred = pt.predicted + float(self.baseline.correction_lpm(x)[0]) / lpu
-        if not pred > 0.0:
+        pred, ok = corrected_prediction(pt.predicted, float(self.baseline.correction_lpm(x)[0]), lpu)
+        if not ok:
             return pt
-        return replace(
-            pt, predicted=pred, ratio_raw_pct=pt.measured / pred * 100.0, leak_lpm=(pred - pt.measured) * lpu
-        )
+        raw, leak = ratio_and_leak(pt.measured, pred, lpu)
+        return replace(pt, predicted=pred, ratio_raw_pct=raw, leak_lpm=leak)
 
     def _corrected_columns(self, pts: Points, mean: Mapping[str, NDArray[np.float64]]) -> Points:
         """:meth:`_corrected` at every evaluated tick of a stretch."""
@@ -465,14 +464,13 @@ class Monitor:
             return pts
         x = np.column_stack([mean[r][e] for r in MODEL_INPUTS])
         lpu = self.params.lpm_per_unit
-        pe = pts.predicted[e] + self.baseline.correction_lpm(x) / lpu
-        ok = pe > 0.0
+        pe, ok = corrected_prediction(pts.predicted[e], self.baseline.correction_lpm(x), lpu)
         pe = np.where(ok, pe, pts.predicted[e])
+        raw_e, leak_e = ratio_and_leak(pts.measured[e], pe, lpu)
         pred, raw = pts.predicted.copy(), pts.ratio_raw_pct.copy()
-        meas = pts.measured[e]
         pred[e] = pe
-        raw[e] = np.where(ok, meas / pe * 100.0, raw[e])
-        leak = np.where(ok, (pe - meas) * lpu, pts.leak_lpm)
+        raw[e] = np.where(ok, raw_e, raw[e])
+        leak = np.where(ok, leak_e, pts.leak_lpm)
         return replace(pts, predicted=pred, ratio_raw_pct=raw, leak_lpm=leak)
 
     def _judge(self, t: float, pt: Point, mean: Mapping[str, float]) -> Tick:

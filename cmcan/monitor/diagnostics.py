@@ -41,11 +41,9 @@ from cmcan.monitor.warnings import Level, Reason
 class Dm1Params:
     spn: int  # the drive's condition (CM ratio)
     input_spn: int  # the monitor's inputs
-    low_pct: float  # the warning thresholds, for the severity's hysteresis
-    high_pct: float
     low_severe_pct: float
     high_severe_pct: float
-    hysteresis_pct: float
+    hysteresis_pct: float  # the warning thresholds', for the severity's
     every_ticks: int
     source: int  # cmcan's source address
     priority: int = dm1.DM1_PRIORITY
@@ -126,8 +124,8 @@ class Dm1Producer:
             # due, nothing changed since the last DM1 (any change of DTCs, lamp or counts sets
             # ``changed`` until it is sent): the same single frame again
             pl = self._payload
-            if pl is not None and len(pl[1]) <= 8 and t > self.busy_until:
-                return [Frame(t, self.p.channel, self.frame_id, True, False, False, False, pl[1])]
+            if self._single_ready(pl, t):
+                return [Frame(t, self.p.channel, self.frame_id, True, False, False, False, pl[1])]  # type: ignore[index]
         self._last = state
         now = self.dtcs(condition, fault)
         keys = [f"{s}:{f}" for s, f in now]
@@ -255,7 +253,7 @@ class Dm1Producer:
         """The ticks a step could do something at, and among them those that change something."""
         p = self.p
         with np.errstate(invalid="ignore"):
-            severe = (ratio < p.low_severe_pct) | (ratio > p.high_severe_pct)
+            severe = (ratio < self._lo_on) | (ratio > self._hi_on)  # where step could set a severe flag
         if self.low_severe or self.high_severe or severe.any():
             every = np.ones(len(ks), dtype=bool)
             return every, every
@@ -265,14 +263,17 @@ class Dm1Producer:
         event[1:] = (cond[1:] != cond[:-1]) | (fault[1:] != fault[:-1])
         return event | (ks % p.every_ticks == 0), event
 
+    def _single_ready(self, pl: tuple[tuple[int, ...], bytes] | None, t: float) -> bool:
+        """A cached DM1 that fits one frame, and no transport of this node in progress at ``t``: what
+        a due tick with nothing changed resends (:meth:`step`, and the runs of :meth:`run_columns`)."""
+        return pl is not None and len(pl[1]) <= 8 and t > self.busy_until
+
     def _resends(self, pl: tuple[tuple[int, ...], bytes] | None, cond: int, fault: int, t: float) -> bool:
         """Whether a due tick with nothing changed would resend the cached single frame."""
         return (
             not self.changed
-            and pl is not None
-            and len(pl[1]) <= 8
             and self._last == (cond, fault, self.low_severe, self.high_severe)
-            and t > self.busy_until
+            and self._single_ready(pl, t)
         )
 
     def _frames_of(

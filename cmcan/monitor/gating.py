@@ -23,9 +23,10 @@ sizes them for another machine from its nominal pump speed, displacement and flo
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from enum import IntEnum
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -55,6 +56,12 @@ class Gate(IntEnum):
 
 
 EVALUATED: frozenset[Gate] = frozenset({Gate.EVALUATING, Gate.EXTRAPOLATED})
+_EVALUATED_CODES = np.array(sorted(int(g) for g in EVALUATED), dtype=np.int8)
+
+
+def is_evaluated(gate: Any) -> Any:
+    """Whether a gate gets a ratio (:data:`EVALUATED`): one gate, or per gate of an array."""
+    return np.isin(gate, _EVALUATED_CODES) if isinstance(gate, np.ndarray) else gate in EVALUATED
 
 
 # The reference drive the default limits are sized for: nominal pump speed and displacement, and the
@@ -189,159 +196,178 @@ def signed_roles(limits: GateLimits) -> tuple[str, str]:
     return (PUMP_DISP, limits.output_role)
 
 
-def outside_plausible(role: str, values: NDArray[np.float64], limits: GateLimits) -> NDArray[np.bool_]:
-    """Per value of ``role``: outside its plausible range (NaN too), the magnitude judged for the
-    roles of :func:`signed_roles` (the rule :func:`gate_point` applies to one point)."""
+def outside_plausible(role: str, values: Any, limits: GateLimits) -> Any:
+    """Per value of ``role`` (a float or an array): outside its plausible range (NaN too), the
+    magnitude judged for the roles of :func:`signed_roles`."""
     lo, hi = limits.plausible.get(role, (-math.inf, math.inf))
-    v = np.abs(values) if role in signed_roles(limits) else np.asarray(values)
-    with np.errstate(invalid="ignore"):
-        return ~((lo <= v) & (v <= hi))
+    v = abs(values) if role in signed_roles(limits) else values
+    return (v < lo) | (v > hi) | (v != v)  # v != v: NaN
+
+
+# -- the rules, once --------------------------------------------------------------------------------
+#
+# Each rule is a predicate over the window statistics, written with operators that mean the same on
+# floats and on arrays (``&``, ``|``, comparisons, ``abs``), so one definition serves one point (the
+# daemon's tick, evaluated in order, the first rule that holds wins) and arrays of points (training,
+# scoring, the columnar replay: every rule over the whole arrays, the first that holds wins).
+
+
+@dataclass(frozen=True)
+class _Subject:
+    """What the rules look at: the window statistics (per role a float, or an array over points) and
+    the limits they are judged by."""
+
+    mean: Mapping[str, Any]
+    std: Mapping[str, Any]
+    count: Mapping[str, Any]
+    age_s: Mapping[str, Any]
+    limits: GateLimits
+    max_age_s: Mapping[str, float] | None
+    envelope: Mapping[str, tuple[float, float]] | None
+
+    @property
+    def roles(self) -> list[str]:
+        """The gated roles present: the model's inputs and the measured output."""
+        return [r for r in (*MODEL_INPUTS, self.limits.output_role) if r in self.mean]
+
+
+def _any(parts: Iterable[Any]) -> Any:
+    """Or over the parts (floats' bools or arrays' alike); False for none."""
+    acc: Any = False
+    for p in parts:
+        acc = acc | p
+    return acc
+
+
+def _missing(s: _Subject) -> Any:
+    """How many roles have no fresh sample: none at all, or the newest older than its maximum age."""
+    n: Any = 0
+    ages = s.max_age_s or {}
+    for r in s.roles:
+        a = s.age_s[r]
+        n = n + ((a == math.inf) | (a > ages.get(r, math.inf)))
+    return n
+
+
+def _no_input(s: _Subject) -> Any:
+    # all inputs silent: the machine is off, the bus idle; not a fault
+    return _missing(s) == len(s.roles)
+
+
+def _stale(s: _Subject) -> Any:
+    return _missing(s) > 0
+
+
+def _warming_up(s: _Subject) -> Any:
+    return _any(s.count[r] < s.limits.min_samples_of(r) for r in s.roles)
+
+
+def _implausible(s: _Subject) -> Any:
+    return _any(outside_plausible(r, s.mean[r], s.limits) for r in s.roles)
+
+
+def _reverse(s: _Subject) -> Any:
+    lim = s.limits
+    d, o = s.mean[PUMP_DISP], s.mean[lim.output_role]
+    return ((d < 0.0) & (d <= -lim.min_pump_disp_cc)) | ((o < 0.0) & (o <= -lim.min_output))
+
+
+def _low_speed(s: _Subject) -> Any:
+    return s.mean[PUMP_SPEED] < s.limits.min_pump_speed_rpm
+
+
+def _low_displacement(s: _Subject) -> Any:
+    return abs(s.mean[PUMP_DISP]) < s.limits.min_pump_disp_cc
+
+
+def _low_flow(s: _Subject) -> Any:
+    return s.mean[s.limits.output_role] < s.limits.min_output
+
+
+def _transient(s: _Subject) -> Any:
+    return _any(s.std[r] > lim for r, lim in s.limits.max_std.items() if r in s.std)
+
+
+def _extrapolated(s: _Subject) -> Any:
+    env = s.envelope or {}
+    return _any((s.mean[r] < lo) | (s.mean[r] > hi) | (s.mean[r] != s.mean[r]) for r, (lo, hi) in env.items())
+
+
+# The order is the rules' priority: the first that holds names the gate; none holding is EVALUATING.
+RULES: tuple[tuple[Gate, Callable[[_Subject], Any]], ...] = (
+    (Gate.NO_INPUT, _no_input),
+    (Gate.STALE_INPUT, _stale),
+    (Gate.WARMING_UP, _warming_up),
+    (Gate.IMPLAUSIBLE_INPUT, _implausible),
+    (Gate.REVERSE, _reverse),
+    (Gate.LOW_SPEED, _low_speed),
+    (Gate.LOW_DISPLACEMENT, _low_displacement),
+    (Gate.LOW_FLOW, _low_flow),
+    (Gate.TRANSIENT, _transient),
+    (Gate.EXTRAPOLATED, _extrapolated),
+)
 
 
 def gate_point(
-    mean: dict[str, float],
-    std: dict[str, float],
-    count: dict[str, int],
-    age_s: dict[str, float],
+    mean: Mapping[str, float],
+    std: Mapping[str, float],
+    count: Mapping[str, int],
+    age_s: Mapping[str, float],
     limits: GateLimits,
     max_age_s: Mapping[str, float] | None = None,
     envelope: Mapping[str, tuple[float, float]] | None = None,
 ) -> Gate:
-    """The gate of one operating point; the first failing rule in this order wins: no input, stale
-    input, warming up, implausible input (the pump displacement and the output by their magnitude),
-    reverse, low pump speed, low displacement, low output, transient; a point that passes them all
-    is ``EXTRAPOLATED`` when a model input lies outside ``envelope`` (input name -> [min, max],
-    bounds included), else ``EVALUATING``.
+    """The gate of one operating point: the first of :data:`RULES` that holds, in this order: no
+    input, stale input, warming up, implausible input (the pump displacement and the output by their
+    magnitude), reverse, low pump speed, low displacement, low output, transient; a point that passes
+    them all is ``EXTRAPOLATED`` when a model input lies outside ``envelope`` (input name -> [min,
+    max], bounds included), else ``EVALUATING``.
 
     ``REVERSE`` takes a pump displacement or an output that is negative by at least its minimum
     (``min_pump_disp_cc``, ``min_output``): a window about a change of direction, or a machine at
     neutral whose signed sensors read a little below zero, has a mean near zero and stays
     ``LOW_DISPLACEMENT``, ``LOW_FLOW`` or ``TRANSIENT``.
 
-    The monitor calls this per evaluation tick and training per window, so both apply the very same
-    rules. All inputs silent (the machine is off, the bus idle) is ``NO_INPUT``, not a fault; some
-    inputs silent while others arrive is ``STALE_INPUT``.
+    The monitor calls this per evaluation tick, :func:`gate_columns` (training, scoring, the columnar
+    replay) the same rules over arrays. All inputs silent (the machine is off, the bus idle) is
+    ``NO_INPUT``, not a fault; some inputs silent while others arrive is ``STALE_INPUT``.
     """
-    out = limits.output_role
-    roles = [r for r in (*MODEL_INPUTS, out) if r in mean]
-    verdict = _inputs_gate(roles, mean, count, age_s, limits, max_age_s)
-    if verdict is not None:
-        return verdict
-    d, o = mean[PUMP_DISP], mean[out]
-    if (d < 0.0 and d <= -limits.min_pump_disp_cc) or (o < 0.0 and o <= -limits.min_output):
-        return Gate.REVERSE
-    if mean[PUMP_SPEED] < limits.min_pump_speed_rpm:
-        return Gate.LOW_SPEED
-    if abs(mean[PUMP_DISP]) < limits.min_pump_disp_cc:
-        return Gate.LOW_DISPLACEMENT
-    if mean[out] < limits.min_output:
-        return Gate.LOW_FLOW
-    for r, lim in limits.max_std.items():
-        if r in std and std[r] > lim:
-            return Gate.TRANSIENT
-    if envelope is not None:
-        for r, (lo, hi) in envelope.items():
-            if not (lo <= mean[r] <= hi):
-                return Gate.EXTRAPOLATED
+    s = _Subject(mean, std, count, age_s, limits, max_age_s, envelope)
+    for g, rule in RULES:
+        if rule(s):
+            return g
     return Gate.EVALUATING
 
 
-def _inputs_gate(
-    roles: list[str],
-    mean: dict[str, float],
-    count: dict[str, int],
-    age_s: dict[str, float],
-    limits: GateLimits,
-    max_age_s: Mapping[str, float] | None,
-) -> Gate | None:
-    """The first rules of :func:`gate_point`, on the inputs themselves: present, fresh, enough
-    samples, plausible. None when they pass."""
-    missing = 0
-    for r in roles:
-        a = age_s[r]
-        if a == math.inf or (max_age_s is not None and a > max_age_s.get(r, math.inf)):
-            missing += 1
-    if missing == len(roles):
-        return Gate.NO_INPUT
-    if missing:
-        return Gate.STALE_INPUT
-    for r in roles:
-        if count[r] < limits.min_samples_of(r):
-            return Gate.WARMING_UP
-    signed = signed_roles(limits)
-    for r in roles:
-        lo, hi = limits.plausible.get(r, (-math.inf, math.inf))
-        m = abs(mean[r]) if r in signed else mean[r]
-        if not (lo <= m <= hi):  # also catches NaN
-            return Gate.IMPLAUSIBLE_INPUT
-    return None
-
-
-def prediction_ok(predicted: float, limits: GateLimits) -> bool:
-    """A prediction the monitor may divide by: a positive finite number within the range the output
-    quantity itself is plausible in (a prediction of 1e30 rpm would read as wear, not as a model
-    gone wrong)."""
+def prediction_ok(predicted: Any, limits: GateLimits) -> Any:
+    """A prediction the monitor may divide by (a float, or per value of an array): a positive finite
+    number within the range the output quantity itself is plausible in (a prediction of 1e30 rpm
+    would read as wear, not as a model gone wrong). False for NaN."""
     hi = limits.plausible.get(limits.output_role, (0.0, math.inf))[1]
-    return 0.0 < predicted <= hi  # False for NaN
-
-
-def predictions_ok(predicted: NDArray[np.float64], limits: GateLimits) -> NDArray[np.bool_]:
-    """:func:`prediction_ok` over an array."""
-    hi = limits.plausible.get(limits.output_role, (0.0, math.inf))[1]
-    with np.errstate(invalid="ignore"):
-        return (predicted > 0.0) & (predicted <= hi)
+    return (predicted > 0.0) & (predicted <= hi)
 
 
 def gate_columns(
-    mean: dict[str, NDArray[np.float64]],
-    std: dict[str, NDArray[np.float64]],
-    count: dict[str, NDArray[np.int64]],
-    age_s: dict[str, NDArray[np.float64]],
+    mean: Mapping[str, NDArray[np.float64]],
+    std: Mapping[str, NDArray[np.float64]],
+    count: Mapping[str, NDArray[np.int64]],
+    age_s: Mapping[str, NDArray[np.float64]],
     limits: GateLimits,
     max_age_s: Mapping[str, float] | None = None,
     envelope: Mapping[str, tuple[float, float]] | None = None,
 ) -> NDArray[np.int8]:
-    """:func:`gate_point` over arrays of operating points, rule for rule (tests hold the two equal):
-    training, scoring and the columnar replay call this one, the streaming core the other."""
-    out_role = limits.output_role
-    roles = [r for r in (*MODEL_INPUTS, out_role) if r in mean]
+    """:func:`gate_point` over arrays of operating points: the same :data:`RULES`, each over all
+    points, the first that holds per point wins."""
+    s = _Subject(mean, std, count, age_s, limits, max_age_s, envelope)
+    roles = s.roles
     n = len(mean[roles[0]]) if roles else 0
     out = np.full(n, Gate.EVALUATING, dtype=np.int8)
     open_ = np.ones(n, dtype=bool)  # no rule has decided yet
-
-    def decide(mask: NDArray[np.bool_], g: Gate) -> None:
-        nonlocal open_
-        hit = open_ & mask
-        out[hit] = g
-        open_ = open_ & ~hit
-
-    missing = np.zeros(n, dtype=np.int64)
-    for r in roles:
-        a = age_s[r]
-        limit = max_age_s.get(r, math.inf) if max_age_s is not None else math.inf
-        missing += (a == math.inf) | (a > limit)
-    decide(missing == len(roles), Gate.NO_INPUT)
-    decide(missing > 0, Gate.STALE_INPUT)
-    for r in roles:
-        decide(count[r] < limits.min_samples_of(r), Gate.WARMING_UP)
     with np.errstate(invalid="ignore"):
-        for r in roles:
-            decide(outside_plausible(r, mean[r], limits), Gate.IMPLAUSIBLE_INPUT)  # NaN too
-        d, o = mean[PUMP_DISP], mean[out_role]
-        decide(((d < 0.0) & (d <= -limits.min_pump_disp_cc)) | ((o < 0.0) & (o <= -limits.min_output)), Gate.REVERSE)
-        decide(mean[PUMP_SPEED] < limits.min_pump_speed_rpm, Gate.LOW_SPEED)
-        decide(np.abs(mean[PUMP_DISP]) < limits.min_pump_disp_cc, Gate.LOW_DISPLACEMENT)
-        decide(mean[out_role] < limits.min_output, Gate.LOW_FLOW)
-        transient = np.zeros(n, dtype=bool)
-        for r, lim in limits.max_std.items():
-            if r in std:
-                transient |= std[r] > lim
-        decide(transient, Gate.TRANSIENT)
-        if envelope is not None:
-            outside = np.zeros(n, dtype=bool)
-            for r, (lo, hi) in envelope.items():
-                outside |= ~((lo <= mean[r]) & (mean[r] <= hi))
-            decide(outside, Gate.EXTRAPOLATED)
+        for g, rule in RULES:
+            hit = open_ & rule(s)
+            out[hit] = g
+            open_ &= ~hit
     return out
 
 

@@ -8,7 +8,6 @@ with the same alive counter and warning-change state.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -19,12 +18,11 @@ from numpy.typing import NDArray
 from cmcan.codec import Layout, encode_all, frame_encoder
 from cmcan.frame import Frame, FrameColumns
 from cmcan.monitor.baseline import Mode
-from cmcan.monitor.gating import EVALUATED, Gate
+from cmcan.monitor.gating import Gate, is_evaluated
 from cmcan.monitor.tick import PROGNOSIS_HOURS, Tick, TickColumns
 from cmcan.monitor.warnings import Level, Reason
 from cmcan.roles import MOTOR_SPEED, QUANTITY_SIGNALS
 
-_EVALUATED = np.array(sorted(int(g) for g in EVALUATED), dtype=np.int8)
 ALIVE_MODULO = 16
 WARNING_COUNT_MODULO = 65536  # warning_count is sent modulo this (a 16-bit counter wraps)
 # The CM ratios an output must carry: a drive that delivers nothing to twice its prediction. Beyond
@@ -142,7 +140,7 @@ class Payloads:
     def __init__(self, outputs: Outputs) -> None:
         self.outputs = outputs
         self.alive = 0
-        self.last_warning: tuple[int, int] | None = None
+        self.last_warning = -1  # the warning's level and reason last sent (_warning_key)
         self.last_baseline = -1  # the baseline state last sent (CM_BASELINE goes at once on a change)
         self.last_prognosis = -1  # the prognosis state and direction last sent (likewise CM_PROGNOSIS)
 
@@ -155,136 +153,63 @@ class Payloads:
         return Frame(t, self.outputs.channel, msg.frame_id, msg.extended, False, False, False, msg.encode(values))
 
     def frames(self, k: int, tick: Tick, warning_count: int) -> list[Frame]:
+        """The frames of tick ``k``: each message due by its send rule, its values by
+        :func:`_values` (the same definitions :meth:`frames_columns` applies over arrays)."""
         o = self.outputs
-        out = []
-        evaluated = tick.gate in EVALUATED
-        if k % o.ratio.every_ticks == 0:
-            out.append(
-                self._frame(
-                    tick.t_s,
-                    o.ratio,
-                    {
-                        "cm_ratio_raw_pct": tick.ratio_raw_pct,
-                        "cm_ratio_filt_pct": tick.ratio_filt_pct if tick.filt_valid else 0.0,
-                        "extra_leakage_lpm": tick.extra_leak_lpm if tick.filt_valid else 0.0,
-                        "cm_raw_valid": float(evaluated),
-                        "cm_filt_valid": float(tick.filt_valid),
-                        "cm_gate": float(int(tick.gate)),
-                        "cm_alive_counter": float(self.alive),
-                    },
-                )
-            )
-        if k % o.quantity.every_ticks == 0:
-            meas = tick.measured
-            name_meas, name_pred, name_wb, name_valid = o.quantity_signals
-            out.append(
-                self._frame(
-                    tick.t_s,
-                    o.quantity,
-                    {
-                        name_meas: meas if math.isfinite(meas) else 0.0,
-                        name_pred: tick.predicted,
-                        name_wb: tick.whitebox,
-                        name_valid: float(evaluated),
-                        "cm_alive_counter": float(self.alive),
-                    },
-                )
-            )
-        if k % o.ratio.every_ticks == 0:
+        out: list[Frame] = []
+        periodic_ratio = _due(k, o.ratio)
+        values = _values(o, tick, float(self.alive), warning_count)
+        if periodic_ratio:
+            out.append(self._frame(tick.t_s, o.ratio, values["ratio"]))
+        if _due(k, o.quantity):
+            out.append(self._frame(tick.t_s, o.quantity, values["quantity"]))
+        if periodic_ratio:
             self.alive = (self.alive + 1) % ALIVE_MODULO
-        state = (int(tick.level), int(tick.reason))
-        if state != self.last_warning or k % o.warning.every_ticks == 0:
+        state = _warning_key(tick.level, tick.reason)
+        if _due(k, o.warning, state, self.last_warning):
             self.last_warning = state
-            out.append(
-                self._frame(
-                    tick.t_s,
-                    o.warning,
-                    {
-                        "warning_level": float(int(tick.level)),
-                        "warning_reason": float(int(tick.reason)),
-                        "time_below_threshold_s": float(int(tick.time_below_s)),
-                        "warning_count": float(warning_count % WARNING_COUNT_MODULO),
-                    },
-                )
-            )
-        if o.baseline is not None or o.prognosis is not None:
-            self._stage_frames(k, tick, out)
-        return out
-
-    def _stage_frames(self, k: int, tick: Tick, out: list[Frame]) -> None:
-        """CM_BASELINE and CM_PROGNOSIS where configured: on each change of their state, and periodically."""
-        bm, pm = self.outputs.baseline, self.outputs.prognosis
-        if bm is not None and (tick.baseline_state != self.last_baseline or k % bm.every_ticks == 0):
+            out.append(self._frame(tick.t_s, o.warning, values["warning"]))
+        bm, pm = o.baseline, o.prognosis
+        if bm is not None and _due(k, bm, tick.baseline_state, self.last_baseline):
             self.last_baseline = tick.baseline_state
-            out.append(self._frame(tick.t_s, bm, _baseline_values(tick)))
+            out.append(self._frame(tick.t_s, bm, values["baseline"]))
         key = _prognosis_key(tick.prognosis_state, tick.prognosis_direction)
-        if pm is not None and (key != self.last_prognosis or k % pm.every_ticks == 0):
+        if pm is not None and _due(k, pm, key, self.last_prognosis):
             self.last_prognosis = key
-            out.append(self._frame(tick.t_s, pm, _prognosis_values(tick)))
+            out.append(self._frame(tick.t_s, pm, values["prognosis"]))
+        return out
 
     def frames_columns(self, ks: NDArray[np.int64], c: TickColumns, wcount: NDArray[np.int64]) -> FrameColumns:
         """The frames of the ticks ``ks`` (their values ``c``, the warning count after each
         ``wcount``) as :meth:`frames` makes them tick after tick, in that order."""
         o = self.outputs
-        is_ratio = ks % o.ratio.every_ticks == 0
+        is_ratio = _due(ks, o.ratio)
         # the alive counter a tick's frames carry: its value before this tick's ratio frame counts it
         alive = ((self.alive + np.cumsum(is_ratio) - is_ratio) % ALIVE_MODULO).astype(np.float64)
-        state = c.level.astype(np.int64) * 256 + c.reason.astype(np.int64)
-        prev = np.empty(len(ks), dtype=np.int64)
-        prev[0] = -1 if self.last_warning is None else self.last_warning[0] * 256 + self.last_warning[1]
-        prev[1:] = state[:-1]
-        prev_baseline, prev_prognosis = self.last_baseline, self.last_prognosis
-        self.skip_columns(ks, c)
-        evaluated = np.isin(c.gate, _EVALUATED).astype(np.float64)
-        valid = c.filt_valid
-        name_meas, name_pred, name_wb, name_valid = o.quantity_signals
-        parts = (
-            _encode(
-                o.ratio,
-                np.flatnonzero(is_ratio),
-                {
-                    "cm_ratio_raw_pct": c.ratio_raw_pct,
-                    "cm_ratio_filt_pct": np.where(valid, c.ratio_filt_pct, 0.0),
-                    "extra_leakage_lpm": np.where(valid, c.extra_leak_lpm, 0.0),
-                    "cm_raw_valid": evaluated,
-                    "cm_filt_valid": valid.astype(np.float64),
-                    "cm_gate": c.gate.astype(np.float64),
-                    "cm_alive_counter": alive,
-                },
-            ),
-            _encode(
-                o.quantity,
-                np.flatnonzero(ks % o.quantity.every_ticks == 0),
-                {
-                    name_meas: np.where(np.isfinite(c.measured), c.measured, 0.0),
-                    name_pred: c.predicted,
-                    name_wb: c.whitebox,
-                    name_valid: evaluated,
-                    "cm_alive_counter": alive,
-                },
-            ),
-            _encode(
-                o.warning,
-                np.flatnonzero((state != prev) | (ks % o.warning.every_ticks == 0)),
-                {
-                    "warning_level": c.level.astype(np.float64),
-                    "warning_reason": c.reason.astype(np.float64),
-                    "time_below_threshold_s": np.floor(c.time_below_s),
-                    "warning_count": (wcount % WARNING_COUNT_MODULO).astype(np.float64),
-                },
-            ),
-        )
+        values = _values(o, c, alive, wcount)
+        warning = _warning_key(c.level.astype(np.int64), c.reason.astype(np.int64))
+        due_warning = _due(ks, o.warning, warning, _before(warning, self.last_warning))
+        parts = [
+            _encode(o.ratio, np.flatnonzero(is_ratio), values["ratio"]),
+            _encode(o.quantity, np.flatnonzero(_due(ks, o.quantity)), values["quantity"]),
+            _encode(o.warning, np.flatnonzero(due_warning), values["warning"]),
+        ]
         if o.baseline is not None:
-            parts = (*parts, _baseline_part(o.baseline, ks, c, prev_baseline))
+            state = c.baseline_state.astype(np.int64)
+            due = _due(ks, o.baseline, state, _before(state, self.last_baseline))
+            parts.append(_encode(o.baseline, np.flatnonzero(due), values["baseline"]))
         if o.prognosis is not None:
-            parts = (*parts, _prognosis_part(o.prognosis, ks, c, prev_prognosis))
-        return self._interleave(c.t_s, parts)
+            key = _prognosis_key(c.prognosis_state.astype(np.int64), c.prognosis_direction.astype(np.int64))
+            due = _due(ks, o.prognosis, key, _before(key, self.last_prognosis))
+            parts.append(_encode(o.prognosis, np.flatnonzero(due), values["prognosis"]))
+        self.skip_columns(ks, c)
+        return self._interleave(c.t_s, tuple(parts))
 
     def skip_columns(self, ks: NDArray[np.int64], c: TickColumns) -> None:
         """The state :meth:`frames_columns` leaves, without making the frames (nobody wants them)."""
         is_ratio = ks % self.outputs.ratio.every_ticks == 0
         self.alive = int((self.alive + int(is_ratio.sum())) % ALIVE_MODULO)
-        self.last_warning = (int(c.level[-1]), int(c.reason[-1]))
+        self.last_warning = int(_warning_key(int(c.level[-1]), int(c.reason[-1])))
         if self.outputs.baseline is not None:
             self.last_baseline = int(c.baseline_state[-1])
         if self.outputs.prognosis is not None:
@@ -320,71 +245,94 @@ class Payloads:
         )
 
 
-def _baseline_values(tick: Tick) -> dict[str, float]:
-    """CM_BASELINE's signals of one tick."""
-    return {
-        "baseline_state": float(tick.baseline_state),
-        "baseline_learned_h": min(tick.baseline_learned_h, BASELINE_LEARNED_SPAN_H[1]),
-        "baseline_coverage_pct": tick.baseline_coverage_pct,
-        "baseline_distance_lpm": tick.baseline_distance_lpm,
-    }
+# -- what each message carries and when: one definition for one tick (floats) and for columns ------
 
 
-def _baseline_part(
-    msg: OutputMessage, ks: NDArray[np.int64], c: TickColumns, prev_state: int
-) -> tuple[NDArray[np.int64], NDArray[np.uint8]]:
-    """CM_BASELINE of a stretch of ticks: on each change of state (``prev_state``: the one last sent)
-    and every ``every_ticks``, as :meth:`Payloads.frames` sends it tick after tick."""
-    state = c.baseline_state.astype(np.int64)
-    prev = np.empty(len(ks), dtype=np.int64)
-    prev[0] = prev_state
-    prev[1:] = state[:-1]
-    values = {
-        "baseline_state": state.astype(np.float64),
-        "baseline_learned_h": np.minimum(c.baseline_learned_h, BASELINE_LEARNED_SPAN_H[1]),
-        "baseline_coverage_pct": c.baseline_coverage_pct,
-        "baseline_distance_lpm": c.baseline_distance_lpm,
-    }
-    return _encode(msg, np.flatnonzero((state != prev) | (ks % msg.every_ticks == 0)), values)
+def _as_float(x: Any) -> Any:
+    return x.astype(np.float64) if isinstance(x, np.ndarray) else float(x)
 
 
-def _prognosis_hours(h: float) -> float:
-    """Hours as CM_PROGNOSIS carries them: 0 without an estimate, saturated where far or never."""
-    return 0.0 if math.isnan(h) else min(h, PROGNOSIS_SPAN_H[1])
+def _pick(cond: Any, a: Any, b: Any) -> Any:
+    """``a`` where ``cond`` holds, else ``b``: for one tick or per tick of columns."""
+    return np.where(cond, a, b) if isinstance(cond, np.ndarray) else (a if cond else b)
 
 
-def _prognosis_values(tick: Tick) -> dict[str, float]:
-    """CM_PROGNOSIS's signals of one tick."""
-    return {
-        "prognosis_state": float(tick.prognosis_state),
-        "prognosis_direction": float(tick.prognosis_direction),
-        **{name: _prognosis_hours(getattr(tick, name)) for name in PROGNOSIS_HOURS},
-    }
+def _due(k: Any, msg: OutputMessage, key: Any = None, last: Any = None) -> Any:
+    """A message's send rule at tick ``k`` (an int or an array of ticks): every ``every_ticks``, and
+    with a ``key`` (its state) at once on each change from ``last`` (the key last sent; per tick in
+    columns, the key of the tick before)."""
+    periodic = k % msg.every_ticks == 0
+    return periodic if key is None else (key != last) | periodic
 
 
-def _prognosis_part(
-    msg: OutputMessage, ks: NDArray[np.int64], c: TickColumns, prev_state: int
-) -> tuple[NDArray[np.int64], NDArray[np.uint8]]:
-    """CM_PROGNOSIS of a stretch of ticks, on each change of state and every ``every_ticks``."""
-    state = c.prognosis_state.astype(np.int64)
-    key = _prognosis_key(state, c.prognosis_direction.astype(np.int64))
-    prev = np.empty(len(ks), dtype=np.int64)
-    prev[0] = prev_state
+def _before(key: NDArray[np.int64], last: int) -> NDArray[np.int64]:
+    """Per tick of a stretch, the key of the tick before it (``last``: the one last sent)."""
+    prev = np.empty(len(key), dtype=np.int64)
+    prev[0] = last
     prev[1:] = key[:-1]
-    values = {
-        "prognosis_state": state.astype(np.float64),
-        "prognosis_direction": c.prognosis_direction.astype(np.float64),
-    }
-    for name in PROGNOSIS_HOURS:
-        h = getattr(c, name)
-        values[name] = np.where(np.isnan(h), 0.0, np.minimum(h, PROGNOSIS_SPAN_H[1]))
-    return _encode(msg, np.flatnonzero((key != prev) | (ks % msg.every_ticks == 0)), values)
+    return prev
+
+
+def _warning_key(level: Any, reason: Any) -> Any:
+    """The warning's level and reason as one number: a change of either sends CM_WARNING at once."""
+    return level * 256 + reason
 
 
 def _prognosis_key(state: Any, direction: Any) -> Any:
     """The prognosis's state and direction as one number: a change of either sends CM_PROGNOSIS at
     once (scalars or arrays)."""
     return state * 4 + direction
+
+
+def _prognosis_hours(h: Any) -> Any:
+    """Hours as CM_PROGNOSIS carries them: 0 without an estimate, saturated where far or never."""
+    return _pick(h != h, 0.0, np.minimum(h, PROGNOSIS_SPAN_H[1]))
+
+
+def _values(o: Outputs, c: Tick | TickColumns, alive: Any, warning_count: Any) -> dict[str, dict[str, Any]]:
+    """Per message the values of its signals, of one tick (floats) or of a stretch (arrays): the one
+    definition of what the CM frames carry."""
+    g, valid = c.gate, c.filt_valid
+    evaluated = _as_float(is_evaluated(g))
+    name_meas, name_pred, name_wb, name_valid = o.quantity_signals
+    out = {
+        "ratio": {
+            "cm_ratio_raw_pct": c.ratio_raw_pct,
+            "cm_ratio_filt_pct": _pick(valid, c.ratio_filt_pct, 0.0),
+            "extra_leakage_lpm": _pick(valid, c.extra_leak_lpm, 0.0),
+            "cm_raw_valid": evaluated,
+            "cm_filt_valid": _as_float(valid),
+            "cm_gate": _as_float(g),
+            "cm_alive_counter": alive,
+        },
+        "quantity": {
+            name_meas: _pick(np.isfinite(c.measured), c.measured, 0.0),
+            name_pred: c.predicted,
+            name_wb: c.whitebox,
+            name_valid: evaluated,
+            "cm_alive_counter": alive,
+        },
+        "warning": {
+            "warning_level": _as_float(c.level),
+            "warning_reason": _as_float(c.reason),
+            "time_below_threshold_s": _as_float(np.floor(c.time_below_s)),
+            "warning_count": _as_float(warning_count % WARNING_COUNT_MODULO),
+        },
+    }
+    if o.baseline is not None:
+        out["baseline"] = {
+            "baseline_state": _as_float(c.baseline_state),
+            "baseline_learned_h": np.minimum(c.baseline_learned_h, BASELINE_LEARNED_SPAN_H[1]),
+            "baseline_coverage_pct": c.baseline_coverage_pct,
+            "baseline_distance_lpm": c.baseline_distance_lpm,
+        }
+    if o.prognosis is not None:
+        out["prognosis"] = {
+            "prognosis_state": _as_float(c.prognosis_state),
+            "prognosis_direction": _as_float(c.prognosis_direction),
+            **{name: _prognosis_hours(getattr(c, name)) for name in PROGNOSIS_HOURS},
+        }
+    return out
 
 
 def _encode(

@@ -22,10 +22,9 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from cmcan.monitor.gating import EVALUATED, Gate, GateLimits, prediction_ok, predictions_ok
+from cmcan.monitor.gating import EVALUATED, Gate, GateLimits, is_evaluated, prediction_ok
 from cmcan.roles import DP, MODEL_INPUTS, PUMP_DISP, PUMP_SPEED, TEMP
 
-_EVALUATED = np.array(sorted(int(g) for g in EVALUATED), dtype=np.int8)
 COUNTED = ("evaluated", "extrapolated", "model_errors")
 
 
@@ -68,6 +67,20 @@ class Points:
     leak_lpm: NDArray[np.float64]
 
 
+def ratio_and_leak(measured: Any, predicted: Any, lpm_per_unit: float) -> tuple[Any, Any]:
+    """The raw CM ratio (%) and the extra leakage (l/min) of the measured output against a
+    prediction: floats or arrays alike (the one definition of both)."""
+    return measured / predicted * 100.0, (predicted - measured) * lpm_per_unit
+
+
+def corrected_prediction(predicted: Any, correction_lpm: Any, lpm_per_unit: float) -> tuple[Any, Any]:
+    """The type model's prediction plus the machine's own correction (l/min, the on-board baseline),
+    and whether it is usable (positive; where not, the type model's prediction stands): floats or
+    arrays alike."""
+    corrected = predicted + correction_lpm / lpm_per_unit
+    return corrected, corrected > 0.0
+
+
 class Ratio:
     def __init__(self, model: Predictor, limits: GateLimits, lpm_per_unit: float) -> None:
         self.model = model
@@ -90,7 +103,7 @@ class Ratio:
         self.counts["evaluated"] += 1
         if gate == Gate.EXTRAPOLATED:
             self.counts["extrapolated"] += 1
-        return Point(gate, meas, pred, wb, meas / pred * 100.0, (pred - meas) * self.lpm_per_unit)
+        return Point(gate, meas, pred, wb, *ratio_and_leak(meas, pred, self.lpm_per_unit))
 
     def points(
         self, mean: Mapping[str, NDArray[np.float64]], count: Mapping[str, NDArray[np.int64]], gates: NDArray[np.int8]
@@ -99,7 +112,7 @@ class Ratio:
         n = len(gates)
         meas = np.where(count[out] > 0, mean[out], 0.0)
         pred, wb = np.zeros(n), np.zeros(n)
-        ev = np.flatnonzero(np.isin(gates, _EVALUATED))
+        ev = np.flatnonzero(is_evaluated(gates))
         if len(ev):
             x = np.column_stack([mean[r][ev] for r in MODEL_INPUTS])
             try:
@@ -107,14 +120,14 @@ class Ratio:
             except Exception:  # as one point: a failing model call is a model error
                 pe, we = np.full(len(ev), np.nan), np.zeros(len(ev))
             pe = np.asarray(pe, dtype=np.float64)
-            bad = ~predictions_ok(pe, self.limits)
+            bad = ~prediction_ok(pe, self.limits)
             self.counts["model_errors"] += int(bad.sum())
             gates[ev[bad]] = Gate.MODEL_ERROR
             pred[ev] = np.where(bad, 0.0, pe)
             wb[ev] = np.where(bad, 0.0, we)
-        e_idx = np.flatnonzero(np.isin(gates, _EVALUATED))
+        e_idx = np.flatnonzero(is_evaluated(gates))
         raw = np.zeros(n)
-        raw[e_idx] = meas[e_idx] / pred[e_idx] * 100.0
+        raw[e_idx], leak = ratio_and_leak(meas[e_idx], pred[e_idx], self.lpm_per_unit)
         self.counts["evaluated"] += len(e_idx)
         self.counts["extrapolated"] += int(np.count_nonzero(gates[e_idx] == Gate.EXTRAPOLATED))
-        return Points(gates, meas, pred, wb, raw, e_idx, (pred[e_idx] - meas[e_idx]) * self.lpm_per_unit)
+        return Points(gates, meas, pred, wb, raw, e_idx, leak)

@@ -26,11 +26,12 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from enum import IntEnum
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from cmcan.monitor.gating import EVALUATED, Gate
+from cmcan.monitor.gating import EVALUATED, Gate, is_evaluated
 
 
 class Level(IntEnum):
@@ -71,6 +72,16 @@ class Transition:
 _EPS = 1e-6
 
 
+def band(ratio_pct: Any, th: Thresholds) -> tuple[Any, Any, Any]:
+    """Where a filtered ratio lies (a float, or per value of an array): below the low threshold,
+    above the high one, inside the band narrowed by the hysteresis (where a warning may clear). The
+    one definition :meth:`WarningMachine.step` and its runs over quiet ticks share; NaN is none."""
+    below = ratio_pct < th.low_pct
+    above = ratio_pct > th.high_pct
+    inside = (th.low_pct + th.hysteresis_pct <= ratio_pct) & (ratio_pct <= th.high_pct - th.hysteresis_pct)
+    return below, above, inside
+
+
 def warning_raised(before: Level, after: Level) -> bool:
     """A step that changed the condition to low or high raised a warning."""
     return after != before and after in (Level.LOW, Level.HIGH)
@@ -108,7 +119,6 @@ _FAULT_GATES = {
     Gate.MODEL_ERROR: Reason.MODEL_ERROR,
 }
 _FAULT_GATE_CODES = np.array(sorted(int(g) for g in _FAULT_GATES), dtype=np.int64)
-_EVALUATED_CODES = np.array(sorted(int(g) for g in EVALUATED), dtype=np.int64)
 
 
 @dataclass
@@ -164,9 +174,7 @@ class WarningMachine:
 
     def _condition(self, r: float, dt_s: float, trusted: bool = True) -> None:
         th = self.th
-        below = r < th.low_pct
-        above = r > th.high_pct
-        inside = th.low_pct + th.hysteresis_pct <= r <= th.high_pct - th.hysteresis_pct
+        below, above, inside = band(r, th)
         self.below_s = self.below_s + dt_s if below else 0.0
         self.above_s = self.above_s + dt_s if above else 0.0
         # Clearing needs trusted evidence: an extrapolated point adds nothing to it (nor breaks it).
@@ -198,11 +206,10 @@ class WarningMachine:
         """Per tick: could it leave the ok, unfaulted state? False when it could. A quiet tick has
         input neither stale nor implausible and no ratio outside ``[low_pct, high_pct]``; ``ratios``
         is NaN where a tick has none (not evaluated, filter not yet valid)."""
-        th = self.th
         rated = _rated(gates, ratios)
         with np.errstate(invalid="ignore"):
-            outside = rated & ((ratios < th.low_pct) | (ratios > th.high_pct))
-        return ~np.isin(gates, _FAULT_GATE_CODES) & ~outside
+            below, above, _ = band(ratios, self.th)
+        return ~np.isin(gates, _FAULT_GATE_CODES) & ~(rated & (below | above))
 
     def can_skip(self) -> bool:
         """Whether :meth:`skip` applies now: ok, no fault, and a debounce that takes time."""
@@ -224,9 +231,8 @@ class WarningMachine:
         if n and rated[first]:
             below_after[first:] = 0.0
             self.below_s = self.above_s = self.time_below_s = 0.0
-            lo, hi = th.low_pct + th.hysteresis_pct, th.high_pct - th.hysteresis_pct
             with np.errstate(invalid="ignore"):
-                inside = rated & (lo <= ratios) & (ratios <= hi)
+                inside = rated & band(ratios, th)[2]
             adds = inside & (gates == Gate.EVALUATING)
             breaks = np.flatnonzero(rated & ~inside)
             if len(breaks):
@@ -278,7 +284,7 @@ class WarningMachine:
 
 def _rated(gates: NDArray[np.integer], ratios: NDArray[np.float64]) -> NDArray[np.bool_]:
     """Ticks whose ratio the condition sees: evaluated, with a (finite) filtered ratio."""
-    return np.isin(gates, _EVALUATED_CODES) & ~np.isnan(ratios)
+    return is_evaluated(gates) & ~np.isnan(ratios)
 
 
 def add_repeat(start: float, step: float, times: int) -> float:
