@@ -12,9 +12,9 @@ import re
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-from cantools.database.can import Database, Message
 
 from cmcan import checksums, codec, units
 from cmcan.config import Config
@@ -50,8 +50,12 @@ from cmcan.roles import (
     SignalRef,
     gated_roles,
 )
-from cmcan.schema import SchemaError
-from cmcan.sim.frames import BusPlan
+from cmcan.schema import SchemaError, carried
+
+if TYPE_CHECKING:  # hints only; cmcan.dbc imports cantools where a DBC is read
+    from cantools.database.can import Database, Message
+
+    from cmcan.sim.frames import BusPlan
 
 log = logging.getLogger("cmcan.assemble")
 
@@ -523,6 +527,8 @@ class FrameMatcher:
 def bus_plan(cfg: Config, db: Database) -> BusPlan:
     """How the simulator puts a run on this machine's bus: the mapping, each message's channel (bus.channel's
     as "", the default), its counter and checksum, J1939's padding with 1s."""
+    from cmcan.sim.frames import BusPlan  # the simulator's: the monitor and the check do without it
+
     counters, sums, chans = {}, {}, {}
     for name in _input_names(cfg):
         msg = db.get_message_by_name(name)
@@ -609,8 +615,6 @@ def dm1_params(cfg: Config, db: Database) -> Dm1Params | None:
     return Dm1Params(
         spn=d.spn,
         input_spn=d.input_spn,
-        low_pct=th.low_pct,
-        high_pct=th.high_pct,
         low_severe_pct=d.low_severe_pct,
         high_severe_pct=d.high_severe_pct,
         hysteresis_pct=th.hysteresis_pct,
@@ -693,23 +697,11 @@ def build_monitor(
 
 
 def prognosis_params(cfg: Config) -> PrognosisParams | None:
-    """The prognosis where the configuration enables it, on the warning's threshold and the oil."""
+    """The prognosis where the configuration enables it, on the warning's thresholds and the oil."""
     p = cfg.prognosis
     if not p.enabled:
         return None
-    return PrognosisParams(
-        low_pct=cfg.thresholds.low_pct,
-        high_pct=cfg.thresholds.high_pct,
-        eol_kind=p.eol_kind,
-        eol_value=p.eol_value,
-        eol_high_pct=p.eol_high_pct,
-        imminent_h=p.imminent_h,
-        dp_ref_bar=p.ref_dp_bar,
-        temp_ref_c=p.ref_temp_c,
-        oil=cfg.oil,
-        estimate_every_h=p.estimate_every_h,
-        max_gap_h=p.max_gap_h,
-    )
+    return replace(p.params, low_pct=cfg.thresholds.low_pct, high_pct=cfg.thresholds.high_pct, oil=cfg.oil)
 
 
 # Bins along each role of the envelope the coverage counts over, where the configuration gives no
@@ -725,9 +717,9 @@ def baseline_params(cfg: Config, model: GrayBoxModel) -> BaselineParams | None:
     model's envelope split in :data:`BASELINE_BINS`), the guard's allowance (configured, or
     ``suspect_sigmas`` x the type's unit spread from the model's training metadata, or
     :data:`SUSPECT_SHARE_OF_NOMINAL` of the nominal flow)."""
-    b = cfg.baseline
-    if not b.enabled:
+    if not cfg.baseline.enabled:
         return None
+    b = cfg.baseline.settings
     env = model.envelope
     edges = []
     for role in BIN_ROLES:
@@ -742,12 +734,9 @@ def baseline_params(cfg: Config, model: GrayBoxModel) -> BaselineParams | None:
         sd = spread.get("offset_sd_lpm") if isinstance(spread, dict) else None
         ok = isinstance(sd, (int, float)) and not isinstance(sd, bool) and math.isfinite(sd) and sd > 0
         suspect = b.suspect_sigmas * float(sd) if ok else SUSPECT_SHARE_OF_NOMINAL * cfg.drive.nominal_flow_lpm
+    given = {"edges": tuple(edges), "suspect_lpm": float(suspect)}  # the settings' derived from the model
     return BaselineParams(
-        edges=tuple(edges),
-        min_points=b.min_points,
-        coverage_pct=b.coverage_pct,
-        min_hours=b.min_hours,
-        suspect_lpm=float(suspect),
+        **{**carried(b, BaselineParams), **given},
         lpm_per_unit=cfg.lpm_per_unit,
         period_s=1.0 / cfg.rate_hz,
         oil=cfg.oil,

@@ -8,7 +8,6 @@ model live in :mod:`cmcan.assemble`.
 
 from __future__ import annotations
 
-import itertools
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -18,7 +17,9 @@ from cmcan.checksums import ALGORITHMS
 from cmcan.io.points import Condition, PointsError, PointSpec
 from cmcan.j1939.dm1 import PROPRIETARY_SPNS
 from cmcan.j1939.name import Name
+from cmcan.monitor.baseline import BaselineSettings
 from cmcan.monitor.gating import REFERENCE_PUMP_DISP_CC, REFERENCE_PUMP_SPEED_RPM, GateLimits, scaled
+from cmcan.monitor.prognosis import PrognosisParams
 from cmcan.monitor.warnings import Thresholds
 from cmcan.oil import Oil, oil_from_grade
 from cmcan.roles import (
@@ -32,7 +33,7 @@ from cmcan.roles import (
     QUANTITY_OUTPUT,
     SignalRef,
 )
-from cmcan.schema import Bool, Either, Num, Obj, SchemaError, Seq, Str, load_yaml
+from cmcan.schema import Bool, Either, Num, Obj, SchemaError, Seq, Str, load_yaml, reference, section, values_of
 from cmcan.uplink.config import UPLINK, UplinkSettings
 
 _SIGNAL = Obj(
@@ -95,13 +96,6 @@ def _config_rule(c: dict[str, Any]) -> tuple[str, str] | None:
     return _signals_rule(c) or _gating_rule(c)
 
 
-def _edges_rule(e: dict[str, Any]) -> tuple[str, str] | None:
-    for role, edges in e.items():
-        if edges is not None and any(b <= a for a, b in itertools.pairwise(edges)):
-            return role, f"bin edges must rise, got {edges}"
-    return None
-
-
 def _baseline_rule(b: dict[str, Any]) -> tuple[str, str] | None:
     if not b["learning_low_pct"] < 100.0 < b["learning_high_pct"]:
         return "learning_low_pct", "the learning band must hold 100 %"
@@ -116,61 +110,15 @@ def _prognosis_rule(p: dict[str, Any]) -> tuple[str, str] | None:
 
 
 # The prognosis: operating hours to the warning and to end of life (cmcan.monitor.prognosis;
-# docs/prognosis.md). End of life: 10 % of the flow lost (ratio 90 %) unless the machine's is known;
-# on the high side (the ratio rising) 110 %.
-_PROGNOSIS = Obj(
-    {
-        "enabled": Bool(default=False),
-        "end_of_life": Obj(
-            {
-                "kind": Str(default="ratio_pct", choices=("ratio_pct", "leak_lpm")),
-                "value": Num(0.01, 10000, "(% or l/min at the reference conditions)", default=90.0),
-                # the high side (a ratio rising: a drifting displacement control), a ratio above the
-                # high warning; default the mirror of 90 %: the motor 10 % off its commanded speed
-                "high_pct": Num(100.5, 200, "%", default=110.0),
-            },
-            default={},
-        ),
-        "ref_dp_bar": Num(10, 1000, "bar", default=480.0),  # the extra leakage is referred to these
-        "ref_temp_c": Num(-20, 150, "C", default=60.0),
-        "imminent_h": Num(0, 100000, "h", default=24.0),
-        "estimate_every_h": Num(0.01, 100, "h", default=0.5),
-        # a longer gap between ticks is the machine off: no operating hours (docs/prognosis.md)
-        "max_gap_h": Num(0.001, 1000, "h", default=1.0),
-    },
-    default={},
-    rule=_prognosis_rule,
-)
+# docs/prognosis.md). Its settings are declared once, in PrognosisParams.
+_PROGNOSIS_HEAD = {"enabled": (Bool(default=False), "estimate the operating hours to the warning and to end of life")}
+_PROGNOSIS = section(PrognosisParams, {k: spec for k, (spec, _) in _PROGNOSIS_HEAD.items()}, _prognosis_rule)
 
 
-# The machine's own baseline, learned on board (cmcan.monitor.baseline; docs/commissioning.md).
-_BASELINE = Obj(
-    {
-        "enabled": Bool(default=False),
-        # bin edges of the envelope the coverage counts over; default: the model's envelope in BINS
-        "edges": Obj(
-            {
-                r: Seq(Num(-1e6, 1e6), min_len=2, max_len=21, default=None)
-                for r in ("pump_speed_rpm", "dp_bar", "temp_c")
-            },
-            default={},
-            rule=_edges_rule,
-        ),
-        "min_points": Num(1, 10_000_000, "ticks", default=100, integer=True),
-        "coverage_pct": Num(1, 100, "%", default=20.0),
-        "min_hours": Num(0, 10000, "h", default=2.0),
-        # the learning's end is checked this often (tick time): the receive path folds rows in per check
-        "check_every_s": Num(0.1, 3600, "s", default=60.0),
-        # a covered bin's mean residual further than this from the type model: baseline_suspect;
-        # default: suspect_sigmas x the type's unit-to-unit spread in its metadata, else 2 % of nominal flow
-        "suspect_lpm": Num(0.01, 10000, "l/min", default=None),
-        "suspect_sigmas": Num(1, 20, default=4.0),
-        "learning_low_pct": Num(50, 100, "%", default=95.0),
-        "learning_high_pct": Num(100, 200, "%", default=105.0),
-    },
-    default={},
-    rule=_baseline_rule,
-)
+# The machine's own baseline, learned on board (cmcan.monitor.baseline; docs/commissioning.md). Its
+# settings are declared once, in BaselineSettings.
+_BASELINE_HEAD = {"enabled": (Bool(default=False), "learn the machine's own baseline on board")}
+_BASELINE = section(BaselineSettings, {k: spec for k, (spec, _) in _BASELINE_HEAD.items()}, _baseline_rule)
 
 
 def _threshold_rule(t: dict[str, Any]) -> tuple[str, str] | None:
@@ -486,33 +434,31 @@ class GatingConfig:
 
 @dataclass(frozen=True)
 class BaselineConfig:
-    """The ``baseline`` section: how the machine learns its own baseline (None fields: from the model)."""
+    """The ``baseline`` section: on or off, and its settings (declared once, in
+    :class:`~cmcan.monitor.baseline.BaselineSettings`)."""
 
     enabled: bool = False
-    edges: dict[str, tuple[float, ...]] = field(default_factory=dict)
-    min_points: int = 100
-    coverage_pct: float = 20.0
-    min_hours: float = 2.0
-    check_every_s: float = 60.0
-    suspect_lpm: float | None = None
-    suspect_sigmas: float = 4.0
-    learning_low_pct: float = 95.0
-    learning_high_pct: float = 105.0
+    settings: BaselineSettings = field(default_factory=BaselineSettings)
+
+    @classmethod
+    def on(cls, **settings: Any) -> BaselineConfig:
+        """The baseline enabled with these settings, the rest their defaults."""
+        return cls(True, BaselineSettings(**settings))
 
 
 @dataclass(frozen=True)
 class PrognosisConfig:
-    """The ``prognosis`` section (docs/prognosis.md)."""
+    """The ``prognosis`` section: on or off, and its settings as the core takes them (declared once,
+    in :class:`~cmcan.monitor.prognosis.PrognosisParams`; the warning thresholds and the oil are
+    given at assembly from their own sections)."""
 
     enabled: bool = False
-    eol_kind: str = "ratio_pct"
-    eol_value: float = 90.0
-    eol_high_pct: float = 110.0
-    ref_dp_bar: float = 480.0
-    ref_temp_c: float = 60.0
-    imminent_h: float = 24.0
-    estimate_every_h: float = 0.5
-    max_gap_h: float = 1.0
+    params: PrognosisParams = field(default_factory=PrognosisParams)
+
+    @classmethod
+    def on(cls, **settings: Any) -> PrognosisConfig:
+        """The prognosis enabled with these settings (by field name), the rest their defaults."""
+        return cls(True, PrognosisParams(**settings))
 
 
 @dataclass(frozen=True)
@@ -787,22 +733,24 @@ def from_dict(data: Any, source: str, base_dir: Path) -> Config:
         uplink=UplinkSettings.from_raw(raw["uplink"], state_dir, base_dir, source),
         points=_points(raw, drive, source),
         baseline=_baseline(raw["baseline"]),
-        prognosis=_prognosis(raw["prognosis"]),
+        prognosis=_prognosis(raw["prognosis"], th),
     )
     return _with_bus_sections(cfg, raw, source)
 
 
-def _prognosis(p: dict[str, Any]) -> PrognosisConfig:
-    eol = p["end_of_life"]
-    rest = {k: v for k, v in p.items() if k != "end_of_life"}
-    return PrognosisConfig(
-        **rest, eol_kind=eol["kind"], eol_value=float(eol["value"]), eol_high_pct=float(eol["high_pct"])
-    )
+def _prognosis(p: dict[str, Any], th: dict[str, Any]) -> PrognosisConfig:
+    """The section as the core takes it, on the warning thresholds (checked against it above); a
+    section switched off keeps the defaults (its settings checked, not used)."""
+    if not p["enabled"]:
+        return PrognosisConfig()
+    settings = values_of(PrognosisParams, p)
+    return PrognosisConfig(True, PrognosisParams(low_pct=th["low_pct"], high_pct=th["high_pct"], **settings))
 
 
 def _baseline(b: dict[str, Any]) -> BaselineConfig:
-    edges = {r: tuple(float(v) for v in e) for r, e in b["edges"].items() if e is not None}
-    return BaselineConfig(**{**b, "edges": edges})
+    values = values_of(BaselineSettings, b)
+    values["edges"] = {r: tuple(float(v) for v in e) for r, e in values["edges"].items() if e is not None}
+    return BaselineConfig(b["enabled"], BaselineSettings(**values))
 
 
 def _sources(v: Any) -> tuple[int, ...] | None:
@@ -950,3 +898,13 @@ __all__ = [
     "rename_channels",
     "with_overrides",
 ]
+
+
+def reference_rows() -> list[str]:
+    """The configuration reference of the sections whose settings are declared once (Markdown rows
+    for docs/configuration.md)."""
+    return [
+        *reference(BaselineSettings, "baseline", _BASELINE_HEAD),
+        "",
+        *reference(PrognosisParams, "prognosis", _PROGNOSIS_HEAD),
+    ]

@@ -147,13 +147,12 @@ def with_prognosis(cfg: cfgmod.Config, s: scn.Scenario) -> cfgmod.Config:
         return cfg
     e = wear[0]
     high = misposition_eol_pct(s.events)
-    p = cfgmod.PrognosisConfig(
-        enabled=True,
+    p = cfgmod.PrognosisConfig.on(
         eol_kind="leak_lpm",
         eol_value=float(e["fail_extra_lpm"]),
         **({"eol_high_pct": high} if high is not None else {}),
-        ref_dp_bar=float(e["ref_dp_bar"]),
-        ref_temp_c=float(e["ref_temp_c"]),
+        dp_ref_bar=float(e["ref_dp_bar"]),
+        temp_ref_c=float(e["ref_temp_c"]),
         estimate_every_h=1.0,
     )
     return replace(cfg, prognosis=p)

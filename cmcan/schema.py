@@ -11,7 +11,7 @@ import difflib
 import math
 import reprlib
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -209,6 +209,101 @@ class Any_:
         return value
 
 
+# -- settings declared once -------------------------------------------------------------------------
+#
+# A setting is declared once, as a field of the typed section that the core receives (a frozen
+# dataclass such as the prognosis's parameters): its name, its spec (type, range, unit, default) and
+# one line of docs. The YAML section's validation (:func:`section`), the values read from it
+# (:func:`values_of`) and the configuration reference (:func:`reference`) are derived from it.
+
+
+@dataclass(frozen=True)
+class Setting:
+    spec: Any  # Num, Bool, Str, Seq, ...: the type, range, unit and default
+    doc: str  # one line for the configuration reference
+    path: str = ""  # its dotted place in the YAML section when not the field's name
+
+
+def setting(spec: Any, doc: str, path: str = "") -> Any:
+    """A dataclass field declared as a configuration setting (its default the spec's)."""
+    default = spec.default
+    if isinstance(default, (list, dict)):
+        return field(default_factory=lambda: type(default)(default), metadata={"setting": Setting(spec, doc, path)})
+    return field(default=default, metadata={"setting": Setting(spec, doc, path)})
+
+
+def settings_of(cls: type) -> list[tuple[str, str, Setting]]:
+    """(field name, YAML path within the section, setting) of each setting ``cls`` declares."""
+    out = []
+    for f in fields(cls):
+        st = f.metadata.get("setting")
+        if st is not None:
+            out.append((f.name, st.path or f.name, st))
+    return out
+
+
+def section(
+    cls: type,
+    head: Mapping[str, Any] | None = None,
+    rule: Callable[[dict[str, Any]], tuple[str, str] | None] | None = None,
+) -> Obj:
+    """The YAML section of ``cls``'s settings (nested where a path has dots), after the ``head``
+    fields that are the section's own (e.g. ``enabled``), with its cross-field ``rule``."""
+    tree: dict[str, Any] = dict(head or {})
+    for _, path, st in settings_of(cls):
+        *parents, leaf = path.split(".")
+        node = tree
+        for part in parents:
+            node = node.setdefault(part, {})
+        node[leaf] = st.spec
+
+    def build(node: dict[str, Any], top: bool) -> Obj:
+        specs = {k: build(v, False) if isinstance(v, dict) else v for k, v in node.items()}
+        return Obj(specs, default={}, rule=rule if top else None)
+
+    return build(tree, True)
+
+
+def values_of(cls: type, checked: Mapping[str, Any]) -> dict[str, Any]:
+    """``cls``'s settings by field name from a section :func:`section` has checked."""
+    out = {}
+    for name, path, _ in settings_of(cls):
+        v: Any = checked
+        for part in path.split("."):
+            v = v[part]
+        out[name] = v
+    return out
+
+
+def carried(settings: Any, cls: type) -> dict[str, Any]:
+    """The settings of a section (an instance of a class that declares them) that ``cls`` takes
+    under the same name: what a derived parameter set gets as it is, not copied field by field."""
+    taken = {f.name for f in fields(cls)}
+    return {name: getattr(settings, name) for name, _, _ in settings_of(type(settings)) if name in taken}
+
+
+def reference(cls: type, prefix: str, head: Mapping[str, tuple[Any, str]] | None = None) -> list[str]:
+    """The configuration reference of a section as Markdown table rows: setting, what it takes,
+    default, what it does (``head``: the section's own fields, spec and doc)."""
+    rows = [(k, spec, doc) for k, (spec, doc) in (head or {}).items()]
+    rows += [(path, st.spec, st.doc) for _, path, st in settings_of(cls)]
+    out = ["| setting | takes | default | what it does |", "|---|---|---|---|"]
+    for path, spec, doc in rows:
+        default = _show_default(spec.default) if _has_default(spec) else "required"
+        out.append(f"| `{prefix}.{path}` | {spec.describe()} | {default} | {doc} |")
+    return out
+
+
+def _show_default(v: Any) -> str:
+    if v is None:
+        return "none"
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, float):
+        return _fmt(v)
+    return f"`{v}`" if isinstance(v, str) else str(v)
+
+
 _SHOW = reprlib.Repr()
 _SHOW.maxstring = _SHOW.maxother = 80
 _SHOW.maxlevel, _SHOW.maxlist, _SHOW.maxdict = 3, 6, 6
@@ -249,4 +344,23 @@ def load_yaml(path: str | Path, kind: Kind = Kind.CONFIG) -> Any:
         raise SchemaError(exc.source, "", exc.detail, exc.kind) from None
 
 
-__all__ = ["Any_", "Bool", "Either", "Num", "Obj", "OneOf", "SchemaError", "Seq", "Str", "load_yaml", "show"]
+__all__ = [
+    "Any_",
+    "Bool",
+    "Either",
+    "Num",
+    "Obj",
+    "OneOf",
+    "SchemaError",
+    "Seq",
+    "Setting",
+    "Str",
+    "carried",
+    "load_yaml",
+    "reference",
+    "section",
+    "setting",
+    "settings_of",
+    "show",
+    "values_of",
+]

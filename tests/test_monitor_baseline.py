@@ -20,7 +20,7 @@ from tests.helpers import as_frames, sim_frames
 
 def _cfg(**over) -> cfgmod.Config:
     cfg = cfgmod.load()
-    b = cfgmod.BaselineConfig(enabled=True, min_points=40, coverage_pct=20.0, min_hours=0.02, **over)
+    b = cfgmod.BaselineConfig.on(min_points=40, coverage_pct=20.0, min_hours=0.02, **over)
     return dataclasses.replace(cfg, baseline=b)
 
 
@@ -78,7 +78,7 @@ def test_the_baseline_survives_a_restart_and_a_reset_learns_afresh(unit):
     assert again.reset_baseline("pump replaced", "2026-11-27T18:00:00Z")
     assert again.baseline.mode == Mode.LEARNING and again.baseline.learned_ticks == 0
     assert again.baseline.history[-1]["reset_reason"] == "pump replaced"
-    assert again.machine.th.low_pct == cfg.baseline.learning_low_pct
+    assert again.machine.th.low_pct == cfg.baseline.settings.learning_low_pct
 
 
 def test_a_unit_arriving_with_a_leak_is_suspect_and_warns(unit):

@@ -22,7 +22,7 @@ from tests.helpers import as_frames, sim_frames
 def _cfg() -> cfgmod.Config:
     cfg = scale_windows(cfgmod.load(), 2.0, 60.0)  # the filter and debounce for the time-lapse, as the demo
     # the rig loses function at 40 l/min of wear leakage at 480 bar and 60 C: its known end of life
-    p = cfgmod.PrognosisConfig(enabled=True, eol_kind="leak_lpm", eol_value=40.0)
+    p = cfgmod.PrognosisConfig.on(eol_kind="leak_lpm", eol_value=40.0)
     return dataclasses.replace(cfg, prognosis=p)
 
 
@@ -140,7 +140,7 @@ def test_a_misposition_is_a_high_trend_in_both_engines_and_ends_with_the_replace
     run, frames = sim_frames("run_to_failure", duration_h=70.0, events=events, sampling=sampling)
     frames = as_frames(frames)
     cfg = scale_windows(cfgmod.load(), 2.0, 20.0)
-    p = cfgmod.PrognosisConfig(enabled=True, eol_high_pct=misposition_eol_pct(events))
+    p = cfgmod.PrognosisConfig.on(eol_high_pct=misposition_eol_pct(events))
     cfg = dataclasses.replace(cfg, prognosis=p)
     a = _run(cfg, frames, "streaming")
     b = _run(cfg, frames, "columnar")

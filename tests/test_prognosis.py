@@ -12,7 +12,7 @@ import pytest
 from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
-from cmcan.monitor.prognosis import HIGH, IMMINENT, LOW, NONE, TREND, Prognosis, PrognosisParams, Stage
+from cmcan.monitor.prognosis import HIGH, IMMINENT, LOW, NONE, TREND, Prognosis, PrognosisParams, Stage, estimate
 from cmcan.oil import VG46, oil_from_grade
 
 FLOW_LPM = 234.0  # 78 cm3/rev at 3000 rpm: the extra leakage's share of it is the ratio's deficit
@@ -490,3 +490,13 @@ def test_a_saved_history_whose_hours_do_not_increase_is_refused_not_a_hang():
     with pytest.raises(ValueError, match="hours must increase"):
         Prognosis.from_dict(doc)
     assert "hours must increase" in Stage(REF, doc).note  # the daemon goes on with a new history
+
+
+def test_a_history_without_any_scatter_gets_an_estimate():
+    """A history the wear law fits exactly (a crafted or a simulated state without noise) made the
+    posterior's weights 0 / 0 and the estimate raise; it is a trend like any other."""
+    p = PrognosisParams()
+    i = np.arange(60)
+    est = estimate(p, 0.25 + 0.5 * i, 0.1 * i, 100.0 - 0.05 * i)
+    assert est.state in ("trend", "imminent") and est.direction == "low"
+    assert all(math.isfinite(q) for q in est.to_eol_h)

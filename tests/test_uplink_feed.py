@@ -158,7 +158,7 @@ def test_cmcan_run_with_the_uplink_enabled_creates_the_outbox(tmp_path):
 def test_the_baseline_goes_into_the_summaries_and_its_changes_are_events(frames, tmp_path, caplog):
     caplog.set_level(logging.INFO, logger="cmcan.daemon")
     cfg = cfgmod.load()
-    cfg = replace(cfg, baseline=cfgmod.BaselineConfig(enabled=True, min_points=40, coverage_pct=15.0, min_hours=0.01))
+    cfg = replace(cfg, baseline=cfgmod.BaselineConfig.on(min_points=40, coverage_pct=15.0, min_hours=0.01))
     mon = monitor(cfg=cfg)
     writer = OutboxWriter(str(tmp_path / "outbox.sqlite"), 10**9, 1e9).start()
     feed = UplinkFeed(mon, writer, summary_every_s=30.0)

@@ -34,6 +34,7 @@ with the same additions in the same order: the same state bit for bit.
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 from enum import IntEnum
@@ -45,6 +46,7 @@ from numpy.typing import NDArray
 from cmcan.monitor.warnings import Thresholds
 from cmcan.oil import VG46, Oil
 from cmcan.roles import DP, MODEL_INPUTS, PUMP_DISP, PUMP_SPEED, TEMP
+from cmcan.schema import Num, Obj, Seq, setting
 
 FORMAT = "cmcan-baseline/1"
 N_FEATURES = 3
@@ -67,6 +69,45 @@ _MODE_OF = {v: k for k, v in MODE_NAMES.items()}
 
 class BaselineStateError(ValueError):
     """A saved baseline that cannot be used; ``str()`` names the field."""
+
+
+def _rising_edges(e: dict[str, Any]) -> tuple[str, str] | None:
+    for role, edges in e.items():
+        if edges is not None and any(b <= a for a, b in itertools.pairwise(edges)):
+            return role, f"bin edges must rise, got {edges}"
+    return None
+
+
+@dataclass(frozen=True)
+class BaselineSettings:
+    """The configuration's ``baseline`` section, each setting declared once (:func:`cmcan.schema.setting`);
+    the assembly makes :class:`BaselineParams` of them and the model."""
+
+    edges: dict[str, Any] = setting(
+        Obj({r: Seq(Num(-1e6, 1e6), min_len=2, max_len=21, default=None) for r in BIN_ROLES}, {}, _rising_edges),
+        "per role (pump_speed_rpm, dp_bar, temp_c) the bin edges the coverage counts over; default: the "
+        "model's envelope split in 3, 3 and 2 bins",
+    )
+    min_points: int = setting(
+        Num(1, 10_000_000, "ticks", default=100, integer=True), "evaluated ticks a bin needs to count as covered"
+    )
+    coverage_pct: float = setting(Num(1, 100, "%", default=20.0), "share of the bins that must be covered")
+    min_hours: float = setting(Num(0, 10000, "h", default=2.0), "and at least this much steady operation learned")
+    check_every_s: float = setting(
+        Num(0.1, 3600, "s", default=60.0), "the learning's end is checked this often (tick time)"
+    )
+    suspect_lpm: float | None = setting(
+        Num(0.01, 10000, "l/min", default=None),
+        "a covered bin's mean residual further than this from the type model: suspect; default: "
+        "suspect_sigmas x the type's unit-to-unit spread in the model's metadata, else 2 % of nominal flow",
+    )
+    suspect_sigmas: float = setting(Num(1, 20, default=4.0), "the allowance in the type's unit-to-unit spreads")
+    learning_low_pct: float = setting(
+        Num(50, 100, "%", default=95.0), "the low warning's ratio while the type model judges alone (learning)"
+    )
+    learning_high_pct: float = setting(
+        Num(100, 200, "%", default=105.0), "the high warning's ratio while the type model judges alone"
+    )
 
 
 @dataclass(frozen=True)

@@ -61,6 +61,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cmcan.oil import VG46, Oil
+from cmcan.schema import Num, Str, setting
 
 FORMAT = "cmcan-prognosis/2"
 _FORMAT_V1 = "cmcan-prognosis/1"  # leakage as measured, not referred to reference conditions
@@ -88,13 +89,27 @@ class PrognosisParams:
     # a new unit's, a volumetric-efficiency loss at which hydrostatic units are commonly replaced (a
     # rule of thumb, short of loss of function: the simulated rig loses function at some 17 %). A
     # machine whose end of life is known configures it (l/min, or a ratio).
-    eol_kind: str = "ratio_pct"
-    eol_value: float = 90.0
+    eol_kind: str = setting(
+        Str(default="ratio_pct", choices=EOL_KINDS),
+        "what end of life is given in: the CM ratio (%) or the extra leakage (l/min at the reference conditions)",
+        "end_of_life.kind",
+    )
+    eol_value: float = setting(
+        Num(0.01, 10000, "(% or l/min at the reference conditions)", default=90.0),
+        "the low side's end of life (a ratio in [50, 100) %, or a leakage)",
+        "end_of_life.value",
+    )
     # End of life on the high side: a ratio rising (the displacement control drifting, a misposition)
     # grows no leak; by default the mirror of the low side, the motor 10 % off its commanded speed, at
     # which a drive's speed control no longer holds the machine's travel or implement speed.
-    eol_high_pct: float = 110.0
-    imminent_h: float = 24.0  # p10 to end of life within this: imminent (service within a few shifts)
+    eol_high_pct: float = setting(
+        Num(100.5, 200, "%", default=110.0),
+        "the high side's end of life: a ratio above the high warning (a drifting displacement control)",
+        "end_of_life.high_pct",
+    )
+    imminent_h: float = setting(
+        Num(0, 100000, "h", default=24.0), "p10 to end of life within this: imminent (service within a few shifts)"
+    )
     min_points: int = 12  # the rising stretch must hold at least this many points (6 h)
     # No estimate on a shorter history: it need not hold one whole cycle of the oil and the duty (a
     # shift, a day), whose rising half a short history cannot tell from a trend
@@ -128,18 +143,24 @@ class PrognosisParams:
     # Reference conditions the leakage is referred to (a laminar gap flow: Q ~ dp / mu). Defaults: the
     # reference drive's rated 480 bar and 60 C oil, at which the simulator and a test rig state a wear
     # leakage; an end of life in l/min is meant at these conditions.
-    dp_ref_bar: float = 480.0
-    temp_ref_c: float = 60.0
+    dp_ref_bar: float = setting(
+        Num(10, 1000, "bar", default=480.0), "the pressure the extra leakage is referred to", "ref_dp_bar"
+    )
+    temp_ref_c: float = setting(
+        Num(-20, 150, "C", default=60.0), "the oil temperature the extra leakage is referred to", "ref_temp_c"
+    )
     oil: Oil = VG46  # the configured oil's viscosity law (Config.oil)
     # Below this pressure a tick's leakage is model error more than wear (a gap flow vanishes with dp)
     min_dp_bar: float = 20.0
     # The stage (:class:`Stage`) estimates once per this many operating hours (an estimate is a grid
     # fit of some tens of milliseconds: not on every tick)
-    estimate_every_h: float = 0.5
+    estimate_every_h: float = setting(Num(0.01, 100, "h", default=0.5), "one estimate per this much operating time")
     # Operating hours, not calendar hours: a gap between ticks longer than this is the machine switched
     # off (or the gateway with it) and adds nothing; a shorter one (a daemon restart, a time-lapse's
     # bursts some minutes apart, each standing for the time to the next) adds itself
-    max_gap_h: float = 1.0
+    max_gap_h: float = setting(
+        Num(0.001, 1000, "h", default=1.0), "a longer gap between ticks is the machine off: no operating hours"
+    )
 
     def __post_init__(self) -> None:
         if self.eol_kind not in EOL_KINDS:
@@ -608,7 +629,9 @@ def _draw_hours(
     f = _fit(d.basis, y, w)
     gw = int(np.argmin(f.sse))
     resid_w = (y - (f.b[gw] + f.c[gw] * d.basis[gw])) * np.sqrt(w)
-    s2 = float(f.sse[gw]) / max(n - 4, 1) * _inflation(resid_w)
+    # a history the law fits exactly (no scatter at all) would make every weight 0 / 0: a thousandth
+    # of the assumed noise floor at least
+    s2 = max(float(f.sse[gw]) / max(n - 4, 1) * _inflation(resid_w), _S2_MIN)
     rng = np.random.default_rng(seed)
     cell, bs, cs = _draws(p, f, s2, rng)
     t0a, ka = np.array(d.t0s)[cell], np.array(d.ks)[cell]
@@ -691,6 +714,9 @@ def _inflation(r: NDArray[np.float64]) -> float:
     rho = float(d[1:] @ d[:-1]) / den if den > 0 else 0.0
     rho = min(max(rho, 0.0), 0.9)
     return (1 + rho) / (1 - rho)
+
+
+_S2_MIN = 1e-6  # the weighted residual variance at least (weights are 1 / noise^2: 1 is the floor's)
 
 
 def _draws(
