@@ -302,6 +302,7 @@ class Daemon:
         self.loop = _LoopState(next_wd=now, next_status=now, last_save=now, started=now)
         self._wake_r, self._wake_w = socket.socketpair()
         self._wake_w.setblocking(False)
+        self._state_notes()
         self._baseline_request()  # one left while no daemon ran (cmcan baseline reset then writes the state)
         self.notifier.ready(self._status_text())
         log.info("cmcan running on %s %s", self.cfg.bus.interface, ", ".join(x.name for x in self.links))
@@ -568,6 +569,7 @@ class Daemon:
                 new,
                 exc_info=(type(new), new, new.__traceback__) if not _named(new) else None,
             )
+            self._baseline_request()  # a reset waiting for this reload needs no new configuration
             self.notifier.ready(self._status_text())
             return
         old_cfg, old_mon = self.cfg, self.monitor
@@ -592,8 +594,19 @@ class Daemon:
             "; ".join(afresh) or "nothing",
             "".join(f"; {k}" for k in kept),
         )
+        self._state_notes()
         self._baseline_request()
         self.notifier.ready(self._status_text())
+
+    def _state_notes(self) -> None:
+        """What of the saved state the monitor does not go on with though the file is sound (a damaged
+        file is kept aside and said as it is read): the baseline learning afresh under a changed
+        envelope, the prognosis beginning a new history. Said once, where it happens."""
+        pg = self.monitor.prognosis
+        for part, note in (("baseline", self.monitor.baseline_note), ("prognosis", pg.note if pg else None)):
+            if note:
+                where = self.store.path if self.store is not None else "the saved state"
+                log.warning("%s: %s: %s", where, part, note)
 
     def _baseline_request(self) -> None:
         """A baseline reset ``cmcan baseline reset`` left in the state directory (it then asks for a

@@ -10,7 +10,10 @@ short, bit-flipped, bytes overwritten, replaced by a file of another kind, made 
 UTF-8, a folder in its place, missing) or makes it hostile (see ``HOSTILE``: YAML alias bombs, deep
 nesting and recursive aliases; uplink identifiers MQTT cannot carry; candump frames of more than 64
 data bytes; fleet sources that are symlinks out of their folder, FIFOs, ``/dev/zero``, ``/etc/passwd``,
-manifests naming them, machine folders with a newline in their name) and runs the command as a process.
+manifests naming them, machine folders with a newline in their name; state files with numbers beyond a
+float or int64, nesting past the JSON reader, a baseline one number short, prognosis hours that go
+back; the daemon's baseline reset request as a FIFO, a link to ``/dev/zero`` or to a secret, a folder)
+and runs the command as a process.
 It asserts what the project promises for any input:
 
 - the exit code is 0 or one of the documented sysexits codes (64, 65, 66, 69, 73, 74, 75, 77, 78):
@@ -84,6 +87,7 @@ class Corpus:
         "dbc": ("cmcan.dbc", "dbc"),
         "model": ("model.onnx", "onnx"),
         "state": ("state/state.json", "json"),
+        "request": ("state/baseline-reset.json", "json"),
         "log": ("run.log", "candump"),
         "loggz": ("run.log.gz", "gzip"),
         "blf": ("run.blf", "blf"),
@@ -180,7 +184,8 @@ class Corpus:
         write_run_csv(p, self._run_cache.columns)
 
     def _make_cfg(self, p: Path) -> None:
-        self._yaml_config(p, {})
+        # the baseline and the prognosis on: their parts of the state file are read too
+        self._yaml_config(p, {"baseline": dict(BASELINE), "prognosis": {"enabled": True}})
 
     def _make_uplinkcfg(self, p: Path) -> None:
         # port 1: nothing listens, so --check is refused at once (69) once the configuration passed
@@ -205,19 +210,30 @@ class Corpus:
         shutil.copyfile(ROOT / "cmcan" / "model" / "default.onnx", p)
 
     def _make_state(self, p: Path) -> None:
+        """A state of every part: the run's totals and baseline (learning) under the corpus's
+        configuration, a level change, a prognosis history with a trend, DTC counts."""
         from cmcan.assemble import assemble
         from cmcan.config import load
         from cmcan.io.candump import iter_frames
         from cmcan.replay import replay
+        from tests.statefile_support import trend
 
-        mon = assemble(load()).monitor
+        self.path("dbc"), self.path("model")  # the configuration names them
+        mon = assemble(load(self.path("cfg"))).monitor
         replay(mon, iter_frames(self.path("log")))
         t = mon.save_totals()
         t.history.append(
             {"t_s": 1767225700.0, "from": "ok", "to": "low", "reason": "ratio_low", "ratio_filt_pct": 97.5}
         )
         t.warning_count += 1
+        assert t.prognosis is not None and t.baseline is not None
+        t.prognosis |= {"points": trend(), "open": None}
+        t.dtc_occurrences, t.dtc_active = {"520192:7": 3}, ["520192:7"]
         p.write_text(json.dumps(t.to_dict(), indent=1))
+
+    def _make_request(self, p: Path) -> None:
+        """What ``cmcan baseline reset`` leaves for the running daemon."""
+        p.write_text(json.dumps({"reason": "fuzz: pump replaced", "at": "2026-01-01T00:00:00Z"}) + "\n")
 
     def _make_outbox(self, p: Path) -> None:
         from cmcan.uplink.records import Entry
@@ -319,12 +335,14 @@ class Target:
 
 OUTPUT_FLAGS = ("--out", "--emit", "--candump")
 DAEMON_FILES = ("cfg", "dbc", "model", "state")
+RUN_FILES = (*DAEMON_FILES, "request")  # the daemon also reads a baseline reset left for it
+BASELINE = {"enabled": True, "coverage_pct": 20, "min_points": 40, "min_hours": 0.02}
 TARGETS = [
     Target("check", DAEMON_FILES, DAEMON_FILES, ("check", "--config", "cmcan.yaml", "--state"), weight=2),
     Target(
         "run",
-        DAEMON_FILES,
-        DAEMON_FILES,
+        RUN_FILES,
+        RUN_FILES,
         ("run", "--config", "cmcan.yaml"),
         daemon=True,
         weight=2,
@@ -524,9 +542,12 @@ HOSTILE: dict[str, tuple[float, tuple[str, ...]]] = {
     "recursive": (0.3, ("kind:yaml",)),
     "mqttstring": (3.0, ("uplinkcfg",)),
     "bigframe": (1.5, ("log", "flog")),
-    "symlinkout": (1.0, ("fleetdir", "manifest")),
-    "special": (1.0, ("fleetdir", "manifest")),
+    "symlinkout": (1.0, ("fleetdir", "manifest", "request")),
+    "special": (1.0, ("fleetdir", "manifest", "request")),
     "machinenl": (0.5, ("fleetdir", "manifest")),
+    "statenum": (1.0, ("state",)),
+    "stateshape": (1.0, ("state",)),
+    "jsondeep": (0.5, ("state", "request")),
 }
 HOSTILE_SHARE = 0.5  # of the cases whose spoiled item has hostile mutations
 MQTT_FIELDS = (("machine_id",), ("mqtt", "client_id"), ("mqtt", "username"), ("mqtt", "topic_prefix"), ("mqtt", "host"))
@@ -586,6 +607,10 @@ def make_hostile(path: Path, item: str, how: str, rng: np.random.Generator, corp
         path.write_text("".join(lines))
         return f"a {'CAN FD ' if fd else ''}frame of {n} data bytes at line {i + 1}", [name]
     secret = corpus.secret()
+    if item == "state":
+        return hostile_state(path, how, rng), [name]
+    if item == "request":
+        return hostile_request(path, how, rng, secret), [name]
     if item == "fleetdir":
         machine = path / "wl-1"
         if how == "machinenl":
@@ -625,6 +650,75 @@ def make_hostile(path: Path, item: str, how: str, rng: np.random.Generator, corp
     csv.writer(out, lineterminator="\n").writerows(rows)
     path.write_text(out.getvalue())
     return what, names
+
+
+# A state file crafted against the daemon (issue 38): numbers beyond a float or int64, not finite or
+# implausible, nesting past the reader's limit, a baseline or a prognosis that contradicts itself.
+# Each: a description and the edit of the document (a JSON text for numbers json cannot write).
+STATE_NUMBERS = (
+    ("evaluated_s an integer of 310 digits", ("evaluated_s",), "1" + "0" * 309),
+    ("baseline.n[0] above int64", ("baseline", "n", 0), str(2**63)),
+    ("a prognosis leak of 1e300", ("prognosis", "points", 3, 1), "1e300"),
+    ("a time of 1e400", ("time_in_level_s", "ok"), "1e400"),
+    ("NaN in the ratio filter", ("filter_ratios", 0), "NaN"),
+    ("a prognosis leak of 1e7 l/min", ("prognosis", "points", 3, 1), "1e7"),
+)
+
+
+def hostile_state(path: Path, how: str, rng: np.random.Generator) -> str:
+    doc = json.loads(path.read_text())
+    if how == "jsondeep":
+        depth = int(rng.choice([70, 100_000]))
+        if depth == 70:
+            doc["baseline"]["history"] = [{"deep": json.loads("[" * depth + "]" * depth)}]
+            path.write_text(json.dumps(doc))
+        else:
+            path.write_text(json.dumps(doc)[:-1] + ', "zz": ' + "[" * depth + "]" * depth + "}")
+        return f"nested {depth} deep"
+    if how == "statenum":
+        what, where, text = STATE_NUMBERS[int(rng.integers(len(STATE_NUMBERS)))]
+        node = doc
+        for k in where[:-1]:
+            node = node[k]
+        node[where[-1]] = "@NUMBER@"
+        path.write_text(json.dumps(doc).replace('"@NUMBER@"', text))
+        return what
+    choice = int(rng.integers(5))
+    pts = doc["prognosis"]["points"]
+    if choice == 0:
+        doc["baseline"]["sy"].pop()
+    elif choice == 1:
+        doc["baseline"]["sxx"][int(rng.integers(len(doc["baseline"]["sxx"])))].pop()
+    elif choice == 2:
+        pts[5][0], pts[6][0] = pts[6][0], pts[5][0]
+    elif choice == 3:
+        doc["prognosis"]["points"] = [[0.25 + 0.5 * i, 0.1 * i, 100.0 - 0.05 * i, 900, 850.0] for i in range(80)]
+    else:
+        doc["prognosis"]["clock"] = {"operating_s": -1.0, "last_t_s": None}
+    path.write_text(json.dumps(doc))
+    return ("a baseline one number short", "a baseline row one number short", "prognosis hours that go back",
+            "a prognosis history exactly on a line", "a negative operating clock")[choice]  # fmt: skip
+
+
+def hostile_request(path: Path, how: str, rng: np.random.Generator, secret: Path) -> str:
+    """The baseline reset request as something the daemon must neither follow, block on nor read
+    endlessly: a link to a secret or to /dev/zero, a FIFO, a folder, JSON nested past the reader."""
+    if how == "jsondeep":
+        path.write_text("[" * 100_000 + "]" * 100_000)
+        return "nested 100000 deep"
+    path.unlink()
+    if how == "symlinkout":
+        path.symlink_to(secret)
+        return f"{path.name} -> a file outside the folder"
+    choice = int(rng.integers(3))
+    if choice == 0:
+        os.mkfifo(path)
+        return f"{path.name}, a FIFO nobody writes to"
+    if choice == 1:
+        path.symlink_to("/dev/zero")
+        return f"{path.name} -> /dev/zero"
+    path.mkdir()
+    return f"{path.name}, a folder"
 
 
 # -- one case -----------------------------------------------------------------------------------------

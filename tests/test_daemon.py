@@ -606,3 +606,65 @@ def test_a_silent_bus_gets_the_warning_frame_every_second_from_the_start(frames,
     gates = {ratio.decode(d, decode_choices=False)["cm_gate"] for _, i, d in silent if i == ratio.frame_id}
     assert gates == {1}  # no_input while the bus is silent
     assert mon.counters["late"] == 0 and mon.counters["accepted"] >= 2000
+
+
+# -- the state directory's files on the daemon's loop (issue 38) ------------------------------------------
+
+
+def _baseline_daemon(tmp_path, totals=None):
+    """A daemon whose configuration learns a baseline, on a bus that is never opened (the steps a test
+    drives read the state directory only)."""
+    from tests import statefile_support as sf
+
+    path = sf.config_file(tmp_path)
+    mon = sf.build(path, totals or Totals())
+    store = StateStore(tmp_path / "state")
+    return Daemon(cfgmod.load(path), mon, store, lambda: ScriptedBus([])), store
+
+
+def test_a_fifo_as_the_request_file_does_not_hang_the_start(tmp_path, caplog):
+    d, store = _baseline_daemon(tmp_path)
+    os.mkfifo(store.dir / "baseline-reset.json")
+    th = threading.Thread(target=d._start, daemon=True)
+    th.start()
+    th.join(5)
+    assert not th.is_alive()
+    assert "(not a regular file (a FIFO))" in caplog.text and not (store.dir / "baseline-reset.json").exists()
+
+
+def test_a_failed_reload_still_carries_out_the_reset_it_was_asked_for(tmp_path, caplog):
+    """``cmcan baseline reset`` asks for a reload; a configuration that no longer loads keeps the running
+    one, and the reset (which needs no new configuration) is carried out all the same."""
+    from cmcan.errors import CmcanError, Kind
+    from cmcan.statefile import write_baseline_request
+
+    d, store = _baseline_daemon(tmp_path)
+
+    def broken():
+        raise CmcanError("cmcan.yaml: thresholds.low_pct: expected a number", Kind.CONFIG)
+
+    d.reloader = broken
+    caplog.set_level(logging.INFO, "cmcan.daemon")
+    d._start()
+    write_baseline_request(store.dir, "pump replaced", "2026-01-01T00:00:00Z")
+    d.request_reload()
+    deadline = time.monotonic() + 10  # built in a thread, swapped in (here: refused) by a later step
+    while "reload failed" not in caplog.text and time.monotonic() < deadline:
+        d.handle_requests()
+        time.sleep(0.01)
+    assert "reload failed" in caplog.text and "baseline reset (pump replaced)" in caplog.text
+    assert not (store.dir / "baseline-reset.json").exists()
+    assert store.read().baseline["history"][-1]["reset_reason"] == "pump replaced"
+
+
+def test_the_daemon_says_what_of_a_sound_state_it_does_not_go_on_with(tmp_path, caplog):
+    """A baseline learned over another envelope (the configuration changed) learns afresh: said at the
+    start, naming the state file (a damaged file is said as it is read: tests/test_statefile.py)."""
+    from tests import statefile_support as sf
+
+    doc = sf.good_doc()
+    doc["baseline"]["envelope"]["edges"][2] = [0.0, 50.0, 100.0]
+    d, store = _baseline_daemon(tmp_path, Totals.from_dict(doc))
+    d._start()
+    (line,) = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert line == f"{store.path}: baseline: the configured envelope changed: learning afresh"

@@ -80,6 +80,7 @@ def test_hostile_mutations_make_what_they_say(tmp_path):
     import yaml
 
     from cmcan import yamlsafe
+    from cmcan.statefile import examine, read_baseline_request
     from tests.fuzz_cli import HOSTILE, hostile_for, make_hostile
 
     corpus = Corpus(tmp_path / "base")
@@ -89,6 +90,7 @@ def test_hostile_mutations_make_what_they_say(tmp_path):
             d = tmp_path / f"c{i}-{k}"
             d.mkdir()
             src, dst = corpus.path(item), d / Corpus.ITEMS[item][0]
+            dst.parent.mkdir(parents=True, exist_ok=True)
             shutil.copytree(src, dst) if src.is_dir() else shutil.copyfile(src, dst)
             detail, names = make_hostile(dst, item, how, np.random.default_rng([5, i, k]), corpus)
             made.add(how)
@@ -106,4 +108,10 @@ def test_hostile_mutations_make_what_they_say(tmp_path):
                 assert links, list((dst / "wl-1").iterdir())
             elif item == "manifest":
                 assert dst.read_text() != src.read_text()
+            elif item == "state":  # damaged, part by part, as the daemon reads it (tests/test_statefile*.py)
+                assert examine(dst.read_bytes()).damage, detail
+            elif item == "request":
+                assert read_baseline_request(dst.parent)["bad"] == "1", detail
+    assert examine(corpus.path("state").read_bytes()).damage == ()  # the corpus's own state is sound
+    assert read_baseline_request(corpus.path("request").parent)["reason"] == "fuzz: pump replaced"
     assert made == set(HOSTILE)

@@ -112,7 +112,8 @@ def _monitor(cfg: Any, assemble: Any) -> Any:
 
 
 def _reset(cfg: Any, args: argparse.Namespace) -> int:
-    from cmcan.statefile import BASELINE_REQUEST_FILE, LockHeld, StateLock, StateStore, write_baseline_request
+    from cmcan.errors import kind_of_oserror
+    from cmcan.statefile import StateLock, StateStore
 
     _doc(cfg)  # enabled, and the state readable
     reason = args.reason.strip()
@@ -121,32 +122,75 @@ def _reset(cfg: Any, args: argparse.Namespace) -> int:
     at = datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
     store = StateStore(cfg.state.directory)
     lock = StateLock(store.dir)
-    try:
-        lock.acquire()
-    except LockHeld:
-        pid = lock.holder()
-        if not pid or pid < 0:
-            raise
-        write_baseline_request(store.dir, reason, at)
-        os.kill(pid, signal.SIGHUP)
-        deadline = time.monotonic() + args.wait
-        while (store.dir / BASELINE_REQUEST_FILE).exists():
-            if time.monotonic() > deadline:
-                raise CmcanError(
-                    f"{store.dir / BASELINE_REQUEST_FILE}: the daemon (pid {pid}) did not take the reset within "
-                    f"{args.wait:g} s; it carries it out at its next reload or start",
-                    Kind.TEMPFAIL,
-                ) from None
-            time.sleep(0.1)
-        print(f"baseline reset by the running daemon (pid {pid}): learning afresh ({reason})")
-        return 0
+    pid = _lock_or_daemon(lock, args.wait)
+    if pid is not None:
+        return _reset_by_daemon(store, pid, reason, at, args.wait)
     try:
         from cmcan.assemble import assemble
 
         mon = _monitor(cfg, assemble)
         mon.reset_baseline(reason, at)
-        store.save(mon.save_totals())
+        store.save(mon.save_totals())  # a new file, the directory's owner's (run as root, too)
+    except OSError as exc:
+        raise CmcanError(f"{store.path}: cannot save the state: {exc.strerror}", kind_of_oserror(exc)) from None
     finally:
         lock.release()
     print(f"baseline reset in {store.path}: learning afresh at the next start ({reason})", file=sys.stdout)
+    return 0
+
+
+def _lock_or_daemon(lock: Any, wait_s: float) -> int | None:
+    """The state directory's lock taken (None: no daemon runs, the reset is this command's), or the pid
+    of the daemon holding it once that daemon handles SIGHUP: a daemon between its lock and its signal
+    handlers (starting) would be killed by the reload asked for, and systemd takes that death for a
+    clean stop. The pid must be the same twice in a row (the lock's file is written just after it is
+    taken: an old pid there must not get the signal)."""
+    from cmcan.statefile import LockHeld, takes_reload
+
+    deadline = time.monotonic() + wait_s
+    seen = None
+    while True:
+        try:
+            lock.acquire()
+            return None
+        except LockHeld:
+            pid = lock.holder()
+        ready = pid is not None and pid > 0 and takes_reload(pid)
+        if ready and pid == seen:
+            return pid
+        seen = pid if ready else None
+        if time.monotonic() > deadline:
+            who = f"pid {pid}" if pid and pid > 0 else "another process"
+            raise CmcanError(
+                f"{lock.path}: the state directory is locked by {who}, which takes no reload request yet "
+                f"(a daemon starting, or another cmcan baseline reset) within {wait_s:g} s; nothing was changed, "
+                "try again",
+                Kind.TEMPFAIL,
+            )
+        time.sleep(0.1)
+
+
+def _reset_by_daemon(store: Any, pid: int, reason: str, at: str, wait_s: float) -> int:
+    """The request left in the state directory, the daemon asked to reload, and waited for: it removes
+    the request once it has carried it out and saved."""
+    from cmcan.statefile import BASELINE_REQUEST_FILE, write_baseline_request
+
+    request = write_baseline_request(store.dir, reason, at)
+    try:
+        os.kill(pid, signal.SIGHUP)
+    except ProcessLookupError:
+        raise CmcanError(
+            f"{request}: the daemon (pid {pid}) ended before it took the reset; it carries it out at its next start",
+            Kind.TEMPFAIL,
+        ) from None
+    deadline = time.monotonic() + wait_s
+    while os.path.lexists(store.dir / BASELINE_REQUEST_FILE):
+        if time.monotonic() > deadline:
+            raise CmcanError(
+                f"{request}: the daemon (pid {pid}) did not take the reset within {wait_s:g} s; it carries it out "
+                "at its next reload or start",
+                Kind.TEMPFAIL,
+            )
+        time.sleep(0.1)
+    print(f"baseline reset by the running daemon (pid {pid}): learning afresh ({reason})")
     return 0

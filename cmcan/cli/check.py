@@ -4,21 +4,18 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from cmcan import units
-from cmcan.assemble import check_against_dbc, check_output_ranges, dbc_for, dbc_warnings, fitted_limits
 from cmcan.cli.common import Subparsers
 from cmcan.cli.errors import exit_code
 from cmcan.cli.jsonout import print_json
-from cmcan.config import Config
-from cmcan.drives import config_files, conflicts
+from cmcan.drives import config_files
 from cmcan.errors import CmcanError, Kind
-from cmcan.j1939 import ids
-from cmcan.monitor.totals import StateError
-from cmcan.preflight import check_channel, load_config, prepare
 from cmcan.roles import UNITS
-from cmcan.statefile import StateLock, read_node_status
+
+if TYPE_CHECKING:  # the rest is imported when the check runs: the parser starts without it
+    from cmcan.config import Config
 
 
 def add_subparser(sub: Subparsers) -> None:
@@ -57,6 +54,9 @@ def run(args: argparse.Namespace) -> int:
 
 def run_drives(args: argparse.Namespace, files: list[str]) -> int:
     """Several drives of one gateway: each as ``cmcan check`` checks one, then what they would share."""
+    from cmcan.drives import conflicts
+    from cmcan.preflight import load_config, prepare
+
     parts = []
     for f in files:
         try:
@@ -103,6 +103,11 @@ def _drive_summary(parts: Any) -> dict[str, Any]:
 
 
 def run_one(args: argparse.Namespace) -> int:
+    from cmcan.assemble import check_against_dbc, check_output_ranges, dbc_for, dbc_warnings
+    from cmcan.monitor.totals import StateError
+    from cmcan.preflight import check_channel, load_config, prepare
+    from cmcan.statefile import StateLock, read_node_status
+
     passed: list[str] = []  # what was checked before a failure, said with it
     try:
         cfg = load_config(args.config)
@@ -114,8 +119,9 @@ def run_one(args: argparse.Namespace) -> int:
         passed.append("signal mapping and output ranges")
         try:
             prep = prepare(cfg, need_state=args.state, read_only=True)
-        except StateError as exc:
-            raise StateError(f"{exc} (cmcan run would keep it aside and start with fresh totals)") from None
+        except StateError as exc:  # each damaged part named, and what the daemon would do with the file
+            then = getattr(exc, "on_start", "cmcan run would keep it aside and start with fresh totals")
+            raise StateError(f"{exc} ({then})") from None
         passed.append(f"model {prep.parts.model.path}")
         node = None
         if args.channel_check:
@@ -183,6 +189,7 @@ def run_one(args: argparse.Namespace) -> int:
             "locked_by_pid": StateLock(prep.store.dir).holder(),
             "j1939_node": read_node_status(prep.store.dir),
             "dtc_clears": t.dtc_clears[-5:],
+            "notes": state_notes(prep.parts.monitor, prep.store.dir),
         }
     if args.json:
         print_json(result)
@@ -247,7 +254,26 @@ def run_one(args: argparse.Namespace) -> int:
             if nd:
                 a = f"0x{nd['address']:02X}" if isinstance(nd.get("address"), int) else "no address"
                 print(f"  state  J1939 node as the daemon last saw it: {nd.get('state')}, {a}")
+            for note in st["notes"]:
+                print(f"  state  note: {note}")
     return 0
+
+
+def state_notes(monitor: Any, directory: Path) -> list[str]:
+    """What of the saved state the monitor does not go on with, though the file is sound (a changed
+    envelope learns the baseline afresh, other reference conditions begin a new prognosis history),
+    and a baseline reset left for the daemon (or a file in its place it will refuse): ``cmcan run``
+    says the same in the journal."""
+    from cmcan.statefile import read_baseline_request
+
+    pg = monitor.prognosis
+    notes = [n for n in (monitor.baseline_note, pg.note if pg is not None else None) if n]
+    req = read_baseline_request(directory)
+    if req is not None and req.get("bad"):
+        notes.append(f"baseline reset not carried out: {req['reason']}; the daemon removes it at its next reload")
+    elif req is not None:
+        notes.append(f"a baseline reset waits for the daemon's next reload or start ({req['reason']})")
+    return notes
 
 
 def probe_node(cfg: Config) -> dict[str, Any] | None:
@@ -292,6 +318,8 @@ def unchecked_units(cfg: Config, db: Any) -> dict[str, str]:
 def _timing(cfg: Config, db: Any) -> dict[str, dict[str, Any]]:
     """Per gated role, how its window, sample count and age fit its message's cycle time; said for
     the roles the fit changed or could not fit (no cycle time known)."""
+    from cmcan.assemble import fitted_limits
+
     limits, _, fits = fitted_limits(cfg, db)
     out = {}
     for role, f in fits.items():
@@ -320,6 +348,8 @@ def _timing(cfg: Config, db: Any) -> dict[str, dict[str, Any]]:
 
 def _describe(m: Any) -> dict[str, Any]:
     """How an input message is matched and checked, for people."""
+    from cmcan.j1939 import ids
+
     if m.pgn is not None:
         src = "any address" if m.sources is None else ", ".join(f"0x{a:02X}" for a in sorted(m.sources))
         match = f"PGN {m.pgn} (0x{m.pgn:04X}) from {src}"
