@@ -15,11 +15,13 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from cantools.database.can import Message
 from numpy.typing import NDArray
+
+if TYPE_CHECKING:  # hints only: importing cantools pulls in python-can and asammdf (issue 37)
+    from cantools.database.can import Message
 
 
 @dataclass(frozen=True)

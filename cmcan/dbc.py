@@ -18,12 +18,12 @@ import weakref
 from collections.abc import Mapping
 from functools import lru_cache
 from pathlib import Path
-from typing import Any
-
-import cantools
-from cantools.database.can import Database
+from typing import TYPE_CHECKING, Any
 
 from cmcan.errors import CmcanError, Kind
+
+if TYPE_CHECKING:  # cantools is imported where a DBC is read: it imports python-can, asammdf, pandas
+    from cantools.database.can import Database
 
 log = logging.getLogger("cmcan.dbc")
 
@@ -60,6 +60,9 @@ def message_problems(db: Database) -> Mapping[str, str]:
 
 @lru_cache(maxsize=8)
 def _load(path: str) -> Database:
+    import cantools
+    from cantools.database.can import Database
+
     p = Path(path)
     if not p.exists():
         raise DbcError(f"{p}: DBC file not found")
@@ -81,6 +84,9 @@ _SG = re.compile(r"^[ \t]*SG_[ \t]+(\w+)", re.M)
 def _load_lenient(p: Path, strict_exc: Exception) -> Database:
     """A DBC that failed cantools' strict load, loaded without it, with its messages checked one by
     one; DbcError with the strict load's reason when it does not load at all."""
+    import cantools
+    from cantools.database.can import Database
+
     if p.suffix.lower() != ".dbc":
         raise DbcError(f"{p}: not a valid DBC: {strict_exc}") from None
     try:

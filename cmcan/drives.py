@@ -7,9 +7,12 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from cmcan.assemble import Assembled
 from cmcan.errors import CmcanError, Kind
+
+if TYPE_CHECKING:  # hints only: cmcan check's parser imports this module
+    from cmcan.assemble import Assembled
 
 
 def config_files(given: Sequence[str]) -> list[str]:

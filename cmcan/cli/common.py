@@ -4,14 +4,12 @@ from __future__ import annotations
 
 import argparse
 import logging
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
-import numpy as np
-
-from cmcan import config as cfgmod
-from cmcan.assemble import check_against_dbc, dbc_for, fitted_limits, frame_matcher, load_model_for
 from cmcan.errors import CmcanError, Kind
-from cmcan.preflight import load_config as _load_config
+
+if TYPE_CHECKING:  # the rest is imported where used: every subcommand's parser imports this module
+    from cmcan import config as cfgmod
 
 log = logging.getLogger("cmcan")
 
@@ -24,7 +22,10 @@ class Subparsers(Protocol):
 
 def load_config(path: str | None, check_dbc: bool = True) -> cfgmod.Config:
     """The configuration, with its DBC loaded and the mapping checked (errors carry their kind)."""
-    cfg = _load_config(path)
+    from cmcan.assemble import check_against_dbc, dbc_for
+    from cmcan.preflight import load_config as read_config
+
+    cfg = read_config(path)
     if check_dbc:
         check_against_dbc(cfg, dbc_for(cfg))
     return cfg
@@ -35,6 +36,7 @@ def load_points(
 ) -> Any:
     """Operating points of a run CSV or a CAN log, gated by the configuration's rules; a log cut short
     is refused, or with ``keep_truncated`` read up to its last whole frame (a warning says where)."""
+    from cmcan.assemble import dbc_for, fitted_limits, frame_matcher
     from cmcan.model.features import load_operating_points
 
     db = dbc_for(cfg)
@@ -49,6 +51,8 @@ def load_points(
 
 
 def load_model(cfg: cfgmod.Config, path: str | None = None) -> Any:
+    from cmcan.assemble import load_model_for
+
     return load_model_for(cfg, path)
 
 
@@ -126,6 +130,8 @@ def load_data(
             raise CmcanError("--column and --constant need --points (an operating-point table)", Kind.USAGE)
         op = load_points(args.data, cfg, envelope, args.keep_truncated)
         return op, op.where(conds)
+    import numpy as np
+
     from cmcan.io.points import PointsError, PointSpec, read_points
     from cmcan.model.features import is_log, table_points
 

@@ -8,7 +8,6 @@ from cmcan.cli.common import Subparsers, add_keep_truncated, load_config, load_m
 from cmcan.cli.errors import ensure_writable, require_extra
 from cmcan.cli.jsonout import print_json
 from cmcan.errors import CmcanError, Kind
-from cmcan.model.evaluate import format_report, protocol
 
 
 def add_subparser(sub: Subparsers) -> None:
@@ -40,6 +39,8 @@ def run(args: argparse.Namespace) -> int:
     if plot_path is not None:
         require_extra("plot", "matplotlib")
     cfg = load_config(args.config)
+    from cmcan.model.evaluate import format_report, protocol
+
     model = load_model(cfg, args.model)
     keep = args.keep_truncated
     train_op = load_points(args.train, cfg, keep_truncated=keep)

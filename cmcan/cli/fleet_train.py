@@ -7,7 +7,6 @@ import logging
 import math
 import os
 import sys
-import uuid
 from pathlib import Path
 from typing import Any
 
@@ -83,6 +82,8 @@ def _selected(args: argparse.Namespace) -> list[str]:
 
 
 def _write_atomic(out: Path, blob: bytes) -> None:
+    import uuid  # here: the parser imports this module
+
     tmp = out.with_name(f".{out.name}.{uuid.uuid4().hex[:8]}.tmp")
     try:
         tmp.write_bytes(blob)

@@ -6,16 +6,20 @@ import argparse
 import math
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from cmcan.assemble import assemble
 from cmcan.cli.common import Subparsers, add_keep_truncated, load_config
 from cmcan.cli.errors import ensure_writable, require_extra
 from cmcan.cli.jsonout import print_json
 from cmcan.errors import CmcanError, Kind
-from cmcan.fitcheck import DOES_NOT_FIT, FitVerdict, FitWindow
-from cmcan.io.candump import Cut
-from cmcan.replay import ENGINES, EmitWriter, ReplaySummary, TimelineCollector, TimelineWriter, replay_file
+
+if TYPE_CHECKING:  # the replay's modules are imported when it runs: the parser starts without numpy
+    from cmcan.fitcheck import FitVerdict
+    from cmcan.io.candump import Cut
+    from cmcan.replay import ReplaySummary
+
+# cmcan.replay.ENGINES, said here so that the parser need not import the replay (tests/test_startup.py)
+ENGINES = ("columnar", "streaming")
 
 
 def add_subparser(sub: Subparsers) -> None:
@@ -77,6 +81,8 @@ def run(args: argparse.Namespace) -> int:
     if not Path(args.log).exists():
         raise CmcanError(f"{args.log}: log file not found", Kind.NO_INPUT)
     cfg = load_config(args.config, check_dbc=False)
+    from cmcan.assemble import assemble
+
     aliases = channel_map(args.channel_map, cfg)
     args.channel_map_names = list(aliases)
     mon = assemble(cfg, args.model, log_aliases=aliases).monitor
@@ -102,6 +108,9 @@ class _Sinks:
     """What the replay writes (timeline, emitted frames, the plot's ticks) and the fit check."""
 
     def __init__(self, outs: dict[str, Path], quantity: str, prognosis: bool = False) -> None:
+        from cmcan.fitcheck import FitWindow
+        from cmcan.replay import EmitWriter, TimelineCollector, TimelineWriter
+
         self.all: list[Any] = []
         if "out" in outs:  # the prognosis's columns where the monitor runs one
             self.all.append(TimelineWriter(outs["out"], quantity, prognosis))
@@ -115,6 +124,8 @@ class _Sinks:
 
 
 def _replay(args: argparse.Namespace, mon: Any, sinks: list[Any]) -> tuple[ReplaySummary, Cut | None]:
+    from cmcan.replay import replay_file
+
     progress = _Progress(Path(args.log)) if sys.stdout.isatty() and not args.json else None
     cuts: list[Cut] = []  # where a log read with --keep-truncated was cut
     try:
@@ -147,6 +158,8 @@ def _summary(
     merged_alone: bool,
 ) -> dict[str, Any]:
     """What ``--json`` prints; notes on stderr for what the user should know."""
+    from cmcan.fitcheck import DOES_NOT_FIT
+
     seen = mon.channels_seen()
     if len(seen) > 1 and len(cfg.channel_list) == 1 and merged_alone and not cfg.channels.from_log:
         print(

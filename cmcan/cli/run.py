@@ -6,18 +6,17 @@ import argparse
 import logging
 import sys
 from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
 
-import can
-
-from cmcan import config as cfgmod
-from cmcan.assemble import assemble
 from cmcan.cli import signals
 from cmcan.cli.common import Subparsers
-from cmcan.daemon import Daemon, DaemonOptions, Reloaded, bus_kwargs, tune_socketcan
-from cmcan.monitor.inputs import InputMessage
-from cmcan.preflight import check_channel, load_config, prepare, with_state
-from cmcan.sdnotify import Notifier
-from cmcan.uplink.feed import UplinkFeed
+
+if TYPE_CHECKING:  # the daemon's modules are imported when it runs: the parser starts without them
+    import can
+
+    from cmcan import config as cfgmod
+    from cmcan.daemon import Reloaded
+    from cmcan.monitor.inputs import InputMessage
 
 log = logging.getLogger("cmcan")
 
@@ -39,6 +38,11 @@ def add_subparser(sub: Subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from cmcan.daemon import Daemon, DaemonOptions
+    from cmcan.preflight import check_channel, load_config, prepare, with_state
+    from cmcan.sdnotify import Notifier
+    from cmcan.uplink.feed import UplinkFeed
+
     if args.verbose == 0:
         logging.getLogger().setLevel(logging.INFO)
     cfg = load_config(args.config, args.interface, args.channel, args.state_dir)
@@ -61,6 +65,9 @@ def run(args: argparse.Namespace) -> int:
 
 def bus_openers(cfg: cfgmod.Config, inputs: Sequence[InputMessage]) -> dict[str, Callable[[], can.BusABC]]:
     """An opener per configured channel: its bus with kernel filters for the inputs it carries."""
+    import can
+
+    from cmcan.daemon import bus_kwargs, tune_socketcan
 
     def opener(ch: cfgmod.ChannelConfig) -> Callable[[], can.BusABC]:
         def open_bus() -> can.BusABC:
@@ -77,6 +84,9 @@ def bus_openers(cfg: cfgmod.Config, inputs: Sequence[InputMessage]) -> dict[str,
 def reloader(args: argparse.Namespace) -> Callable[[], Reloaded]:
     """SIGHUP's work: the configuration file (with this command line's overrides), its DBC and model
     read and checked as at a start; any problem raises before anything of the running daemon changes."""
+    from cmcan.assemble import assemble
+    from cmcan.daemon import Reloaded
+    from cmcan.preflight import check_channel, load_config
 
     def reload() -> Reloaded:
         cfg = load_config(args.config, args.interface, args.channel, args.state_dir)

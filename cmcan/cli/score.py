@@ -5,11 +5,10 @@ from __future__ import annotations
 import argparse
 import csv
 import logging
+import math
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
-
-import numpy as np
 
 from cmcan.cli.common import Subparsers, add_data_options, load_config, load_data, load_model
 from cmcan.cli.errors import ensure_writable, require_extra
@@ -64,7 +63,7 @@ def _label(args: argparse.Namespace) -> tuple[str, float] | None:
 
 
 def _fmt(v: float, digits: int = 6) -> str:
-    return "" if not np.isfinite(v) else f"{v:.{digits}g}"
+    return "" if not math.isfinite(v) else f"{v:.{digits}g}"
 
 
 # Times in fixed decimals: epoch seconds to the microsecond (a log's own resolution) and operating
@@ -76,7 +75,7 @@ def _column_formatter(name: str) -> Callable[[float], str]:
     decimals = FIXED_DECIMALS.get(name)
     if decimals is None:
         return lambda v: _fmt(v, 10)
-    return lambda v: "" if not np.isfinite(v) else f"{v:.{decimals}f}"
+    return lambda v: "" if not math.isfinite(v) else f"{v:.{decimals}f}"
 
 
 def write_scores(path: Path, names: list[str], rows: list[list[str]]) -> None:
@@ -97,6 +96,8 @@ def run(args: argparse.Namespace) -> int:
         raise CmcanError("--plot and --out name the same file", Kind.USAGE)
     label = _label(args)
     cfg = load_config(args.config)
+    import numpy as np
+
     from cmcan.assemble import envelope_for
     from cmcan.model.score import score, summary
 

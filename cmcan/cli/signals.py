@@ -18,8 +18,10 @@ from __future__ import annotations
 import logging
 import signal
 from types import FrameType
+from typing import TYPE_CHECKING
 
-from cmcan.daemon import Daemon
+if TYPE_CHECKING:  # a hint only: cmcan run's parser imports this module
+    from cmcan.daemon import Daemon
 
 log = logging.getLogger("cmcan")
 

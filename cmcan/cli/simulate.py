@@ -11,15 +11,8 @@ from typing import TYPE_CHECKING, Any
 from cmcan.cli.common import Subparsers
 from cmcan.cli.errors import ensure_writable
 from cmcan.cli.jsonout import print_json
-from cmcan.dbc import load_dbc
 from cmcan.errors import CmcanError, Kind
-from cmcan.io.candump import write_candump
-from cmcan.io.runcsv import write_run_csv
 from cmcan.roles import MOTOR_SPEED
-from cmcan.schema import SchemaError
-from cmcan.sim import scenario as scn
-from cmcan.sim.frames import frames_from_run
-from cmcan.sim.run import simulate
 
 if TYPE_CHECKING:
     from cmcan.sim.fleet import FleetSpec
@@ -27,12 +20,20 @@ if TYPE_CHECKING:
 _log = logging.getLogger("cmcan.simulate")
 
 
+def shipped_scenarios() -> list[str]:
+    """The names of the shipped scenarios, in ``cmcan.sim.scenario.shipped_dir()``: found without
+    importing the simulator, which the parser does not need (numpy, cantools)."""
+    from cmcan import sim
+
+    return sorted(p.stem for p in (Path(sim.__file__).resolve().parent / "scenarios").glob("*.yaml"))
+
+
 def add_subparser(sub: Subparsers) -> None:
     p = sub.add_parser(
         "simulate",
         help="simulate a drive scenario to CSV and candump log",
         description="Simulate a scenario (a YAML file, or the name of a shipped one: "
-        + ", ".join(sorted(x.stem for x in scn.shipped_dir().glob("*.yaml")))
+        + ", ".join(shipped_scenarios())
         + ") and write the run as CSV and, with --candump, as a candump -l log. "
         "`cmcan simulate fleet --machines N --hours H --out DIR` writes a whole fleet instead: logs of N "
         "machines of a few drive sizes (each type with its configuration and model), a manifest and the "
@@ -99,6 +100,14 @@ FLEET_ONLY = (
 def run(args: argparse.Namespace) -> int:
     if args.scenario == "fleet":
         return run_fleet(args)
+    from cmcan.dbc import load_dbc
+    from cmcan.io.candump import write_candump
+    from cmcan.io.runcsv import write_run_csv
+    from cmcan.schema import SchemaError
+    from cmcan.sim import scenario as scn
+    from cmcan.sim.frames import frames_from_run
+    from cmcan.sim.run import simulate
+
     used = [f"--{k.replace('_', '-')}" for k in FLEET_ONLY if getattr(args, k) is not None]
     if used:
         raise CmcanError(f"{', '.join(used)} only apply to `cmcan simulate fleet`", Kind.USAGE)

@@ -13,10 +13,9 @@ import contextlib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from cantools.database.can import Database
 from numpy.typing import NDArray
 
 from cmcan import codec
@@ -47,6 +46,9 @@ from cmcan.roles import (
     SignalRef,
     gated_roles,
 )
+
+if TYPE_CHECKING:  # a hint only: cantools imports python-can, which imports asammdf (issue 37)
+    from cantools.database.can import Database
 
 Series = dict[str, tuple[NDArray[np.float64], NDArray[np.float64]]]
 CSV_REQUIRED = ("time_s", *gated_roles(MOTOR_SPEED))

@@ -9,10 +9,9 @@ from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from cantools.database.can import Database
 from numpy.typing import NDArray
 
 from cmcan import checksums, codec
@@ -20,6 +19,9 @@ from cmcan.frame import Frame
 from cmcan.j1939 import ids
 from cmcan.roles import DEFAULT_INPUTS
 from cmcan.sim.run import Run, motor_direction, role_conversion, send_every, send_mask
+
+if TYPE_CHECKING:  # a hint only: cantools imports python-can, which imports asammdf (issue 37)
+    from cantools.database.can import Database
 
 # Messages of one controller cycle leave 0.2 ms apart, in identifier order, as a real CAN controller
 # would queue them; this also keeps the frame order deterministic.

@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from cantools.database.can import Database
 from numpy.typing import NDArray
 
 from cmcan.codec import quantize
@@ -17,6 +16,9 @@ from cmcan.sim.drive import DriveInputs, integrate, load_torque_for_dp, steady_s
 from cmcan.sim.physics import DriveParams
 from cmcan.sim.scenario import Scenario
 from cmcan.sim.sensors import SensorError
+
+if TYPE_CHECKING:  # a hint only: cantools imports python-can, which imports asammdf (issue 37)
+    from cantools.database.can import Database
 
 # Columns of a run, in file order. Measured quantities first, then the ground truth (never on the bus).
 MEASURED = (
