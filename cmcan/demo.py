@@ -134,7 +134,8 @@ def with_baseline(cfg: cfgmod.Config, s: scn.Scenario, burst_s: float, every_min
     t_lo, t_hi = oil["temp_c"] - oil["swing_c"] - 2.0, oil["temp_c"] + oil["swing_c"] + 2.0
     edges = {"pump_speed_rpm": (0.95 * speed, 1.05 * speed), "dp_bar": (0.95 * dp, 1.05 * dp), "temp_c": (t_lo, t_hi)}
     learned_h = LEARNING_H * burst_s / (every_min * 60.0)
-    b = replace(cfg.baseline, enabled=True, edges=edges, min_hours=round(0.8 * learned_h, 6), coverage_pct=100.0)
+    settings = replace(cfg.baseline.settings, edges=edges, min_hours=round(0.8 * learned_h, 6), coverage_pct=100.0)
+    b = replace(cfg.baseline, enabled=True, settings=settings)
     return replace(cfg, baseline=b)
 
 

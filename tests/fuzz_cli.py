@@ -683,7 +683,7 @@ def hostile_state(path: Path, how: str, rng: np.random.Generator) -> str:
         node[where[-1]] = "@NUMBER@"
         path.write_text(json.dumps(doc).replace('"@NUMBER@"', text))
         return what
-    choice = int(rng.integers(5))
+    choice = int(rng.integers(4))
     pts = doc["prognosis"]["points"]
     if choice == 0:
         doc["baseline"]["sy"].pop()
@@ -691,13 +691,11 @@ def hostile_state(path: Path, how: str, rng: np.random.Generator) -> str:
         doc["baseline"]["sxx"][int(rng.integers(len(doc["baseline"]["sxx"])))].pop()
     elif choice == 2:
         pts[5][0], pts[6][0] = pts[6][0], pts[5][0]
-    elif choice == 3:
-        doc["prognosis"]["points"] = [[0.25 + 0.5 * i, 0.1 * i, 100.0 - 0.05 * i, 900, 850.0] for i in range(80)]
     else:
         doc["prognosis"]["clock"] = {"operating_s": -1.0, "last_t_s": None}
     path.write_text(json.dumps(doc))
     return ("a baseline one number short", "a baseline row one number short", "prognosis hours that go back",
-            "a prognosis history exactly on a line", "a negative operating clock")[choice]  # fmt: skip
+            "a negative operating clock")[choice]  # fmt: skip
 
 
 def hostile_request(path: Path, how: str, rng: np.random.Generator, secret: Path) -> str:

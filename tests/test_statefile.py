@@ -58,11 +58,6 @@ def doc_with(edit) -> dict:
     return d
 
 
-def _noiseless(d: dict) -> None:
-    """A prognosis history lying exactly on a line: no scatter to weigh its curves by."""
-    d["prognosis"]["points"] = [[0.25 + 0.5 * i, 0.1 * i, 100.0 - 0.05 * i, 900, 850.0] for i in range(80)]
-
-
 def _hours_back(d: dict) -> None:
     p = d["prognosis"]["points"]
     p[5][0], p[6][0] = p[6][0], p[5][0]
@@ -114,11 +109,6 @@ CASES = {
         raw(doc_with(_hours_back)),
         "prognosis",
         "field 'prognosis.points[6]': hour 2.75 after 3.25: the hours must increase",
-    ),
-    "a prognosis history exactly on a line": (
-        raw(doc_with(_noiseless)),
-        "prognosis",
-        "field 'prognosis.points': no estimate can be made from this history",
     ),
     "NaN in the filter": (
         raw(doc_with(lambda d: d["filter_ratios"].__setitem__(0, float("nan")))),
