@@ -32,7 +32,7 @@ from cmcan.errors import CmcanError, Kind, kind_of_oserror
 from cmcan.monitor.baseline import BIN_ROLES, MODE_NAMES, N_FEATURES
 from cmcan.monitor.baseline import FORMAT as BASELINE_FORMAT
 from cmcan.monitor.prognosis import FORMAT as PROGNOSIS_FORMAT
-from cmcan.monitor.prognosis import Prognosis, PrognosisParams
+from cmcan.monitor.prognosis import Prognosis, PrognosisParams, count, finite_number, integer
 from cmcan.monitor.totals import StateError, Totals
 
 log = logging.getLogger("cmcan.state")
@@ -131,18 +131,6 @@ def _path(where: Any) -> str:
         where, step = where
         parts.append(step)
     return where + "".join(reversed(parts))
-
-
-def _is_num(v: Any) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-
-
-def _is_int(v: Any) -> bool:
-    return isinstance(v, int) and not isinstance(v, bool)
-
-
-def _is_count(v: Any) -> bool:
-    return _is_int(v) and v >= 0
 
 
 # -- the state file's parts ------------------------------------------------------------------------
@@ -250,10 +238,10 @@ def _baseline_problem(d: dict[str, Any]) -> str | None:
 
 
 _BASELINE_ARRAYS = (
-    ("n", 0, _is_count, "counts"),
-    ("sy", 0, _is_num, "finite numbers"),
-    ("sxx", N_FEATURES * N_FEATURES, _is_num, "finite numbers"),
-    ("sxy", N_FEATURES, _is_num, "finite numbers"),
+    ("n", 0, count, "counts"),
+    ("sy", 0, finite_number, "finite numbers"),
+    ("sxx", N_FEATURES * N_FEATURES, finite_number, "finite numbers"),
+    ("sxy", N_FEATURES, finite_number, "finite numbers"),
 )
 
 
@@ -261,7 +249,7 @@ def _rising(e: Any) -> bool:
     return (
         isinstance(e, list)
         and len(e) >= 2
-        and all(_is_num(x) for x in e)
+        and all(finite_number(x) for x in e)
         and all(a < b for a, b in itertools.pairwise(e))
     )
 
@@ -270,12 +258,12 @@ def _baseline_scalars(d: dict[str, Any]) -> str | None:
     theta = d.get("theta")
     checks = (
         ("state", d.get("state") in MODE_NAMES.values(), f"one of {', '.join(MODE_NAMES.values())}"),
-        ("theta", isinstance(theta, list) and len(theta) == N_FEATURES and all(map(_is_num, theta)), "3 numbers"),
-        ("distance_lpm", _is_num(d.get("distance_lpm")), "a finite number"),
-        ("learned_ticks", _is_count(d.get("learned_ticks")), "a count"),
-        ("started_t_s", d.get("started_t_s") is None or _is_num(d.get("started_t_s")), "a time or null"),
-        ("finished_t_s", d.get("finished_t_s") is None or _is_num(d.get("finished_t_s")), "a time or null"),
-        ("block", d.get("block") is None or _is_int(d.get("block")), "a block number or null"),
+        ("theta", isinstance(theta, list) and len(theta) == N_FEATURES and all(map(finite_number, theta)), "3 numbers"),
+        ("distance_lpm", finite_number(d.get("distance_lpm")), "a finite number"),
+        ("learned_ticks", count(d.get("learned_ticks")), "a count"),
+        ("started_t_s", d.get("started_t_s") is None or finite_number(d.get("started_t_s")), "a time or null"),
+        ("finished_t_s", d.get("finished_t_s") is None or finite_number(d.get("finished_t_s")), "a time or null"),
+        ("block", d.get("block") is None or integer(d.get("block")), "a block number or null"),
         ("history", isinstance(d.get("history", []), list), "a list of records"),
     )
     for name, ok, expected in checks:
@@ -295,9 +283,9 @@ def _prognosis_part(d: dict[str, Any]) -> tuple[str | None, dict[str, Any]]:
     c = d.get("clock")
     ok = c is None or (
         isinstance(c, dict)
-        and _is_num(c.get("operating_s"))
+        and finite_number(c.get("operating_s"))
         and c["operating_s"] >= 0
-        and (c.get("last_t_s") is None or _is_num(c.get("last_t_s")))
+        and (c.get("last_t_s") is None or finite_number(c.get("last_t_s")))
     )
     if ok:
         return None, {"prognosis": d}
@@ -314,14 +302,15 @@ def _prognosis_problem(d: dict[str, Any]) -> str | None:
     if d.get("bin_h") != _BIN_H:
         return f"field 'prognosis.bin_h': expected {_BIN_H} (hours per point), got {d.get('bin_h')!r:.40}"
     ref = d.get("reference")
-    if not (isinstance(ref, list) and len(ref) == 4 and all(map(_is_num, ref))):
+    if not (isinstance(ref, list) and len(ref) == 4 and all(map(finite_number, ref))):
         return f"field 'prognosis.reference': expected [dp, temperature, nu40, nu100], got {ref!r:.60}"
     pts = d.get("points")
     if not isinstance(pts, list):
         return f"field 'prognosis.points': expected a list, got {pts!r:.40}"
     for i, q in enumerate(pts):
-        ok = isinstance(q, list) and len(q) == 5 and _is_count(q[3])
-        if not (ok and all(_is_num(x) and lo <= x <= hi for x, (lo, hi) in zip(q[:3] + q[4:], _POINT, strict=True))):
+        ok = isinstance(q, list) and len(q) == 5 and count(q[3])
+        values = q[:3] + q[4:] if ok else []
+        if not (ok and all(finite_number(x) and lo <= x <= hi for x, (lo, hi) in zip(values, _POINT, strict=True))):
             return f"field 'prognosis.points[{i}]': expected [{_POINT_TEXT}], got {q!r:.60}"
         if i and not q[0] > pts[i - 1][0]:
             return f"field 'prognosis.points[{i}]': hour {q[0]!r} after {pts[i - 1][0]!r}: the hours must increase"
@@ -352,8 +341,8 @@ def _estimate_problem(d: dict[str, Any]) -> str | None:
 def _open_problem(op: Any, pts: list[Any]) -> str | None:
     if op is None:
         return None
-    ok = isinstance(op, list) and len(op) == 6 and _is_int(op[0]) and _is_count(op[1])
-    if not (ok and all(_is_num(x) for x in op[2:]) and op[4] >= 0):
+    ok = isinstance(op, list) and len(op) == 6 and integer(op[0]) and count(op[1])
+    if not (ok and all(finite_number(x) for x in op[2:]) and op[4] >= 0):
         return f"field 'prognosis.open': expected [bin, ticks, sum_h, sum_lg, sum_gg, sum_ratio], got {op!r:.60}"
     if pts and op[0] < math.floor(pts[-1][0] / _BIN_H):
         return f"field 'prognosis.open': bin {op[0]} lies before the last point's"

@@ -383,8 +383,8 @@ class Prognosis:
             raise ValueError("field 'points': expected a list")
         out = cls(params)
         for i, q in enumerate(pts):
-            ok = isinstance(q, list) and len(q) == 5 and all(_finite(x) for x in q[:3]) and _count(q[3])
-            if not (ok and _finite(q[4]) and q[4] > 0):
+            ok = isinstance(q, list) and len(q) == 5 and all(finite_number(x) for x in q[:3]) and count(q[3])
+            if not (ok and finite_number(q[4]) and q[4] > 0):
                 raise ValueError(f"field 'points[{i}]': expected [hour, leak, ratio, ticks, weight], got {q!r:.60}")
             out.points.append((float(q[0]), float(q[1]), float(q[2]), int(q[3]), float(q[4])))
         hours = [q[0] for q in out.points]
@@ -393,8 +393,8 @@ class Prognosis:
         out.points = out.points[-params.max_points :]
         op = d.get("open")
         if op is not None:
-            ok = isinstance(op, list) and len(op) == 6 and _integer(op[0]) and _count(op[1])
-            if not (ok and all(_finite(x) for x in op[2:]) and op[4] >= 0):
+            ok = isinstance(op, list) and len(op) == 6 and integer(op[0]) and count(op[1])
+            if not (ok and all(finite_number(x) for x in op[2:]) and op[4] >= 0):
                 raise ValueError(
                     f"field 'open': expected [bin, ticks, sum_h, sum_lg, sum_gg, sum_ratio], got {op!r:.60}"
                 )
@@ -436,16 +436,19 @@ def _gain(p: PrognosisParams, dp_bar: NDArray[np.float64], temp_c: NDArray[np.fl
     return dp_bar / p.dp_ref_bar * visc
 
 
-def _finite(x: Any) -> bool:
+def finite_number(x: Any) -> bool:
+    """A JSON number that is a finite float or int (not a bool): what a saved state may hold."""
     return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
 
 
-def _integer(x: Any) -> bool:
+def integer(x: Any) -> bool:
+    """An int that is not a bool."""
     return isinstance(x, int) and not isinstance(x, bool)
 
 
-def _count(x: Any) -> bool:
-    return _integer(x) and x >= 0
+def count(x: Any) -> bool:
+    """A non-negative int (not a bool)."""
+    return integer(x) and x >= 0
 
 
 def _add_in_order(start: float, xs: NDArray[np.float64]) -> float:
@@ -950,9 +953,9 @@ def _clock_from(saved: dict[str, Any], history: Prognosis) -> tuple[float, float
     c = saved.get("clock")
     if c is None:
         return history.newest_h() * 3600.0, math.nan
-    ok = isinstance(c, dict) and _finite(c.get("operating_s")) and c["operating_s"] >= 0
+    ok = isinstance(c, dict) and finite_number(c.get("operating_s")) and c["operating_s"] >= 0
     last = c.get("last_t_s") if isinstance(c, dict) else None
-    if not (ok and (last is None or _finite(last))):
+    if not (ok and (last is None or finite_number(last))):
         raise ValueError(f"field 'clock': expected {{operating_s: seconds, last_t_s: seconds or null}}, got {c!r:.80}")
     return float(c["operating_s"]), math.nan if last is None else float(last)
 
