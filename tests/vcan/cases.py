@@ -756,5 +756,7 @@ def test_the_daemon_keeps_sending_through_wall_clock_steps(tmp_path):
 #    learning, SIGTERM and kill -9, monitoring, reset (tests/vcan/baseline_cases.py); the prognosis's
 #    frame and its estimate across a restart (tests/vcan/prognosis_cases.py) ------------------------------
 from tests.vcan.baseline_cases import *  # noqa: E402, F403 - collected with these cases, in the same VM
+from tests.vcan.connection_cases import *  # noqa: E402, F403
 from tests.vcan.node_cases import *  # noqa: E402, F403
 from tests.vcan.prognosis_cases import *  # noqa: E402, F403
+from tests.vcan.schedule_cases import *  # noqa: E402, F403
