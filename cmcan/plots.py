@@ -1,4 +1,7 @@
-"""Every plot cmcan draws (matplotlib, the ``plot`` extra), in one place and one style."""
+"""Every plot cmcan draws (matplotlib, the ``plot`` extra), in one style: the CM ratio over operating
+hours is drawn by :func:`draw_ratio` alone, for a replay (:func:`plot_ratio`) and for each machine of a
+fleet report (:mod:`cmcan.fleet.figures` lays out the report's figures with it), on the axis of
+:func:`ratio_limits`."""
 
 from __future__ import annotations
 
@@ -15,7 +18,7 @@ from cmcan.monitor.tick import LEVEL_NAMES
 from cmcan.monitor.warnings import Level, Thresholds
 
 
-def _pyplot() -> Any:
+def pyplot() -> Any:
     """matplotlib without a display (raises ImportError when the extra is missing)."""
     import matplotlib
 
@@ -25,14 +28,69 @@ def _pyplot() -> Any:
     return plt
 
 
-def ratio_limits(filtered_pct: Any, low_pct: float, high_pct: float) -> tuple[float, float]:
-    """A ratio axis that shows every filtered ratio (a failure falls to about 40 %) and the thresholds
-    with room around them, within the span a CM frame carries (0-200 %)."""
+LEVEL_COLORS = {"low": "tab:orange", "high": "tab:purple", "fault": "tab:red", "ok": "tab:green", "misfit": "0.35"}
+
+
+def ratio_limits(values: Any, low_pct: float, high_pct: float) -> tuple[float, float]:
+    """A ratio axis that shows every finite ratio in ``values`` (an array, or a sequence of arrays: a
+    failure falls to about 40 %) and the thresholds with room around them, within the span a CM frame
+    carries (0-200 %)."""
+    parts = [np.asarray(v, dtype=float).ravel() for v in (values if isinstance(values, list | tuple) else [values])]
+    finite = np.concatenate([p[np.isfinite(p)] for p in parts]) if parts else np.empty(0)
     lo, hi = low_pct - 3.0, high_pct + 3.0
-    if len(filtered_pct):
-        lo = min(lo, float(np.min(filtered_pct)) - 2.0)
-        hi = max(hi, float(np.max(filtered_pct)) + 2.0)
+    if finite.size:
+        lo = min(lo, float(finite.min()) - 2.0)
+        hi = max(hi, float(finite.max()) + 2.0)
     return max(lo, 0.0), min(hi, 200.0)
+
+
+def draw_ratio(
+    ax: Any,
+    hours: Any,
+    raw_pct: Any,
+    filt_pct: Any,
+    low_pct: float,
+    high_pct: float,
+    *,
+    levels: Any = None,
+    events: Sequence[tuple[float, str]] = (),
+    failures_h: Sequence[float] = (),
+    log_starts_h: Sequence[float] = (),
+    raw_label: str = "raw",
+) -> None:
+    """The CM ratio over operating hours as every cmcan figure shows it (the paper's Figure 9): the
+    raw ratios as grey dots, the filtered ratio as a line, marked by level where ``levels`` (one
+    :class:`Level` per point) says a warning was active, the thresholds, a dotted line where each
+    warning was raised (``events``: hour, level name), failures in red, the start of each log in light
+    grey; NaN is a point not drawn; the axis from :func:`ratio_limits`."""
+    h, raw, filt = (np.asarray(x, dtype=float) for x in (hours, raw_pct, filt_pct))
+    for i, x in enumerate(log_starts_h):
+        ax.axvline(x, color="0.85", lw=0.6, zorder=0, label="start of a log" if i == 0 else None)
+    ok, okf = np.isfinite(raw), np.isfinite(filt)
+    if ok.any():
+        ax.plot(h[ok], raw[ok], ".", ms=1.5, alpha=0.35, color="tab:gray", label=raw_label)
+    if okf.any():
+        ax.plot(h[okf], filt[okf], "-", lw=1.2, color="tab:blue", label="filtered")
+    if levels is not None and okf.any():
+        lv = np.asarray(levels)[okf]
+        for level in (Level.LOW, Level.HIGH, Level.FAULT):
+            on = lv == int(level)
+            if on.any():
+                name = LEVEL_NAMES[level]
+                ax.plot(h[okf][on], filt[okf][on], "o", ms=2, color=LEVEL_COLORS[name], label=f"warning {name}")
+    ax.axhline(low_pct, color=LEVEL_COLORS["low"], ls="--", lw=1, label=f"low threshold {low_pct:g} %")
+    ax.axhline(high_pct, color=LEVEL_COLORS["high"], ls="--", lw=1, label=f"high threshold {high_pct:g} %")
+    seen: set[str] = set()
+    for x, level in events:
+        label = None if level in seen else f"{level} raised" if level != "fault" else "fault"
+        ax.axvline(x, color=LEVEL_COLORS.get(level, "k"), lw=1.2, ls=":", label=label)
+        seen.add(level)
+    for i, x in enumerate(failures_h):
+        ax.axvline(x, color="tab:red", lw=1, alpha=0.6, label="failure" if i == 0 else None)
+    ax.set_ylim(*ratio_limits([raw[ok], filt[okf]], low_pct, high_pct))
+    ax.set_xlabel("operating hours (h)")
+    ax.set_ylabel("CM ratio (%)")
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, markerscale=3, frameon=False)
 
 
 def plot_ratio(
@@ -44,31 +102,15 @@ def plot_ratio(
     failures_h: list[float] | None = None,
     title: str = "CM ratio",
 ) -> None:
-    """CM ratio over operating hours with the thresholds (the paper's Figure 9); ``tl`` is a
+    """A replay's CM ratio over operating hours (:func:`draw_ratio`); ``tl`` is a
     :class:`cmcan.replay.TickColumns`."""
-    plt = _pyplot()
-    h_all = (tl.t_run_s - t0) / 3600.0  # operating hours: the wall clock's steps undone
-    ev = tl.ratio_raw_pct > 0
-    fv = tl.filt_valid
+    plt = pyplot()
+    hours = (tl.t_run_s - t0) / 3600.0  # operating hours: the wall clock's steps undone
+    raw = np.where(tl.ratio_raw_pct > 0, tl.ratio_raw_pct, np.nan)  # 0: the tick was not evaluated
+    filt = np.where(tl.filt_valid, tl.ratio_filt_pct, np.nan)
     fig, ax = plt.subplots(figsize=(11, 4.2))
-    if ev.any():
-        ax.plot(h_all[ev], tl.ratio_raw_pct[ev], ".", ms=1, alpha=0.3, color="tab:gray", label="raw")
-    if fv.any():
-        h, filt = h_all[fv], tl.ratio_filt_pct[fv]
-        ax.plot(h, filt, "-", lw=1.2, color="tab:blue", label="filtered")
-        for level, color in ((Level.LOW, "tab:orange"), (Level.HIGH, "tab:purple"), (Level.FAULT, "tab:red")):
-            mask = tl.level[fv] == int(level)
-            if mask.any():
-                ax.plot(h[mask], filt[mask], "o", ms=2, color=color, label=f"warning {LEVEL_NAMES[level]}")
-    ax.axhline(low_pct, color="tab:orange", ls="--", lw=1, label=f"low {low_pct:g} %")
-    ax.axhline(high_pct, color="tab:purple", ls="--", lw=1, label=f"high {high_pct:g} %")
-    for f in failures_h or []:
-        ax.axvline(f, color="tab:red", lw=1, alpha=0.6)
-    ax.set_xlabel("operating hours (h)")
-    ax.set_ylabel("CM ratio (%)")
-    ax.set_ylim(*ratio_limits(tl.ratio_filt_pct[fv], low_pct, high_pct))
+    draw_ratio(ax, hours, raw, filt, low_pct, high_pct, levels=tl.level, failures_h=failures_h or ())
     ax.set_title(title)
-    ax.legend(loc="lower left", fontsize=7, ncol=3, markerscale=3)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -125,7 +167,6 @@ class PrognosisStretch:
         return sum(len(r) for r in self.runs)
 
 
-LEVEL_COLOR = {"low": "tab:orange", "high": "tab:purple"}
 _ESTIMATED = (TREND, IMMINENT)
 
 
@@ -247,7 +288,7 @@ _PROGNOSIS_LEGEND = (
 def plot_demo(res: Any, thresholds: Thresholds, path: str | Path, title: str) -> DemoFigure:
     """The demo's CM ratio as the bus carried it, thresholds, failures and lead times (the shape of the
     run-to-failure figure of the gray-box paper the scenario follows); returns what it drew."""
-    plt = _pyplot()
+    plt = pyplot()
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
 
@@ -277,7 +318,7 @@ def plot_demo(res: Any, thresholds: Thresholds, path: str | Path, title: str) ->
             va="bottom",
         )
     for x, level in spec.warnings:
-        ax.axvline(x, color=LEVEL_COLOR[level], lw=1.2, ls=":", zorder=2)
+        ax.axvline(x, color=LEVEL_COLORS[level], lw=1.2, ls=":", zorder=2)
     for lead in spec.leads:
         ax.annotate(
             "",
@@ -308,7 +349,7 @@ def plot_demo(res: Any, thresholds: Thresholds, path: str | Path, title: str) ->
         Line2D([], [], color="tab:red", lw=1.2),
     ]
     kinds += [
-        Line2D([], [], color=LEVEL_COLOR[lv], ls=":", lw=1.2)
+        Line2D([], [], color=LEVEL_COLORS[lv], ls=":", lw=1.2)
         for lv in ("low", "high")
         if any(w[1] == lv for w in spec.warnings)
     ]
@@ -416,7 +457,7 @@ def plot_residuals(sets: list[Any], report: dict[str, Any], path: str | Path) ->
     """Predicted minus actual output (motor speed or flow) over time, training end and damage onset
     marked (the protocol's figures): one panel for the training run, one for the validation run, one
     for each further healthy run. Returns what it drew."""
-    plt = _pyplot()
+    plt = pyplot()
 
     panels = residual_panels(sets, report)
     fig, axes = plt.subplots(len(panels), 1, figsize=(13, 3.4 * len(panels)), squeeze=False)
@@ -475,7 +516,7 @@ def plot_gap(out: Path, variables: Any, heatmap: Any | None, labels: dict[str, s
     """The gap diagnosis' figures in ``out`` from what ``cmcan.gap.figures`` computed: the gap against
     each input (judged points before and after the fitted effects, the unjudged ones in grey behind)
     and a heat map of the mean gap over delta pressure and oil temperature, empty cells hatched."""
-    plt = _pyplot()
+    plt = pyplot()
     from matplotlib.patches import Patch, Rectangle
 
     names = []
@@ -540,7 +581,7 @@ def plot_scores(
 ) -> None:
     """The ratio of each scored operating point (``cmcan score --plot``), coloured by a label column
     (e.g. the leakage label of a test rig), extrapolated points drawn hollow, thresholds dashed."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(11, 4.5))
     groups = [(None, np.ones(len(x), dtype=bool))]
     if labels is not None:
@@ -562,14 +603,9 @@ def plot_scores(
                 color=color,
                 label=f"{name}, extrapolated" if not inside.any() else None,
             )
-    ax.axhline(low_pct, color="tab:orange", ls="--", lw=1, label=f"low {low_pct:g} %")
-    ax.axhline(high_pct, color="tab:purple", ls="--", lw=1, label=f"high {high_pct:g} %")
-    finite = ratio_pct[np.isfinite(ratio_pct)]
-    if finite.size:
-        ax.set_ylim(
-            max(50.0, min(low_pct - 1, float(finite.min()) - 0.5)),
-            min(150.0, max(high_pct + 1, float(finite.max()) + 0.5)),
-        )
+    ax.axhline(low_pct, color=LEVEL_COLORS["low"], ls="--", lw=1, label=f"low {low_pct:g} %")
+    ax.axhline(high_pct, color=LEVEL_COLORS["high"], ls="--", lw=1, label=f"high {high_pct:g} %")
+    ax.set_ylim(*ratio_limits(ratio_pct, low_pct, high_pct))
     ax.set_xlabel(x_label)
     ax.set_ylabel("CM ratio (%)")
     ax.set_title(title + ("  (hollow: outside the training envelope)" if extrapolated.any() else ""), fontsize=10)
@@ -579,91 +615,10 @@ def plot_scores(
     plt.close(fig)
 
 
-LEVEL_COLORS = {"low": "tab:orange", "high": "tab:purple", "fault": "tab:red", "ok": "tab:green"}
-
-
-def _png(fig: Any) -> bytes:
+def png_bytes(fig: Any, dpi: int = 90) -> bytes:
+    """A figure as PNG bytes (the fleet report embeds them)."""
     import io
 
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90)
+    fig.savefig(buf, format="png", dpi=dpi)
     return buf.getvalue()
-
-
-def plot_fleet_machine(
-    hours: Any,
-    raw_pct: Any,
-    filt_pct: Any,
-    low_pct: float,
-    high_pct: float,
-    events: list[tuple[float, str]],
-    log_starts_h: list[float],
-    title: str,
-) -> bytes:
-    """One machine of a fleet: the CM ratio over its operating hours (means of the timeline), the
-    thresholds, each warning where it was raised and the start of each log; PNG bytes."""
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(10, 3.2))
-    h, raw, filt = (np.asarray(x, dtype=float) for x in (hours, raw_pct, filt_pct))
-    for x in log_starts_h:
-        ax.axvline(x, color="0.85", lw=0.6, zorder=0)
-    ok = np.isfinite(raw)
-    if ok.any():
-        ax.plot(h[ok], raw[ok], ".", ms=1.5, alpha=0.4, color="tab:gray", label="raw (mean)")
-    okf = np.isfinite(filt)
-    if okf.any():
-        ax.plot(h[okf], filt[okf], "-", lw=1.2, color="tab:blue", label="filtered")
-    ax.axhline(low_pct, color="tab:orange", ls="--", lw=1, label=f"low {low_pct:g} %")
-    ax.axhline(high_pct, color="tab:purple", ls="--", lw=1, label=f"high {high_pct:g} %")
-    seen = set()
-    for x, level in events:
-        ax.axvline(
-            x, color=LEVEL_COLORS.get(level, "k"), lw=1.2, ls=":", label=None if level in seen else f"warning {level}"
-        )
-        seen.add(level)
-    y = filt[okf] if okf.any() else np.array([100.0])
-    ax.set_ylim(
-        max(50.0, min(low_pct - 3, float(np.nanmin(y)) - 1)), min(150.0, max(high_pct + 3, float(np.nanmax(y)) + 1))
-    )
-    ax.set_xlabel("operating hours (h, logged time of this machine)")
-    ax.set_ylabel("CM ratio (%)")
-    ax.set_title(title, fontsize=10)
-    ax.legend(loc="lower left", fontsize=7, ncol=4, markerscale=4)
-    fig.tight_layout()
-    out = _png(fig)
-    plt.close(fig)
-    return out
-
-
-def plot_fleet_overview(lines: list[tuple[str, Any, Any, str]], low_pct: float, high_pct: float) -> bytes:
-    """Every machine's filtered CM ratio over its operating hours, coloured by its state (``lines``:
-    machine, hours, ratio, state in ok/low/high/fault); PNG bytes."""
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(10, 3.6))
-    order = sorted(lines, key=lambda x: x[3] != "ok")  # machines needing a look drawn on top
-    for name, h, r, state in order:
-        h, r = np.asarray(h, dtype=float), np.asarray(r, dtype=float)
-        ok = np.isfinite(r)
-        if not ok.any():
-            continue
-        color = LEVEL_COLORS.get(state, "tab:gray") if state != "ok" else "0.6"
-        ax.plot(h[ok], r[ok], "-", lw=1.0 if state == "ok" else 1.6, color=color, alpha=0.8)
-        if state != "ok":
-            ax.annotate(
-                name,
-                (h[ok][-1], r[ok][-1]),
-                fontsize=7,
-                color=color,
-                xytext=(3, 0),
-                textcoords="offset points",
-                va="center",
-            )
-    ax.axhline(low_pct, color="tab:orange", ls="--", lw=1)
-    ax.axhline(high_pct, color="tab:purple", ls="--", lw=1)
-    ax.set_xlabel("operating hours (h)")
-    ax.set_ylabel("filtered CM ratio (%)")
-    ax.set_title("Fleet: filtered CM ratio of every machine (grey: ok; coloured: warning or fault)", fontsize=10)
-    fig.tight_layout()
-    out = _png(fig)
-    plt.close(fig)
-    return out

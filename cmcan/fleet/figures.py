@@ -1,44 +1,20 @@
 """The fleet report's figures (matplotlib, PNG bytes): every machine's ratio over its life, one chart
-per machine. Axis limits come from the data (a ratio at 43 % or 139 % is shown, not clipped), and the
-overview's machine names sit in a column beside the plot, spread so that none overlaps another, each
-joined to the end of its line. The hours-to-service table has a sparkline per machine: its hours
-to end of life (p50, p10-p90 band) over its operating hours.
+per machine, drawn with the one ratio drawing of :mod:`cmcan.plots` (its axis shows a ratio at 43 % or
+139 %, not clipped), and the overview's machine names in a column beside the plot, spread so that none
+overlaps another, each joined to the end of its line. The hours-to-service table has a sparkline per
+machine: its hours to end of life (p50, p10-p90 band) over its operating hours.
 """
 
 from __future__ import annotations
 
-import io
 from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 
-LEVEL_COLORS = {"low": "tab:orange", "high": "tab:purple", "fault": "tab:red", "ok": "tab:green", "misfit": "0.35"}
-PAD_FRACTION = 0.06  # of the data's range, above and below
+from cmcan.plots import LEVEL_COLORS, draw_ratio, png_bytes, pyplot, ratio_limits
 
-
-def _pyplot() -> Any:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _png(fig: Any) -> bytes:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90)
-    return buf.getvalue()
-
-
-def y_limits(values: Sequence[Any], low_pct: float, high_pct: float) -> tuple[float, float]:
-    """Limits that hold every finite value and both thresholds, with a margin."""
-    parts = [np.asarray(v, dtype=float).ravel() for v in values]
-    finite = np.concatenate([p[np.isfinite(p)] for p in parts] + [np.array([low_pct, high_pct])])
-    lo, hi = float(finite.min()), float(finite.max())
-    pad = max((hi - lo) * PAD_FRACTION, 0.5)
-    return lo - pad, hi + pad
+PAD_FRACTION = 0.06  # of the sparkline's range, above
 
 
 def spread(y: Sequence[float], min_gap: float, lo: float, hi: float) -> list[float]:
@@ -63,7 +39,7 @@ def spread(y: Sequence[float], min_gap: float, lo: float, hi: float) -> list[flo
 def plot_overview(lines: list[tuple[str, Any, Any, str]], low_pct: float, high_pct: float) -> bytes:
     """Every machine's filtered CM ratio over its operating hours, coloured by its state (``lines``:
     machine, hours, ratio, state in ok/low/high/fault/misfit); every machine named at the right."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(10, 4.0))
     ends = []
     drawn = []
@@ -79,7 +55,7 @@ def plot_overview(lines: list[tuple[str, Any, Any, str]], low_pct: float, high_p
         drawn.append(r[ok])
     ax.axhline(low_pct, color="tab:orange", ls="--", lw=1)
     ax.axhline(high_pct, color="tab:purple", ls="--", lw=1)
-    lo, hi = y_limits(drawn, low_pct, high_pct)
+    lo, hi = ratio_limits(drawn, low_pct, high_pct)
     ax.set_ylim(lo, hi)
     ax.set_xlabel("operating hours (h)")
     ax.set_ylabel("filtered CM ratio (%)")
@@ -108,7 +84,7 @@ def plot_overview(lines: list[tuple[str, Any, Any, str]], low_pct: float, high_p
                 arrowprops={"arrowstyle": "-", "color": color, "lw": 0.5, "alpha": 0.6, "shrinkA": 0, "shrinkB": 1},
             )
         ax.set_xlim(right=x_right)
-    out = _png(fig)
+    out = png_bytes(fig)
     plt.close(fig)
     return out
 
@@ -125,31 +101,23 @@ def plot_machine(
 ) -> bytes:
     """One machine: the CM ratio over its operating hours (means of the timeline), the thresholds,
     each warning where it was raised and the start of each log; limits from the data; PNG bytes."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(10, 3.4))
-    h, raw, filt = (np.asarray(x, dtype=float) for x in (hours, raw_pct, filt_pct))
-    for i, x in enumerate(log_starts_h):
-        ax.axvline(x, color="0.85", lw=0.6, zorder=0, label="start of a log" if i == 0 else None)
-    ok = np.isfinite(raw)
-    if ok.any():
-        ax.plot(h[ok], raw[ok], ".", ms=1.5, alpha=0.4, color="tab:gray", label="raw (mean)")
-    okf = np.isfinite(filt)
-    if okf.any():
-        ax.plot(h[okf], filt[okf], "-", lw=1.2, color="tab:blue", label="filtered")
-    ax.axhline(low_pct, color="tab:orange", ls="--", lw=1, label=f"low threshold {low_pct:g} %")
-    ax.axhline(high_pct, color="tab:purple", ls="--", lw=1, label=f"high threshold {high_pct:g} %")
-    seen = set()
-    for x, level in events:
-        label = None if level in seen else f"{level} raised" if level != "fault" else "fault"
-        ax.axvline(x, color=LEVEL_COLORS.get(level, "k"), lw=1.2, ls=":", label=label)
-        seen.add(level)
-    ax.set_ylim(*y_limits([raw[ok], filt[okf]], low_pct, high_pct))
+    draw_ratio(
+        ax,
+        hours,
+        raw_pct,
+        filt_pct,
+        low_pct,
+        high_pct,
+        events=events,
+        log_starts_h=log_starts_h,
+        raw_label="raw (mean)",
+    )
     ax.set_xlabel("operating hours (h, logged time of this machine)")
-    ax.set_ylabel("CM ratio (%)")
     ax.set_title(title, fontsize=10)
-    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, markerscale=4, frameon=False)
     fig.tight_layout()
-    out = _png(fig)
+    out = png_bytes(fig)
     plt.close(fig)
     return out
 
@@ -158,7 +126,7 @@ def plot_service_spark(hours: Any, p10_h: Any, p50_h: Any, p90_h: Any) -> bytes:
     """A sparkline of one machine's operating hours to end of life over its operating hours: the p50
     as a line in its p10-p90 band (no truth: in the field it is not known). An infinite hour (the
     estimate never gets there) runs off the top, which is set by the finite values."""
-    plt = _pyplot()
+    plt = pyplot()
     h, lo, mid, hi = (np.asarray(x, dtype=float) for x in (hours, p10_h, p50_h, p90_h))
     finite = np.concatenate([v[np.isfinite(v)] for v in (lo, mid, hi)])
     top_h = max(float(finite.max()) if finite.size else 1.0, 1.0) * (1 + 2 * PAD_FRACTION)
@@ -171,6 +139,6 @@ def plot_service_spark(hours: Any, p10_h: Any, p50_h: Any, p90_h: Any) -> bytes:
         ax.set_xlim(h[0], h[-1])
     ax.set_axis_off()
     fig.subplots_adjust(0.01, 0.04, 0.99, 0.96)
-    out = _png(fig)
+    out = png_bytes(fig)
     plt.close(fig)
     return out
