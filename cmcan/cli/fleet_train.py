@@ -26,7 +26,9 @@ def add_parser(fsub: Subparsers) -> None:
         "`cmcan simulate fleet` writes it, or the machines named with --machine) on their healthy timeline rows: "
         "every tick evaluated inside the envelope, a finite operating point, warning level ok, before the "
         "machine's first ratio warning (and --until-h). Same fit as `cmcan train`; the unit-to-unit spread "
-        "(each machine's mean residual in l/min) goes into the model's training metadata (docs/fleet.md).",
+        "(each machine's mean residual in l/min) goes into the model's training metadata (docs/fleet.md). A machine "
+        "whose offset is far from the others' (more than 3.5 robust SDs from their median: it arrives leaking, or "
+        "its displacement is set high) is named and left out of the fit and the spread; --keep keeps it.",
     )
     t.add_argument("dataset", help="data set folder (cmcan fleet replay --out)")
     t.add_argument("--machine-type", required=True, metavar="TYPE", help="the type to train (its name is recorded)")
@@ -34,6 +36,9 @@ def add_parser(fsub: Subparsers) -> None:
     who.add_argument("--types", metavar="FILE", help="CSV with columns machine,type: the machines of TYPE")
     who.add_argument("--machine", action="append", metavar="ID", help="a machine of TYPE (repeat for several)")
     t.add_argument("--exclude", action="append", default=[], metavar="ID", help="leave a machine out (repeat)")
+    t.add_argument(
+        "--keep", action="append", default=[], metavar="ID", help="never leave this machine out as an outlier (repeat)"
+    )
     t.add_argument("--until-h", type=float, help="only rows before this operating hour of each machine")
     t.add_argument("--min-points", type=int, default=20, help="healthy points each machine must have (default 20)")
     t.add_argument("--out", required=True, help="model file to write (.onnx)")
@@ -70,14 +75,20 @@ def _selected(args: argparse.Namespace) -> list[str]:
         chosen = machines_of_type(read_types(args.types), args.machine_type, args.types)
     else:
         chosen = sorted(set(args.machine))
-    for m in (*chosen, *args.exclude):
-        ds.check_machine(m, "--exclude" if m in args.exclude else (args.types or "--machine"))
-    stray = [m for m in args.exclude if m not in chosen]
-    if stray:
-        raise CmcanError(
-            f"--exclude {', '.join(stray)}: not a machine of type {args.machine_type} ({', '.join(chosen)})",
-            Kind.USAGE,
+    for m in (*chosen, *args.exclude, *args.keep):
+        ds.check_machine(
+            m, "--exclude" if m in args.exclude else "--keep" if m in args.keep else (args.types or "--machine")
         )
+    for option, named in (("--exclude", args.exclude), ("--keep", args.keep)):
+        stray = [m for m in named if m not in chosen]
+        if stray:
+            raise CmcanError(
+                f"{option} {', '.join(stray)}: not a machine of type {args.machine_type} ({', '.join(chosen)})",
+                Kind.USAGE,
+            )
+    both = sorted(set(args.exclude) & set(args.keep))
+    if both:
+        raise CmcanError(f"--exclude and --keep both name {', '.join(both)}", Kind.USAGE)
     return [m for m in chosen if m not in args.exclude]
 
 
@@ -128,7 +139,7 @@ def run(args: argparse.Namespace) -> int:
     check_points(points, args.min_points, str(root))
     selection = selection_info(args.until_h, args.exclude, args.min_points)
     try:
-        res = fit_type(points, facts, args.machine_type, str(root), selection)
+        res = fit_type(points, facts, args.machine_type, str(root), selection, keep=args.keep)
     except ValueError as exc:
         raise CmcanError(f"{root}: type {args.machine_type}: {exc}", Kind.DATA) from None
     _write_atomic(out, res.blob)
@@ -148,6 +159,7 @@ def _summary(
     from cmcan.model.physics import TERMS
 
     spread = res.training["unit_spread"]
+    offset = {**spread["per_machine"], **spread["outliers"]}
     return {
         "model": str(out),
         "machine_type": machine_type,
@@ -158,7 +170,8 @@ def _summary(
                 "points": len(mp),
                 "rows": mp.rows,
                 "refused": mp.refused,
-                "offset_lpm": spread["per_machine"][mp.machine]["offset_lpm"],
+                "offset_lpm": offset[mp.machine]["offset_lpm"],
+                "left_out": spread["outliers"].get(mp.machine, {}).get("why"),
             }
             for mp in points
         },
@@ -184,4 +197,7 @@ def _print(s: dict[str, Any]) -> None:
         f"largest |offset| {sp['offset_max_abs_lpm']:.3g} l/min ({worst})"
     )
     for m, d in s["machines"].items():
-        print(f"  {m}: {d['points']} points of {d['rows']} rows, offset {d['offset_lpm']:+.3f} l/min")
+        out = f"; left out: {d['left_out']}" if d["left_out"] else ""
+        print(f"  {m}: {d['points']} points of {d['rows']} rows, offset {d['offset_lpm']:+.3f} l/min{out}")
+    if sp["outliers"]:
+        print(f"  left out of the type ({sp['rule']}): {', '.join(sp['outliers'])}")

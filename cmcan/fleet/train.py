@@ -10,6 +10,12 @@ command line :mod:`cmcan.cli.fleet_train`.
   (:func:`cmcan.model.train.fit`, float64) and measures the **unit-to-unit spread**: each machine's
   offset, the mean of its residual (measured - predicted) in l/min over its own points, and the
   spread of those offsets, recorded in the model's ``training["unit_spread"]``.
+- A machine whose offset lies far from the others' is not a unit of the type the model may learn
+  (:func:`outlying`): a machine that arrives leaking sits well below the type, one whose displacement
+  control is set high above it. Its offset is judged against the median of the offsets and their
+  median absolute deviation (MAD), which one or two such machines cannot move; it is named, left out
+  of the fit and of the spread, and the type is fitted again on the rest until no machine is left
+  out anew. The spread written is the standard deviation of the offsets of the machines kept.
 """
 
 from __future__ import annotations
@@ -28,6 +34,16 @@ from cmcan.errors import CmcanError, Kind
 from cmcan.roles import MODEL_INPUTS
 
 MIN_MACHINES = 2  # a spread needs two units
+MIN_MACHINES_JUDGED = 4  # fewer: the median and MAD of the offsets cannot tell which machine is the odd one
+# A robust z-score |offset - median| / (1.4826 MAD) above it: an outlier (Iglewicz and Hoaglin's 3.5).
+OUTLIER_Z = 3.5
+MAD_TO_SD = 1.4826  # the MAD of a normal sample times this estimates its standard deviation
+# The least scale the offsets are judged on, as a share of the type's median delivered flow: the
+# datasheet tolerance of a series unit's displacement (+-1 %) and its healthy leakage make offsets of
+# about 1 % of the flow between healthy units of a type, however alike the few in a data set happen
+# to be; with ten or so machines the MAD alone is too uncertain to judge on (it would name healthy
+# units). Above it, 3.5 robust SDs: a unit 3.5 % of its flow or more off its type.
+SCALE_FLOOR_SHARE = 0.01
 MIN_POINTS_PER_MACHINE = 20  # fewer: a machine's offset is noise
 # Why a row is left out, in the order the rules are applied (the counts say which rule took it).
 REFUSALS = ("not_all_evaluated", "outside_envelope", "no_operating_point", "not_ok", "after_warning", "after_until_h")
@@ -205,9 +221,12 @@ def check_points(points: Sequence[MachinePoints], min_points: int, dataset: str)
 # -- the spread ----------------------------------------------------------------------------------------------
 
 
-def unit_spread(residual_lpm: Mapping[str, NDArray[np.float64]]) -> dict[str, Any]:
-    """``training["unit_spread"]``: each machine's offset (the mean of its residual in l/min, each of its
-    points weighted equally), their sample standard deviation (n - 1) and the largest absolute one."""
+def unit_spread(
+    residual_lpm: Mapping[str, NDArray[np.float64]], outliers: Mapping[str, Mapping[str, Any]] | None = None
+) -> dict[str, Any]:
+    """``training["unit_spread"]``: each kept machine's offset (the mean of its residual in l/min, each
+    of its points weighted equally), their sample standard deviation (n - 1) and the largest absolute
+    one; the machines left out as outliers, with their offsets and why (:func:`outlying`)."""
     per = {m: {"offset_lpm": float(np.mean(r)), "points": len(r)} for m, r in sorted(residual_lpm.items())}
     offsets = np.array([v["offset_lpm"] for v in per.values()], dtype=np.float64)
     return {
@@ -215,7 +234,28 @@ def unit_spread(residual_lpm: Mapping[str, NDArray[np.float64]]) -> dict[str, An
         "offset_sd_lpm": float(np.std(offsets, ddof=1)) if len(offsets) > 1 else 0.0,
         "offset_max_abs_lpm": float(np.max(np.abs(offsets))) if len(offsets) else 0.0,
         "per_machine": per,
+        "outliers": {m: dict(v) for m, v in sorted((outliers or {}).items())},
+        "rule": f"offset more than {OUTLIER_Z:g} robust SDs (1.4826 MAD, at least {SCALE_FLOOR_SHARE:.1%} of the "
+        "median flow) from the median offset: left out",
     }
+
+
+def outlying(offsets_lpm: Mapping[str, float], floor_lpm: float) -> dict[str, dict[str, Any]]:
+    """The machines whose offset is an outlier among ``offsets_lpm``: its modified z-score (distance to
+    the median over 1.4826 MAD, the MAD floored at ``floor_lpm``) above :data:`OUTLIER_Z`, each with its
+    offset, score and what it suggests. None judged among fewer than :data:`MIN_MACHINES_JUDGED`."""
+    if len(offsets_lpm) < MIN_MACHINES_JUDGED:
+        return {}
+    v = np.array(list(offsets_lpm.values()), dtype=np.float64)
+    center = float(np.median(v))
+    scale = max(MAD_TO_SD * float(np.median(np.abs(v - center))), floor_lpm)
+    out = {}
+    for m, o in sorted(offsets_lpm.items()):
+        z = (o - center) / scale
+        if abs(z) > OUTLIER_Z:
+            why = "arrives leaking: delivers less than the type" if z < 0 else "delivers more than the type"
+            out[m] = {"offset_lpm": float(o), "robust_z": float(z), "why": f"{why} (does not fit the type)"}
+    return out
 
 
 def selection_info(until_h: float | None, excluded: Sequence[str], min_points: int) -> dict[str, Any]:
@@ -243,20 +283,35 @@ def fit_type(
     machine_type: str,
     source: str,
     selection: Mapping[str, Any] | None = None,
+    keep: Sequence[str] = (),
 ) -> TypeFit:
-    """The type model on every machine's points (machines in sorted order), its residual figures and
-    the unit-to-unit spread, written as ``cmcan train`` writes a model (:func:`cmcan.model.train.to_onnx`)."""
+    """The type model on the machines' points (machines in sorted order), outlying machines left out
+    (:func:`outlying`; never those in ``keep``), its residual figures and the unit-to-unit spread,
+    written as ``cmcan train`` writes a model (:func:`cmcan.model.train.to_onnx`)."""
     from cmcan.model.train import fingerprint, fit, residual_figures, to_onnx
     from cmcan.oil import Oil
 
-    points = sorted(points, key=lambda mp: mp.machine)
-    x = np.concatenate([mp.x for mp in points]).astype(np.float64)
-    y = np.concatenate([mp.measured for mp in points]).astype(np.float64)
+    kept = sorted(points, key=lambda mp: mp.machine)
     oil = Oil(facts.oil_nu40_cst, facts.oil_nu100_cst)
-    model = fit(x, y, facts.motor_disp_cc, facts.quantity, oil)
+    flow = np.concatenate([mp.measured for mp in kept]) * facts.lpm_per_unit
+    floor_lpm = SCALE_FLOOR_SHARE * float(np.median(np.abs(flow))) if len(flow) else 0.0
+    left_out: dict[str, dict[str, Any]] = {}
+    while True:  # each round leaves machines out or ends: at most one round per machine
+        x = np.concatenate([mp.x for mp in kept]).astype(np.float64)
+        y = np.concatenate([mp.measured for mp in kept]).astype(np.float64)
+        model = fit(x, y, facts.motor_disp_cc, facts.quantity, oil)
+        residual_lpm = {mp.machine: (mp.measured - model.predict(mp.x)) * facts.lpm_per_unit for mp in kept}
+        offsets = {m: float(np.mean(r)) for m, r in residual_lpm.items()}
+        new = {m: v for m, v in outlying(offsets, floor_lpm).items() if m not in keep}
+        if not new or len(kept) - len(new) < MIN_MACHINES:
+            break
+        left_out.update(new)
+        kept = [mp for mp in kept if mp.machine not in new]
+    for m, v in left_out.items():  # as the final model sees it
+        mp = next(p for p in points if p.machine == m)
+        v["offset_lpm"] = float(np.mean((mp.measured - model.predict(mp.x)) * facts.lpm_per_unit))
     stats = residual_figures(model, x, y, "D_trn")
-    residual_lpm = {mp.machine: (mp.measured - model.predict(mp.x)) * facts.lpm_per_unit for mp in points}
-    spread = unit_spread(residual_lpm)
+    spread = unit_spread(residual_lpm, left_out)
     training = {
         "fingerprint": fingerprint(x, y),
         "source": source,
@@ -265,7 +320,7 @@ def fit_type(
         "t_trn_h": None,
         "points_trn": len(y),
         "points_tst": 0,
-        "selection": dict(selection or {}),
+        "selection": {**dict(selection or {}), "outliers": sorted(left_out), "kept_by_hand": sorted(keep)},
         "unit_spread": spread,
     }
     return TypeFit(to_onnx(model, stats, training), model, stats, training)

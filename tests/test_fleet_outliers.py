@@ -1,0 +1,136 @@
+"""`cmcan fleet train` against machines that do not fit their type: a machine that arrives leaking (or
+with its displacement set high) is named and left out of the type model and its unit-to-unit spread,
+judged on the median and MAD of the machines' offsets, which one or two such machines cannot move.
+Machines drawn from the simulator's own steady flow balance (the fit, not the Dask path, is tested here;
+tests/test_fleet_train.py runs the command line)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import event, given, settings
+from hypothesis import strategies as st
+
+pytest.importorskip("onnx")
+
+from cmcan.fleet.train import (
+    MIN_MACHINES_JUDGED,
+    OUTLIER_Z,
+    DriveFacts,
+    MachinePoints,
+    fit_type,
+    outlying,
+)
+from cmcan.sim.physics import DriveParams, steady_motor_speed_rpm
+
+DRIVE = DriveParams()
+MOTOR_CC = DRIVE.motor_disp_cc
+FACTS = DriveFacts("motor_speed_rpm", MOTOR_CC, DRIVE.oil.nu40_cst, DRIVE.oil.nu100_cst)
+POINTS = 400
+
+
+def machine(name: str, rng: np.random.Generator, extra_leak_lpm: float, disp_factor: float = 1.0) -> MachinePoints:
+    """A machine's healthy points over the envelope: the simulator's steady motor speed with the unit's
+    own extra leak (negative: it delivers more), and speed-sensor noise."""
+    x = np.column_stack(
+        [
+            rng.uniform(900.0, 3300.0, POINTS),  # pump speed, rpm
+            rng.uniform(10.0, 78.0, POINTS),  # pump displacement, cc
+            rng.uniform(40.0, 450.0, POINTS),  # delta p, bar
+            rng.uniform(35.0, 85.0, POINTS),  # oil, C
+        ]
+    )
+    n_m = steady_motor_speed_rpm(DRIVE, *x.T, extra_leak_lpm=extra_leak_lpm, motor_disp_factor=disp_factor)
+    n_m = n_m + rng.normal(0.0, 3.0, POINTS)
+    return MachinePoints(name, x, n_m, np.linspace(0.0, 50.0, POINTS), rows=POINTS, refused={})
+
+
+def fleet(seed: int, n: int, leaks_lpm: dict[int, float], unit_sd_lpm: float = 0.8) -> list[MachinePoints]:
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(n):
+        unit = rng.normal(0.0, unit_sd_lpm)  # the unit-to-unit spread of healthy drives
+        out.append(machine(f"m{i:03d}", rng, unit + leaks_lpm.get(i, 0.0)))
+    return out
+
+
+@pytest.fixture(scope="module")
+def leaking():
+    """Twelve machines, two of which arrive leaking 8 and 9 l/min; and the same ten without those two."""
+    ms = fleet(11, 12, {3: 8.0, 8: 9.0})
+    with_leaks = fit_type(ms, FACTS, "mid", "test")
+    without = fit_type([m for m in ms if m.machine not in ("m003", "m008")], FACTS, "mid", "test")
+    return ms, with_leaks, without
+
+
+def test_both_leaking_machines_are_named_and_left_out(leaking):
+    _, res, _ = leaking
+    sp = res.training["unit_spread"]
+    assert sorted(sp["outliers"]) == ["m003", "m008"]
+    assert all("arrives leaking" in v["why"] for v in sp["outliers"].values())
+    assert all(v["offset_lpm"] < -6.0 and v["robust_z"] < -OUTLIER_Z for v in sp["outliers"].values())
+    assert sp["machines"] == 10 and "m003" not in sp["per_machine"]
+    assert res.training["selection"]["outliers"] == ["m003", "m008"]
+
+
+def test_the_spread_is_the_fleets_without_them(leaking):
+    """The kept machines are the ten healthy ones, so the model and the spread are those of the fleet
+    without the two (the issue asks for within 20 %)."""
+    _, res, without = leaking
+    a, b = res.training["unit_spread"]["offset_sd_lpm"], without.training["unit_spread"]["offset_sd_lpm"]
+    assert without.training["unit_spread"]["outliers"] == {}
+    assert abs(a - b) <= 0.2 * b and 0.3 < b < 2.0
+    assert res.training["points_trn"] == without.training["points_trn"]
+
+
+def test_without_the_rule_the_leaks_would_have_inflated_the_spread(leaking):
+    ms, res, _ = leaking
+    kept_all = fit_type(ms, FACTS, "mid", "test", keep=[m.machine for m in ms])
+    sp = kept_all.training["unit_spread"]
+    assert sp["outliers"] == {} and sp["machines"] == 12
+    assert sp["offset_sd_lpm"] > 2.5 * res.training["unit_spread"]["offset_sd_lpm"]
+    assert kept_all.training["selection"]["kept_by_hand"] == sorted(m.machine for m in ms)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_a_healthy_fleet_loses_no_machine(seed):
+    res = fit_type(fleet(seed, 9, {}), FACTS, "mid", "test")
+    assert res.training["unit_spread"]["outliers"] == {}
+    assert res.training["unit_spread"]["machines"] == 9
+
+
+def test_a_displacement_set_high_is_named_as_delivering_more():
+    rng = np.random.default_rng(5)
+    ms = fleet(5, 7, {})
+    ms.append(machine("m099", rng, 0.0, disp_factor=0.88))  # swallows 12 % less per rev: reads fast
+    sp = fit_type(ms, FACTS, "mid", "test").training["unit_spread"]
+    assert list(sp["outliers"]) == ["m099"] and "delivers more" in sp["outliers"]["m099"]["why"]
+
+
+def test_three_machines_are_not_judged():
+    ms = fleet(7, 3, {1: 12.0})
+    assert fit_type(ms, FACTS, "mid", "test").training["unit_spread"]["outliers"] == {}
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    healthy=st.lists(st.floats(-1.0, 1.0), min_size=MIN_MACHINES_JUDGED, max_size=20),
+    odd=st.lists(st.floats(-40.0, 40.0).filter(lambda v: abs(v) >= 8.0), max_size=2),
+)
+def test_one_or_two_odd_machines_cannot_hide_themselves_or_a_healthy_one(healthy, odd):
+    """Healthy offsets within +-1 l/min (the floor 1 l/min: 3.5 robust SDs are 3.5 l/min at least),
+    at most two far off, and the healthy ones the majority: exactly the odd ones are named."""
+    if len(odd) * 2 >= len(healthy):
+        odd = odd[: max(0, (len(healthy) - 1) // 2)]
+    offsets = {f"h{i:02d}": v for i, v in enumerate(healthy)} | {f"x{i}": v for i, v in enumerate(odd)}
+    event(f"{len(odd)} odd")
+    assert sorted(outlying(offsets, 1.0)) == [f"x{i}" for i in range(len(odd))]
+
+
+def test_the_scale_has_a_floor():
+    """Identical units (MAD 0) do not make a tenth of a l/min an outlier."""
+    offsets = {f"m{i}": 0.0 for i in range(8)} | {"m9": 0.1}
+    assert outlying(offsets, 1.0) == {} and outlying(offsets | {"m9": 3.4}, 1.0) == {}
+    assert math.isclose(outlying(offsets | {"m9": 4.0}, 1.0)["m9"]["robust_z"], 4.0)
