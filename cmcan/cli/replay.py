@@ -27,9 +27,24 @@ def add_subparser(sub: Subparsers) -> None:
         "replay",
         help="run a CAN log through the monitor (timeline, emitted frames, warnings)",
         description="Run a log in any format python-can's LogReader reads (candump -l .log, .asc, .blf, .trc, "
-        ".csv, .db, .mf4, also .gz) through the same monitor core as cmcan run, on the log's own timestamps.",
+        ".csv, .db, .mf4, also .gz) through the same monitor core as cmcan run, on the log's own timestamps. "
+        "Several logs of one machine are its life: replayed in the order of their first frames, the monitor's "
+        "state (filter, warning condition, counts, baseline, prognosis history) carried from each log to the "
+        "next as the daemon carries it across a restart (not across more than a week between two logs; "
+        "overlapping logs are refused); the outputs cover them all.",
     )
-    p.add_argument("log", help="CAN log")
+    p.add_argument("log", nargs="+", help="CAN log, or several logs of one machine")
+    p.add_argument(
+        "--state-in",
+        metavar="FILE",
+        help="start from this state (a daemon's state.json, or the --state-out of an earlier replay) instead of "
+        "a fresh monitor",
+    )
+    p.add_argument(
+        "--state-out",
+        metavar="FILE",
+        help="write the monitor's state at the end, as the daemon saves it (for the next replay's --state-in)",
+    )
     p.add_argument("--config", help="configuration (default: the shipped config/cmcan.yaml)")
     p.add_argument("--model", help="model file (default: the configuration's)")
     p.add_argument(
@@ -75,33 +90,177 @@ def channel_map(pairs: list[str], cfg: Any) -> dict[str, str]:
 
 
 def run(args: argparse.Namespace) -> int:
-    outs = {k: ensure_writable(getattr(args, k), args.force) for k in ("out", "emit", "plot") if getattr(args, k)}
+    names = ("out", "emit", "plot", "state_out")
+    outs = {k: ensure_writable(getattr(args, k), args.force) for k in names if getattr(args, k)}
     if "plot" in outs:
         require_extra("plot", "matplotlib")
-    if not Path(args.log).exists():
-        raise CmcanError(f"{args.log}: log file not found", Kind.NO_INPUT)
+    logs = _logs(args.log)
     cfg = load_config(args.config, check_dbc=False)
-    from cmcan.assemble import assemble
+    from cmcan.assemble import assemble, build_monitor
+    from cmcan.monitor.totals import Totals
 
     aliases = channel_map(args.channel_map, cfg)
     args.channel_map_names = list(aliases)
-    mon = assemble(cfg, args.model, log_aliases=aliases).monitor
+    asm = assemble(cfg, args.model, totals=_state_in(args.state_in), log_aliases=aliases)
+    mon = asm.monitor
     sinks = _Sinks(outs, cfg.quantity, prognosis=mon.prognosis is not None)
-    res, cut = _replay(args, mon, sinks.all)
-    assert res.first_t is not None  # a log without frames raised NoFrames, leaving no output behind
+    life = [_Lasting(s) for s in sinks.all]  # one output for the whole life, closed after its last log
+    summaries = []
+    try:
+        for i, (log, first_t) in enumerate(_in_time_order(logs)):
+            if i:
+                prev, prev_res = summaries[-1][0], summaries[-1][1]
+                note = _carried(prev, prev_res.last_t, log, first_t)
+                state = mon.save_totals().to_dict() if note is None else None
+                mon = build_monitor(cfg, asm.db, asm.model, Totals.from_dict(state) if state else None, aliases)
+                if note is not None:
+                    print(f"cmcan replay: {log}: the state starts afresh: {note}", file=sys.stderr)
+            res, cut = _replay(log, args, mon, life)
+            assert res.first_t is not None  # a log without frames raised NoFrames, leaving no output behind
+            summaries.append((log, res, _summary(log, args, cfg, mon, res, sinks.fit.verdict(), cut, not aliases)))
+    except BaseException:
+        for s in life:
+            s.end(abort=True)
+        raise
+    for s in life:
+        s.end()
     if sinks.plot is not None:
         from cmcan.plots import plot_ratio
 
         th = cfg.thresholds
-        plot_ratio(
-            sinks.plot.timeline, res.first_t, th.low_pct, th.high_pct, outs["plot"], title=f"CM ratio: {args.log}"
-        )
-    summary = _summary(args, cfg, mon, res, sinks.fit.verdict(), cut, merged_alone=not aliases)
+        title = f"CM ratio: {logs[0]}" if len(logs) == 1 else f"CM ratio: {len(logs)} logs from {summaries[0][0]}"
+        plot_ratio(sinks.plot.timeline, summaries[0][1].first_t, th.low_pct, th.high_pct, outs["plot"], title=title)
+    if "state_out" in outs:
+        _state_out(outs["state_out"], mon.save_totals())
     if args.json:
-        print_json(summary)
+        print_json(summaries[0][2] if len(logs) == 1 else _life_summary([s for _, _, s in summaries]))
     else:
-        _print(args.log, res, summary)
+        for log, res, summary in summaries:
+            _print(str(log), res, summary)
     return 0
+
+
+def _logs(given: list[str]) -> list[Path]:
+    logs = [Path(p) for p in given]
+    for p in logs:
+        if not p.exists():
+            raise CmcanError(f"{p}: log file not found", Kind.NO_INPUT)
+    seen: dict[Path, Path] = {}
+    for p in logs:
+        key = p.resolve()
+        if key in seen:
+            raise CmcanError(f"{p}: given twice (as {seen[key]} too): one life has each log once", Kind.USAGE)
+        seen[key] = p
+    return logs
+
+
+def _in_time_order(logs: list[Path]) -> list[tuple[Path, float]]:
+    """The logs in the order of their first frames, with those frames' times."""
+    if len(logs) == 1:
+        return [(logs[0], math.nan)]
+    return sorted(((p, _first_stamp(p)) for p in logs), key=lambda x: x[1])
+
+
+def _first_stamp(p: Path) -> float:
+    from cmcan.io.candump import iter_frames
+
+    try:
+        for f in iter_frames(p, keep_truncated=True, on_cut=lambda cut: None):
+            return f.timestamp_s
+    except CmcanError:
+        raise
+    except (ValueError, OSError) as exc:
+        raise CmcanError(f"{p}: cannot read as a CAN log: {exc}", Kind.DATA) from None
+    raise CmcanError(f"{p}: no frames in the log", Kind.DATA)
+
+
+def _carried(prev: Path, prev_last_t: float, log: Path, first_t: float) -> str | None:
+    """Why the state does not carry from ``prev`` into ``log`` (None: it does), as the daemon's state
+    would not after a week off; overlapping logs are refused: two recordings of one stretch are not
+    one life."""
+    from cmcan.fleet.chain import MAX_CARRY_GAP_H, OVERLAP_TOLERANCE_S
+
+    gap_s = first_t - prev_last_t
+    if gap_s < -OVERLAP_TOLERANCE_S:
+        raise CmcanError(
+            f"{log}: starts {-gap_s:.1f} s before {prev} ends: overlapping logs are not one machine's life "
+            "(replay them one at a time)",
+            Kind.DATA,
+        )
+    if gap_s > MAX_CARRY_GAP_H * 3600.0:
+        return f"{gap_s / 3600.0:.1f} h after {prev} ended (more than {MAX_CARRY_GAP_H:g} h)"
+    return None
+
+
+def _state_in(path: str | None) -> Any:
+    """--state-in: the state file read as the daemon reads one, refused (exit 65) where any part of it
+    is damaged: offline, the user's file is meant whole."""
+    if path is None:
+        return None
+    from cmcan.statefile import MAX_STATE_BYTES, NotAFile, TooLarge, examine, read_limited
+
+    try:
+        raw = read_limited(Path(path), MAX_STATE_BYTES)
+    except FileNotFoundError:
+        raise CmcanError(f"--state-in {path}: file not found", Kind.NO_INPUT) from None
+    except (NotAFile, TooLarge, OSError) as exc:
+        raise CmcanError(f"--state-in {path}: cannot read: {exc}", Kind.NO_INPUT) from None
+    reading = examine(raw)
+    if reading.damage:
+        what = "; ".join(f"{d.part}: {d.problem}" for d in reading.damage)
+        raise CmcanError(f"--state-in {path}: not a usable state: {what}", Kind.DATA)
+    return reading.totals
+
+
+def _state_out(path: Path, totals: Any) -> None:
+    import json
+
+    from cmcan.statefile import write_atomic
+
+    write_atomic(path.parent, path.name, json.dumps(totals.to_dict(), indent=1).encode("utf-8"))
+
+
+class _Lasting:
+    """A sink kept open across the logs of one life: started at the first log's first frame, closed
+    (or aborted) once, after the last."""
+
+    def __init__(self, sink: Any) -> None:
+        self.sink = sink
+        self.wants_ticks, self.wants_frames = sink.wants_ticks, sink.wants_frames
+        self.started = False
+
+    def start(self, t0: float) -> None:
+        if not self.started:
+            self.started = True
+            self.sink.start(t0)
+
+    def ticks(self, chunk: Any) -> None:
+        self.sink.ticks(chunk)
+
+    def frames(self, frames: Any) -> None:
+        self.sink.frames(frames)
+
+    def close(self) -> None:  # the end of one log: the life goes on
+        pass
+
+    def abort(self) -> None:  # a log that failed: the whole output goes (end(abort=True) follows)
+        pass
+
+    def end(self, abort: bool = False) -> None:
+        if abort or not self.started:
+            self.sink.abort()
+        else:
+            self.sink.close()
+
+
+def _life_summary(parts: list[dict[str, Any]]) -> dict[str, Any]:
+    """--json for several logs: each log's summary in time order, with the life's warnings and its end."""
+    return {
+        "logs": parts,
+        "warnings": [{**w, "log": p["log"]} for p in parts for w in p["warnings"]],
+        "final": parts[-1]["final"],
+        "totals": parts[-1]["totals"],
+    }
 
 
 class _Sinks:
@@ -123,14 +282,14 @@ class _Sinks:
         self.all.append(self.fit)
 
 
-def _replay(args: argparse.Namespace, mon: Any, sinks: list[Any]) -> tuple[ReplaySummary, Cut | None]:
+def _replay(log: Path, args: argparse.Namespace, mon: Any, sinks: list[Any]) -> tuple[ReplaySummary, Cut | None]:
     from cmcan.replay import replay_file
 
-    progress = _Progress(Path(args.log)) if sys.stdout.isatty() and not args.json else None
+    progress = _Progress(log) if sys.stdout.isatty() and not args.json else None
     cuts: list[Cut] = []  # where a log read with --keep-truncated was cut
     try:
         res = replay_file(
-            args.log,
+            log,
             mon,
             sinks,
             engine=args.engine,
@@ -141,7 +300,7 @@ def _replay(args: argparse.Namespace, mon: Any, sinks: list[Any]) -> tuple[Repla
     except CmcanError:  # a log that cannot be read names itself (truncated, corrupt, a reader missing)
         raise
     except (ValueError, OSError) as exc:
-        raise CmcanError(f"{args.log}: cannot read as a CAN log: {exc}", Kind.DATA) from None
+        raise CmcanError(f"{log}: cannot read as a CAN log: {exc}", Kind.DATA) from None
     finally:
         if progress is not None:
             progress.done()
@@ -149,6 +308,7 @@ def _replay(args: argparse.Namespace, mon: Any, sinks: list[Any]) -> tuple[Repla
 
 
 def _summary(
+    log: Path,
     args: argparse.Namespace,
     cfg: Any,
     mon: Any,
@@ -178,12 +338,12 @@ def _summary(
     if res.counters["accepted"] == 0:
         print(f"cmcan replay: warning: {nothing_matched(mon, res.snapshot)}", file=sys.stderr)
     return {
-        "log": str(args.log),
+        "log": str(log),
         "channels": {k: v for k, v in sorted(seen.items())},
         "channels_renamed": sorted(k for k, v in seen.items() if v is not None and k != v),
         "first_timestamp_s": res.first_t,
         "duration_h": res.duration_h,
-        "warnings": res.warnings,
+        "warnings": [w for w in res.warnings if w["t_s"] >= res.first_t],  # this log's (not a carried state's)
         "final": res.snapshot,
         "totals": res.totals,
         "frames_emitted": res.frames_emitted if args.emit else None,
