@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import can
+import numpy as np
 
 from cmcan import config as cfgmod
 from cmcan.assemble import bus_plan, dbc_for
@@ -70,6 +71,8 @@ class DemoResult:
     baseline: list[tuple[float, str]] = field(default_factory=list)
     # CM_PROGNOSIS as :func:`prognosis_at` decodes it, for the figure's panel (not in the JSON: thousands)
     prognosis: list[tuple[float, str, float, float, float]] = field(default_factory=list)
+    # what end of life the demo configured and why, and the default's (:func:`end_of_life`)
+    end_of_life: dict[str, Any] = field(default_factory=dict)
 
     @property
     def learning_h(self) -> tuple[float, float] | None:
@@ -97,6 +100,7 @@ class DemoResult:
             "failures": self.failures,
             "checks": self.checks,
             "baseline": [{"operating_h": h, "state": s} for h, s in self.baseline],
+            "end_of_life": self.end_of_life,
             "passed": self.passed,
         }
 
@@ -157,6 +161,72 @@ def with_prognosis(cfg: cfgmod.Config, s: scn.Scenario) -> cfgmod.Config:
         estimate_every_h=1.0,
     )
     return replace(cfg, prognosis=p)
+
+
+def end_of_life(cfg: cfgmod.Config) -> dict[str, Any]:
+    """What end of life the demo's prognosis counts to, and why: the rig's own loss of function, which
+    the scenario knows and a machine in the field does not; and the default a machine gets."""
+    p, d = cfg.prognosis.params, cfgmod.PrognosisConfig.on().params
+    low = f"{p.eol_value:g} l/min of extra leakage" if p.eol_kind == "leak_lpm" else f"the ratio at {p.eol_value:g} %"
+    return {
+        "configured": {"kind": p.eol_kind, "value": p.eol_value, "high_pct": p.eol_high_pct},
+        "configured_text": f"{low} (at {p.dp_ref_bar:g} bar, {p.temp_ref_c:g} C), the ratio at {p.eol_high_pct:.1f} % "
+        "above",
+        "why": "the scenario's own loss of function (its wear's fail_extra_lpm, the ratio its misposition fails at): "
+        "the demo's estimates count to the failures themselves, which a machine in the field does not know",
+        "default": {"kind": d.eol_kind, "value": d.eol_value, "high_pct": d.eol_high_pct},
+        "default_text": f"the ratio at {d.eol_value:g} % below, {d.eol_high_pct:g} % above (docs/prognosis.md)",
+    }
+
+
+def judge_default_eol(
+    frames: Frames,
+    cfg: cfgmod.Config,
+    db: Any,
+    start_epoch_s: float,
+    report: list[dict[str, Any]],
+    ratio: tuple[list[float], list[float]],
+    outputs: Outputs | None = None,
+) -> None:
+    """Beside each failure: what the default end of life gives on the same run (the same frames
+    through the same core, replayed with the prognosis's defaults), against when the filtered ratio
+    reached that end of life on the bus."""
+    from cmcan.assemble import assemble
+    from cmcan.replay import FrameCollector, replay_columns
+
+    cfg_d = replace(cfg, prognosis=cfgmod.PrognosisConfig.on(estimate_every_h=cfg.prognosis.params.estimate_every_h))
+    sink = FrameCollector()
+    replay_columns(assemble(cfg_d).monitor, frames.to_columns(cfg.bus.channel), [sink])
+    seen = prognosis_at(sink.frames_out, db, cfg_d, start_epoch_s, outputs)
+    p = cfg_d.prognosis.params
+    h, pct = np.asarray(ratio[0], dtype=float), np.asarray(ratio[1], dtype=float)
+    previous = 0.0
+    for f in report:
+        if f["kind"] not in ("wear", "misposition"):
+            continue
+        past = pct >= p.eol_high_pct if f["kind"] == "misposition" else pct <= p.eol_value
+        reached = reached_after(h, past, previous, f["fail_h"])
+        previous = f["fail_h"]
+        at = f["fail_h"] - PROGNOSIS_BEFORE_H
+        near = [x for x in seen if abs(x[0] - at) <= 0.5]
+        best = min(near, key=lambda x: abs(x[0] - at)) if near else None
+        f["prognosis_default_eol"] = {
+            "at_h": best[0] if best else at,
+            "state": best[1] if best else None,
+            "to_eol_h": [best[2], best[3], best[4]] if best and best[1] != "none" else None,
+            "reached_h": reached,
+        }
+
+
+def reached_after(h: Any, past: Any, after_h: float, until_h: float) -> float | None:
+    """The first hour in (``after_h``, ``until_h``] at which ``past`` holds after it did not: a unit
+    repaired at ``after_h`` starts the window still past its end of life until the ratio recovers."""
+    rows = np.flatnonzero((h > after_h) & (h <= until_h))
+    inside = np.flatnonzero(~past[rows])
+    if not len(inside):
+        return None
+    later = np.flatnonzero(past[rows][inside[0] :])
+    return float(h[rows[inside[0] + later[0]]]) if len(later) else None
 
 
 def misposition_eol_pct(events: list[dict[str, Any]]) -> float | None:
@@ -472,6 +542,8 @@ def run_demo(
     transitions, report, checks, rh, rp = analyse(received, db, cfg, run.start_epoch_s, failures, outputs)
     baseline = baseline_states(received, db, cfg, run.start_epoch_s, outputs)
     judge_prognosis(report, prognosis_at(received, db, cfg, run.start_epoch_s, outputs))
+    if cfg.prognosis.enabled:
+        judge_default_eol(frames, cfg, db, run.start_epoch_s, report, (rh, rp), outputs)
     for f in report:
         if f["kind"] in ("wear", "misposition") and "prognosis" in f:
             checks[
@@ -501,6 +573,7 @@ def run_demo(
     )
     res.checks["every frame sent was processed"] = processed == sent
     res.prognosis = prognosis_at(received, db, cfg, run.start_epoch_s, outputs)  # the figure's (a few ms)
+    res.end_of_life = end_of_life(cfg) if cfg.prognosis.enabled else {}
     if plot:
         from cmcan.plots import plot_demo
 

@@ -44,3 +44,27 @@ def test_warnings_read_the_same_with_and_without_value_tables(tmp_path):
         ("low", "ok", "none"),
     ]
     assert report[0]["level"] == "low" and abs(report[0]["lead_h"] - 20.0) < 1e-9
+
+
+def test_the_demo_says_what_end_of_life_it_counts_to_and_the_default():
+    from cmcan import config as cfgmod
+    from cmcan.demo import demo_scenario, end_of_life, with_prognosis
+
+    cfg = with_prognosis(cfgmod.load(), demo_scenario(5.0, 30.0))
+    eol = end_of_life(cfg)
+    assert eol["configured"]["kind"] == "leak_lpm" and eol["configured"]["value"] > 0
+    assert "loss of function" in eol["why"] and "field does not know" in eol["why"]
+    assert eol["default"] == {"kind": "ratio_pct", "value": 90.0, "high_pct": 110.0}
+
+
+def test_the_default_end_of_life_is_reached_after_a_repair_not_at_it():
+    import numpy as np
+
+    from cmcan.demo import reached_after
+
+    h = np.arange(0.0, 10.0)
+    past = np.array([1, 1, 0, 0, 0, 1, 1, 0, 0, 0], dtype=bool)  # past it until a repair at 1 h, again from 5 h
+    assert reached_after(h, past, 0.0, 8.0) == 5.0
+    assert reached_after(h, past, 5.5, 9.0) is None  # never inside it in the window: not reached anew
+    assert reached_after(h, past, 6.0, 9.0) is None  # inside it to the end
+    assert reached_after(h, ~past, 1.0, 9.0) == 7.0  # past from the window's start: only after it was inside

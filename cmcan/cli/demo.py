@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import itertools
 from pathlib import Path
+from typing import Any
 
 from cmcan.cli.common import Subparsers
 from cmcan.cli.jsonout import print_json
@@ -108,6 +109,10 @@ def run(args: argparse.Namespace) -> int:
         print("warnings on the bus (CM_WARNING):")
         for t in res.transitions:
             print(f"  {t['operating_h']:8.1f} h  {t['from']:>5} -> {t['to']:<5} ({t['reason']})")
+        eol = res.end_of_life
+        if eol:
+            print(f"end of life the prognosis counts to: {eol['configured_text']}: {eol['why']}")
+            print(f"  (a machine's default: {eol['default_text']}; what it gives on this run is beside each failure)")
         print("scheduled failures:")
         for f in res.failures:
             if f["first_warning_h"] is None:
@@ -126,8 +131,24 @@ def run(args: argparse.Namespace) -> int:
                 )
             elif pg is not None:
                 print(f"             CM_PROGNOSIS at {pg['at_h']:.1f} h: {pg['state'] or 'nothing'} (no trend)")
+            dd = f.get("prognosis_default_eol")
+            if dd is not None:
+                print(f"             with the default end of life: {_default_eol_line(dd)}")
         for name, ok in res.checks.items():
             print(f"  [{'ok' if ok else 'FAIL'}] {name}")
         if not args.no_plot:
             print(f"plot: {out / 'demo.png'}")
     return 0 if res.passed else 1
+
+
+def _default_eol_line(dd: dict[str, Any]) -> str:
+    reached = dd["reached_h"]
+    when = (
+        f"the ratio reached it at {reached:.1f} h ({reached - dd['at_h']:.1f} h later)"
+        if reached is not None
+        else "the ratio did not reach it before the failure"
+    )
+    if dd["to_eol_h"] is None:
+        return f"at {dd['at_h']:.1f} h {dd['state'] or 'nothing'} (no trend); {when}"
+    p10, p50, p90 = dd["to_eol_h"]
+    return f"at {dd['at_h']:.1f} h {p50:.1f} h to end of life (10-90 %: {p10:.1f}-{p90:.1f} h); {when}"

@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cmcan import checksums, codec
-from cmcan.frame import Frame
+from cmcan.frame import Frame, FrameColumns
 from cmcan.j1939 import ids
 from cmcan.roles import DEFAULT_INPUTS
 from cmcan.sim.run import Run, motor_direction, role_conversion, send_every, send_mask
@@ -75,6 +75,26 @@ class Frames:
             None if self.channel_index is None else self.channel_index[rows],
             self.channel_names,
         )
+
+    def to_columns(self, default_channel: str = "can0", chunk: int = 1 << 18) -> list[FrameColumns]:
+        """As the columnar replay's chunks of :class:`cmcan.frame.FrameColumns` (what a log's reader hands it)."""
+        n = len(self)
+        names = tuple(c or default_channel for c in self.channel_names)
+        code = self.channel_index if self.channel_index is not None else np.zeros(n, dtype=np.int64)
+        no = np.zeros(n, dtype=bool)
+        cols = FrameColumns(
+            timestamp_s=self.timestamp_s.astype(np.float64),
+            channel=code.astype(np.int16),
+            channel_names=names,
+            arbitration_id=self.arbitration_id.astype(np.uint32),
+            extended=self.is_extended(),
+            remote=no,
+            error=no,
+            fd=no,
+            dlc=self.dlc.astype(np.int16),
+            data=self.data.astype(np.uint8),
+        )
+        return [cols.take(np.arange(i, min(i + chunk, n))) for i in range(0, n, chunk)]
 
     def to_frames(self, default_channel: str = "can0") -> list[Frame]:
         """As :class:`cmcan.frame.Frame` objects (what a bus or a log hands the monitor)."""
