@@ -11,6 +11,9 @@
 
 ``verifier`` compiles the check for one message (the monitor's per-frame path), ``seal`` writes the
 checksum into many frames at once (the simulator). Tests check the CRC against the ``crc`` package.
+On a J1939 message a checksum that does not match with all its bits set (a TSC1 nibble 0xF, which no
+fold gives) is J1939's "not available": the input health skips the check there and counts it
+(:mod:`cmcan.monitor.health`, rule 2a).
 """
 
 from __future__ import annotations

@@ -25,12 +25,21 @@ message are rule 1b's). For each frame of the stream that has the message's leng
    (``counter_jump``); both reject the frame; 1 <= d <= max_step passes (max_step 2 tolerates one lost
    frame). Either way p becomes c: after a jump the counter is followed from its new value, so the next
    frame in sequence passes again.
+2a. Not available, on a J1939 message (J1939-71: all ones is "not available" for a parameter of 2
+   bits or more; a sender that does not implement its counter or checksum fills it so):
+   - a checksum that does not match and whose bits are all ones is no checksum: the rule is skipped
+     (``checksum_not_available``, counted; a frame whose checksum matches is checked as usual);
+   - a counter of 2 bits or more whose bits are all ones skips step 2 (``counter_not_available``,
+     counted): it is neither frozen nor a jump, and neither p nor its time changes. The counter's
+     values are then 0 .. M-2, so it counts modulo M-1 (a sender wrapping from M-2 to 0, or through
+     the all-ones value, makes one step).
+   On a raw CAN message all ones is a value like any other (a 4-bit counter wraps through 15).
 3. Values: on a J1939 message, a value carrying J1939-71's error indicator rejects the frame
    (``error_code``); a value outside its DBC range rejects it (``out_of_range``)
    (:mod:`cmcan.j1939.values`).
 A frame that passes all of them is *accepted*: its values go into the role windows. Rejections and
 frames not available are counted per stream and, on a J1939 message, per source address
-(``by_source``).
+(``by_source``); the counters and checksums not available (2a) per stream.
 
 At an evaluation tick at time t, a message is
 - *erratic* when its newest frame at or before t (of those that reached step 1) was rejected and is no
@@ -84,9 +93,14 @@ COUNTED = (
     "other_sender",
     "error_code",
     "not_available",
+    "counter_not_available",
+    "checksum_not_available",
 )
 MAX_SOURCES = 256  # addresses remembered per stream (a J1939 source address is one byte)
 _TSC1_FOLD = np.array(TSC1_FOLD, dtype=np.uint8)
+# integrity_columns marks a frame whose checksum is not available (2a) by this bit of its counter
+# column (the core's arrays hold a counter and a checksum verdict per frame; counters are far shorter)
+CHECKSUM_NA_BIT = 1 << 48
 
 
 @dataclass(frozen=True)
@@ -129,11 +143,18 @@ def counter_reader(lay: Layout, nbytes: int) -> Callable[[bytes], int]:
     return read
 
 
+def all_ones_reader(lay: Layout, nbytes: int) -> Callable[[bytes], bool]:
+    """Whether a frame's signal at ``lay`` has all its bits set (J1939's "not available")."""
+    read, mask = counter_reader(lay, nbytes), lay.mask
+    return lambda d: read(d) & mask == mask
+
+
 class Stream:
     """The health state of one message stream (see the module's rules)."""
 
     __slots__ = (
         "_at",
+        "_cs_read",
         "_id",
         "_id_sum",
         "_mask",
@@ -142,9 +163,11 @@ class Stream:
         "by_source",
         "checksum",
         "counts",
+        "cs_na",
         "last_sa",
         "max_step",
         "modulo",
+        "na",
         "newest_ok",
         "newest_t",
         "prev",
@@ -172,7 +195,12 @@ class Stream:
         self._at = lay.shift // 8 if one_byte and lay is not None else -1
         self._shift = lay.shift % 8 if one_byte and lay is not None else 0
         self._mask = lay.mask if lay is not None else 0
-        self.modulo = spec.modulo
+        # rule 2a: on J1939, the all-ones counter (2 bits or more) is not available, the rest count modulo M-1
+        self.na = self._mask if spec.j1939 and lay is not None and lay.length >= 2 else -1
+        self.modulo = spec.modulo - 1 if self.na >= 0 else spec.modulo
+        self.cs_na = spec.j1939 and spec.checksum_layout is not None and spec.checksum_layout.length >= 2
+        cs = spec.checksum_layout
+        self._cs_read = all_ones_reader(cs, spec.nbytes) if self.cs_na and cs is not None and not self.tsc1 else None
         self.max_step = spec.max_step
         self.timeout_s = spec.timeout_s
         self.counts = dict.fromkeys(COUNTED, 0)
@@ -198,14 +226,16 @@ class Stream:
     # -- one frame ---------------------------------------------------------------------------------
 
     def check(self, t: float, can_id: int, data: bytes, absent: bool = False) -> int:
-        """Steps 1 to 2 for a frame at ``t`` (``absent``: a value not available, rule 1a): OK,
+        """Steps 1 to 2a for a frame at ``t`` (``absent``: a value not available, rule 1a): OK,
         CHECKSUM, NOT_AVAILABLE, OTHER_SENDER, COUNTER_FROZEN or COUNTER_JUMP."""
         if self.tsc1:  # 8 bytes (the message's length, checked before): counter and checksum in byte 8
             if can_id != self._id:
                 self._id, self._id_sum = can_id, id_sum(can_id)
             c = data[7]
             if c >> 4 != TSC1_FOLD[sum(data) - (c & 0xF0) + self._id_sum]:
-                return CHECKSUM
+                if c < 0xF0 or not self.cs_na:  # (the fold is at most 7: a nibble 0xF never matches)
+                    return CHECKSUM
+                self.counts["checksum_not_available"] += 1
             if absent:
                 return NOT_AVAILABLE
             if self.spec.senders and self.other_sender(t, can_id & 0xFF):
@@ -213,7 +243,9 @@ class Stream:
             c &= 0x0F
         else:
             if self.checksum is not None and not self.checksum(can_id, data):
-                return CHECKSUM
+                if self._cs_read is None or not self._cs_read(data):
+                    return CHECKSUM
+                self.counts["checksum_not_available"] += 1
             if absent:
                 return NOT_AVAILABLE
             if self.spec.senders and self.other_sender(t, can_id & 0xFF):
@@ -225,6 +257,13 @@ class Stream:
                 return OK
             else:
                 c = self._read(data)
+        return self.count_step(t, c)
+
+    def count_step(self, t: float, c: int) -> int:
+        """Step 2 (and 2a's counter) for the counter ``c`` of a frame at ``t`` that passed step 1."""
+        if c == self.na:  # not available: the sender does not count; it is no reference either
+            self.counts["counter_not_available"] += 1
+            return OK
         p = self.prev
         verdict = OK
         if p is not None and t - self.prev_t <= self.timeout_s:
@@ -283,7 +322,9 @@ class Stream:
     ) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
         """The counter (0 where none) and whether the checksum holds (True where none) of each frame
         of this message (identifiers ``ids``, payloads ``data``, the message ``length`` bytes long),
-        pure functions of the frame, as :meth:`check` reads them."""
+        pure functions of the frame, as :meth:`check` reads them. A checksum not available (rule 2a)
+        holds here, its counter marked with :data:`CHECKSUM_NA_BIT` for :meth:`Health.check_columns`
+        to count it."""
         n = len(ids)
         spec = self.spec
         if self.tsc1:  # 8 bytes: counter and checksum in byte 8, the sum over the message and the id
@@ -296,7 +337,11 @@ class Stream:
                 s += np.uint64(id_sum(int(ids[0])))
             else:
                 s += byte_sums(ids)
-            return d7 & 0x0F, (d7 >> 4) == _TSC1_FOLD[s.view(np.int64)]  # a signed index gathers ~3x faster
+            ok = (d7 >> 4) == _TSC1_FOLD[s.view(np.int64)]  # a signed index gathers ~3x faster
+            ctr = d7 & 0x0F
+            if self.cs_na and (d7 >= 0xF0).any():
+                return _checksum_not_available(ctr.astype(np.int64), ok, d7 >= 0xF0)
+            return ctr, ok
         ctr = np.zeros(n, dtype=np.int64)
         cs_ok = np.ones(n, dtype=bool)
         if (
@@ -310,7 +355,25 @@ class Stream:
                 cs_ok[i] = self.checksum(int(ids[i]), data[i, :length].tobytes())
         if spec.counter is not None:
             ctr[:] = extract_all(data[:, : spec.nbytes], [spec.counter], spec.nbytes)[0]
+        lay = spec.checksum_layout
+        if self._cs_read is not None and lay is not None and not cs_ok.all():
+            raw = extract_all(data[:, : spec.nbytes], [lay], spec.nbytes)[0]
+            return _checksum_not_available(ctr, cs_ok, np.asarray(raw & lay.mask == lay.mask, dtype=bool))
         return ctr, cs_ok
+
+
+@dataclass(frozen=True)
+class _Passing:
+    """What :meth:`Health.check_columns` leaves one stream for :meth:`Health.commit_counters`."""
+
+    passed: NDArray[np.int64]  # the frames that passed step 1 with their values (rule 1b's, up to until)
+    t: NDArray[np.float64]  # their times
+    ref: int | None  # the sender whose frames they are
+    counting: NDArray[np.int64]  # those with a counter available (step 2)
+    counters: NDArray[np.int64]  # and their counters and times
+    counting_t: NDArray[np.float64]
+    cs_na: NDArray[np.int64]  # the frames whose checksum was not available
+    ctr_na: NDArray[np.int64]  # the frames whose counter was not available
 
 
 class Health:
@@ -320,7 +383,7 @@ class Health:
     def __init__(self, specs: Sequence[HealthSpec]) -> None:
         self.streams = tuple(Stream(s) for s in specs)
         self.base = dict.fromkeys(COUNTED, 0)
-        self._passing: list[tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64], int | None] | None] = []
+        self._passing: list[_Passing | None] = []
 
     def counts(self) -> dict[str, int]:
         """Rejections and timeouts over all streams."""
@@ -362,7 +425,7 @@ class Health:
         sa: NDArray[np.int64],
         absent: NDArray[np.bool_],
     ) -> tuple[NDArray[np.int8], int]:
-        """Steps 1 to 2 for the frames that reach them (``reach[i]``: stream i's, in arrival order;
+        """Steps 1 to 2a for the frames that reach them (``reach[i]``: stream i's, in arrival order;
         ``ctr``, ``cs_ok`` from :meth:`Stream.integrity_columns`, ``sa`` their source addresses,
         ``absent`` the frames with a value not available): a failed checksum, else (a frame with its
         values) the counter against the previous frame that passed the checksum (within the
@@ -373,6 +436,7 @@ class Health:
         out = np.zeros(len(t), dtype=np.int8)
         until = len(t)
         self._passing = []
+        flagged = bool(len(ctr)) and int(ctr.max()) >= CHECKSUM_NA_BIT
         for st, mine in zip(self.streams, reach, strict=True):
             if not st.spec.checked:
                 self._passing.append(None)
@@ -380,6 +444,10 @@ class Health:
             passed = cs_ok[mine]
             out[mine[~passed]] = CHECKSUM
             p = mine[passed & ~absent[mine]]
+            c, cs_na = ctr[p], p[:0]
+            if flagged:  # some checksum not available (rule 2a): counted at the commit, its mark off
+                cs_na = mine[ctr[mine] >= CHECKSUM_NA_BIT]
+                c = c & (CHECKSUM_NA_BIT - 1)
             ref = st.last_sa
             if st.spec.senders and len(p):  # frames from the address of the frame before pass
                 if ref is None:  # the stream's first frame: nobody sent before it, it passes
@@ -387,25 +455,31 @@ class Health:
                 other = np.flatnonzero(sa[p] != ref)
                 if len(other):
                     until = min(until, int(p[other[0]]))
-            self._passing.append((p, ctr[p], t[p], ref))
-            if len(p) and st.has_counter:
-                out[p] = _counter_verdicts(st, ctr[p], t[p])
+            tp = t[p]
+            q, cq, tq, ctr_na = p, c, tp, p[:0]
+            if st.na >= 0 and not (counting := c != st.na).all():  # rule 2a: an all-ones counter skips step 2
+                q, cq, tq, ctr_na = p[counting], c[counting], tp[counting], p[~counting]
+            self._passing.append(_Passing(p, tp, ref, q, cq, tq, cs_na, ctr_na))
+            if len(q) and st.has_counter:
+                out[q] = _counter_verdicts(st, cq, tq)
         return out, until
 
     def commit_counters(self, stop: int) -> None:
         """Each stream's previous counter and its time, and its sender's last frame, as the first
-        ``stop`` frames leave them."""
-        for st, passing in zip(self.streams, self._passing, strict=True):
-            if passing is None:
+        ``stop`` frames leave them; the counters and checksums not available among them counted."""
+        for st, ps in zip(self.streams, self._passing, strict=True):
+            if ps is None:
                 continue
-            p, c, tp, ref = passing
-            n = int(np.searchsorted(p, stop))
+            n = int(np.searchsorted(ps.counting, stop))
             if n and st.has_counter:
-                st.prev = int(c[n - 1])
-                st.prev_t = float(tp[n - 1])
+                st.prev = int(ps.counters[n - 1])
+                st.prev_t = float(ps.counting_t[n - 1])
+            n = int(np.searchsorted(ps.passed, stop))
             if n and st.spec.senders:
-                st.last_sa = ref
-                st.seen[ref] = float(tp[n - 1])
+                st.last_sa = ps.ref
+                st.seen[ps.ref] = float(ps.t[n - 1])
+            st.counts["checksum_not_available"] += int(np.searchsorted(ps.cs_na, stop))
+            st.counts["counter_not_available"] += int(np.searchsorted(ps.ctr_na, stop))
         self._passing = []
 
     def tick_columns(
@@ -450,6 +524,14 @@ class Health:
                 st.timed_out = bool(o[-1])
             st.newest_t, st.newest_ok = nt_end, ok_end
         return erratic
+
+
+def _checksum_not_available(
+    ctr: NDArray[np.int64], cs_ok: NDArray[np.bool_], all_ones: NDArray[np.bool_]
+) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
+    """Rule 2a on columns: a checksum that fails with all its bits set holds, its frame marked."""
+    na = all_ones & ~cs_ok
+    return np.where(na, ctr | CHECKSUM_NA_BIT, ctr), cs_ok | na
 
 
 def _counter_verdicts(st: Stream, c: NDArray[np.int64], tp: NDArray[np.float64]) -> NDArray[np.int8]:
