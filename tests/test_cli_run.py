@@ -3,6 +3,7 @@ before the bus is touched."""
 
 import json
 import shutil
+import signal
 import sys
 from pathlib import Path
 
@@ -11,6 +12,7 @@ import yaml
 
 from cmcan.cli.errors import EX_CANTCREAT, EX_CONFIG, EX_NOINPUT, EX_UNAVAILABLE
 from tests.conftest import ROOT, run_cli
+from tests.daemon_proc import DaemonProc, virtual_config
 
 
 def config_copy(tmp_path: Path, **changes) -> Path:
@@ -255,3 +257,50 @@ def test_an_extra_channel_absent_at_the_start_is_a_warning_for_run_and_an_error_
     with pytest.raises(CmcanError) as err:
         check_channel(bad, net, extras_may_be_absent=True)
     assert exit_code(err.value) == EX_CONFIG and "is not a network interface name" in str(err.value)
+
+
+def held_by(lock: Path) -> int | None:
+    try:
+        return int(lock.read_text().strip() or 0)
+    except (OSError, ValueError):
+        return None
+
+
+# The daemon with a pause right after it takes the state lock: the window a reset can land in held open.
+SLOW_LOCK = """\
+import runpy, sys, time
+from cmcan import statefile
+acquire = statefile.StateLock.acquire
+def slow(self):
+    held = acquire(self)
+    time.sleep(1.0)
+    return held
+statefile.StateLock.acquire = slow
+sys.argv = ["cmcan", *sys.argv[1:]]
+runpy.run_module("cmcan", run_name="__main__")
+"""
+
+
+@pytest.mark.parametrize("sig", [signal.SIGHUP, signal.SIGTERM])
+def test_a_signal_right_after_the_lock_appears_is_the_daemons(tmp_path, sig):
+    """`cmcan baseline reset` sends SIGHUP to the lock's holder as soon as the lock names it: the daemon
+    then still builds its monitor, and SIGHUP's default action would end it (a clean stop to systemd).
+    Its handlers are in place before the lock: SIGHUP is a reload once it runs, SIGTERM a stop."""
+    launcher = tmp_path / "slow_lock.py"
+    launcher.write_text(SLOW_LOCK)
+    d = DaemonProc(tmp_path, virtual_config(tmp_path), wait_ready=False, launcher=[sys.executable, str(launcher)])
+    lock = tmp_path / "state" / "cmcan.lock"
+    try:
+        assert d.wait_for(lambda: held_by(lock) == d.proc.pid or d.proc.poll() is not None, 120)
+        d.signal(sig)  # within the second after the lock
+        assert d.wait_for(lambda: d.count("READY=1") >= 1 or d.proc.poll() is not None, 120)
+        if sig == signal.SIGHUP:
+            assert d.wait_for(lambda: "reloaded" in d.stderr() or d.proc.poll() is not None)
+            assert d.proc.poll() is None, d.stderr()  # alive, reloaded
+            d.signal(signal.SIGTERM)
+    finally:
+        code = d.wait()
+    err = d.stderr()
+    assert code == 0, err
+    assert f"received {signal.Signals(sig).name} while starting" in err  # the signal came in that window
+    assert "Traceback" not in err

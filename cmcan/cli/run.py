@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import sys
 from collections.abc import Callable, Sequence
+from types import FrameType
 from typing import TYPE_CHECKING
 
 from cmcan.cli import signals
@@ -15,10 +17,11 @@ if TYPE_CHECKING:  # the daemon's modules are imported when it runs: the parser 
     import can
 
     from cmcan import config as cfgmod
-    from cmcan.daemon import Reloaded
+    from cmcan.daemon import Daemon, Reloaded
     from cmcan.monitor.inputs import InputMessage
 
 log = logging.getLogger("cmcan")
+_NAMED = frozenset(signal.Signals)
 
 
 def add_subparser(sub: Subparsers) -> None:
@@ -48,19 +51,51 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config, args.interface, args.channel, args.state_dir)
     prep = prepare(cfg, need_state=False)  # files first (config, DBC, model), then the machine's channel,
     check_channel(cfg, extras_may_be_absent=True)
+    # Signals are caught before the lock shows this process as the daemon: `cmcan baseline reset`
+    # sends the lock's holder SIGHUP, whose default action would end it with a status systemd
+    # takes for a clean stop.
+    early = EarlySignals().install()
     prep = with_state(prep, lock=True)  # then the state: a second daemon on this directory stops here (75)
-    uplink = UplinkFeed.open(cfg.uplink, prep.parts.monitor) if cfg.uplink.enabled else None
-    opens = bus_openers(cfg, prep.parts.monitor.inputs)
-    daemon = Daemon(cfg, prep.parts.monitor, prep.store, opens, Notifier(), DaemonOptions(), uplink=uplink)
-    daemon.reloader = reloader(args)
-    signals.install(daemon)
-    sys.stdout.flush()
     try:
+        uplink = UplinkFeed.open(cfg.uplink, prep.parts.monitor) if cfg.uplink.enabled else None
+        opens = bus_openers(cfg, prep.parts.monitor.inputs)
+        daemon = Daemon(cfg, prep.parts.monitor, prep.store, opens, Notifier(), DaemonOptions(), uplink=uplink)
+        daemon.reloader = reloader(args)
+        signals.install(daemon)
+        early.hand_to(daemon)
+        sys.stdout.flush()
         daemon.run()
     finally:
         assert prep.lock is not None
         prep.lock.release()
     return signals.exit_status(daemon)
+
+
+class EarlySignals:
+    """The daemon's signals (:mod:`cmcan.cli.signals`) while it starts, before it can act on them:
+    each only noted, then handed to the daemon once its own handlers are in place (a reload or a
+    stop as soon as it runs)."""
+
+    def __init__(self) -> None:
+        self.got: list[int] = []
+
+    def install(self) -> EarlySignals:
+        for s in (signals.RELOAD, *signals.STOP, *signals.FATAL):
+            signal.signal(s, self.note)
+        return self
+
+    def note(self, signum: int, _frame: FrameType | None) -> None:
+        self.got.append(signum)
+
+    def hand_to(self, daemon: Daemon) -> None:
+        """What came meanwhile, to ``daemon`` (whose handlers now take the signals)."""
+        for s in self.got:
+            log.info("received %s while starting", signal.Signals(s).name if s in _NAMED else f"signal {s}")
+            if s == signals.RELOAD:
+                daemon.request_reload()
+            else:
+                daemon.stop(s)
+        self.got = []
 
 
 def bus_openers(cfg: cfgmod.Config, inputs: Sequence[InputMessage]) -> dict[str, Callable[[], can.BusABC]]:
