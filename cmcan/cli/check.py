@@ -80,15 +80,22 @@ def run_drives(args: argparse.Namespace, files: list[str]) -> int:
     if args.json:
         print_json({"ok": True, "drives": drives})
     else:
-        print(f"ok: {len(drives)} drives on one gateway, nothing shared")
+        print(
+            f"ok: {len(drives)} drives on one gateway: no identifier, J1939 address or NAME, uplink machine id, "
+            "client id or outbox, or state directory shared"
+        )
         for d in drives:
-            print(f"  {d['config']}: sends {', '.join(d['sends'])} on {d['channel']}{d['j1939']}; state {d['state']}")
+            sent = ", ".join(f"{i} ({m})" for i, m in zip(d["sends"], d["messages"], strict=True))
+            print(f"  {d['config']}: sends {sent} on {d['channel']}{d['j1939']}; state {d['state']}")
     return 0
 
 
 def _drive_summary(parts: Any) -> dict[str, Any]:
-    cfg, out = parts.cfg, parts.monitor.outputs
-    ids_ = [f"0x{m.frame_id:0{8 if m.extended else 3}X}" for m in (out.ratio, out.quantity, out.warning)]
+    from cmcan.drives import sends
+
+    cfg = parts.cfg
+    sent = sends(parts)
+    ids_ = [f"0x{fid:0{8 if ext else 3}X}" for _ch, ext, fid in sent]
     j = cfg.j1939
     jt = ""
     if j.enabled:
@@ -96,6 +103,7 @@ def _drive_summary(parts: Any) -> dict[str, Any]:
     return {
         "config": cfg.source,
         "sends": ids_,
+        "messages": list(sent.values()),  # what each identifier of "sends" carries
         "channel": cfg.output_channel,
         "j1939": jt,
         "state": str(cfg.state.directory),
