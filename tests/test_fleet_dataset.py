@@ -195,6 +195,80 @@ def test_the_same_content_under_two_names_is_replayed_once(logs, tmp_path, clien
     assert any("has the same content as" in n for n in rep.notes)
 
 
+# -- a commit is all or nothing; a cleanup never cuts one short ------------------------------------------
+
+
+PROV = ds.Provenance("ab" * 32, "c" * 64, "d" * 64, "e" * 64)
+
+
+def staged_writer(root: Path) -> ds.LogWriter:
+    """A writer with two timeline rows staged on disk (flushed at once)."""
+    import numpy as np
+
+    w = ds.LogWriter(root, "m1", PROV)
+    w.ROW_GROUP = 1
+    w.add_rows("timeline", {"time_s": np.array([86400.0, 86401.0]), "cm_ratio_raw_pct": np.array([99.0, 98.0])})
+    return w
+
+
+def test_a_cleanup_waits_for_the_commits_and_leaves_a_live_writers_staging_folder(tmp_path):
+    """What `fleet replay` interrupted by SIGINT did (2 in 4 runs under load): the driver removed the
+    staging area while a worker committed. Now the cleanup waits for the commits in progress, and
+    removes only what writers no longer hold."""
+    root = ds.open_dataset(tmp_path / "ds", create=True)
+    live = staged_writer(root)
+    dead = root / ds.STAGING / "0123-dead.0000aaaa"  # a killed worker's folder: no lock held
+    (dead / "timeline").mkdir(parents=True)
+    (dead / "timeline" / "x.parquet").write_bytes(b"PAR1")
+    orphan = ds.partition(root, "timeline", "m1", "1970-01-02") / "0123-orphan.parquet"  # an interrupted commit
+    orphan.parent.mkdir(parents=True)
+    orphan.write_bytes(b"PAR1")
+    with ds.commit_lock(root):  # a commit in progress: the cleanup waits for it, here not at all
+        assert ds.remove_orphans(root, wait_s=0) == 0
+        assert dead.exists() and orphan.exists() and live.stage.exists()
+    assert ds.remove_orphans(root, wait_s=0) == 2  # the dead folder and the orphan
+    assert not dead.exists() and not orphan.exists()
+    assert live.stage.exists() and (root / ds.STAGING / f"{live.stage.name}.lock").exists()  # its writer lives
+    live.commit({"log_name": "a.log", "ticks": 2}, "1970-01-02")
+    record = ds.check_committed(root, "m1", PROV.key)
+    assert record is not None and [f["table"] for f in json.loads(record[ds.FILES])] == ["timeline"]
+    assert sorted(p.name for p in (root / ds.STAGING).iterdir()) == []  # the folder and its lock gone
+
+
+def test_a_commit_whose_staged_files_are_gone_commits_nothing(tmp_path):
+    """A staged file removed before the commit (as the old cleanup did): the commit fails, naming it,
+    and no summary says the log is there (before: a summary listing no files, skipped for ever)."""
+    import shutil
+
+    root = ds.open_dataset(tmp_path / "ds", create=True)
+    w = staged_writer(root)
+    shutil.rmtree(w.stage / "timeline")
+    with pytest.raises(ds.DatasetError, match="a staged file of the log is gone") as exc:
+        w.commit({"log_name": "a.log", "ticks": 2}, "1970-01-02")
+    assert exc.value.kind == Kind.TEMPFAIL
+    w.abort()
+    assert not ds.is_committed(root, "m1", PROV.key) and not list((root / "logs").rglob("*.parquet"))
+    assert not list((root / ds.STAGING).iterdir())
+
+
+def test_a_commit_record_without_its_files_is_redone_not_skipped(built, logs, tmp_path):
+    """A log committed with no files (its record lists none, its data files are not there): the next
+    replay finds it damaged and re-does it."""
+    root = copy_dataset(built[0], tmp_path / "ds")
+    summary = sorted((root / "logs").rglob("*.parquet"))[0]
+    record = ds.read_record(summary)
+    for f in ds.data_files(root, "m1", record, "timeline") + ds.data_files(root, "m1", record, "events"):
+        f.unlink()
+    ds.write_record(summary, {k: v for k, v in record.items() if k != ds.RECORD_HASH} | {ds.FILES: "[]"})
+    with pytest.raises(ds.Damaged, match="lists no timeline file"):
+        ds.check_committed(root, "m1", summary.stem)
+    _d, a, b = logs
+    res = [process_log(LogJob("m1", str(log)), Options(dataset=str(root))) for log in (a, b)]
+    assert sorted(r["status"] for r in res) == ["done", "skipped"]
+    assert any("lists no timeline file" in (r.get("redone") or "") for r in res)
+    assert run_sql(root, Q_LOGS) == built[1] and run_sql(root, Q_TIMELINE) == built[2]
+
+
 # -- a full disk, no permission ---------------------------------------------------------------------------
 
 

@@ -12,17 +12,27 @@ Layout (hive partitioning, one Parquet file per log and partition; ``docs/fleet.
 configuration, DBC and model it was replayed with and of the monitor state it started from), so a
 log replayed again with the same inputs maps to the same files and a changed model to new ones.
 
-A log is written to ``DATASET/_staging/`` first, then committed: the old results of the same log
-(another provenance, or another machine: a log belongs to one machine) are removed summary first,
-the new timeline and events files are renamed into place, and the summary last. A log is in the
-data set exactly when its summary file is; a crash or Ctrl-C part-way leaves at most files without
-a summary, which :func:`remove_orphans` deletes at the start of the next run.
+A log is written to its own folder in ``DATASET/_staging/`` first, then committed: its commit record
+(the summary) is written into that folder, listing every file the log's writer wrote there, each of
+them checked present first (a staged file that is gone fails the commit: nothing of the log is
+committed); then the old results of the same log (another provenance, or another machine: a log
+belongs to one machine) are removed summary first, the new timeline and events files are renamed
+into place, and the summary last. A log is in the data set exactly when its summary file is; a
+crash or Ctrl-C part-way leaves at most files without a summary, which :func:`remove_orphans`
+deletes (at the start of the next run, and when a run is interrupted or fails).
+
+**A cleanup never cuts a commit short.** A writer holds a lock on its staging folder
+(``_staging/<folder>.lock``) from before the folder exists until it is gone, and a commit holds the
+data set's commit lock (``_commit.lock``, shared between commits); :func:`remove_orphans` takes the
+commit lock alone, so it waits for the commits in progress (and holds new ones back), and removes
+only the staging folders whose writer is gone: a writer still replaying keeps its folder.
 
 **What is committed is checked.** Every file is written with Parquet page checksums; the summary
 (the commit record) lists each data file of the log with its size and SHA-256, and carries the
 SHA-256 of its own values (``record_sha256``). :func:`check_committed` reads a record back and
-checks every file it names: a damaged log is re-done by the next ``fleet replay`` and named by
-``query`` and ``report`` (:class:`Damaged`), never read silently wrong.
+checks every file it names (and that a log with ticks names its timeline): a damaged log is re-done
+by the next ``fleet replay`` and named by ``query`` and ``report`` (:class:`Damaged`), never read
+silently wrong.
 """
 
 from __future__ import annotations
@@ -36,6 +46,7 @@ import math
 import os
 import re
 import shutil
+import time
 import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -54,6 +65,8 @@ DATA_TABLES = ("timeline", "events")  # rows of a log, committed before its summ
 SUMMARY_TABLE = "logs"
 QUARANTINE = "quarantine"
 STAGING = "_staging"
+COMMIT_LOCK = "_commit.lock"
+CLEANUP_WAIT_S = 60.0  # how long a cleanup waits for the commits in progress before it leaves things be
 # A partition name: no '/', no '=', nothing a shell or a glob reads specially, no trailing newline
 # (fullmatch: '$' would accept one).
 MACHINE_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,99}")
@@ -244,12 +257,20 @@ def log_index(root: Path) -> dict[str, set[str]]:
     return out
 
 
-def remove_orphans(root: Path) -> int:
-    """Delete the staging area, temporaries of interrupted writes and data files of logs without a
-    summary (an interrupted commit)."""
-    with writing("clean the data set's staging area", root / STAGING):
-        shutil.rmtree(root / STAGING, ignore_errors=True)
-        n = 0
+def remove_orphans(root: Path, wait_s: float = CLEANUP_WAIT_S, writers_wait_s: float = 0.0) -> int:
+    """Delete the staging folders whose writer is gone, temporaries of interrupted writes and data
+    files of logs without a summary (an interrupted commit), once no commit is in progress (waited
+    for up to ``wait_s``; after that nothing is removed: the next run does it). A writer still alive
+    keeps its folder (``writers_wait_s``: how long to wait for writers that are ending). Returns the
+    files and folders removed."""
+    with writing("clean the data set's staging area", root / STAGING), commit_lock(root, wait_s) as alone:
+        if not alone:
+            return 0
+        n = _remove_stages(root / STAGING)
+        deadline = time.monotonic() + writers_wait_s
+        while _held_stages(root / STAGING) and time.monotonic() < deadline:
+            time.sleep(0.1)
+            n += _remove_stages(root / STAGING)
         for table in TABLES:
             for tmp in (root / table).rglob(".*.tmp"):
                 tmp.unlink(missing_ok=True)
@@ -262,6 +283,102 @@ def remove_orphans(root: Path) -> int:
                         f.unlink(missing_ok=True)
                         n += 1
     return n
+
+
+@contextlib.contextmanager
+def commit_lock(root: Path, wait_s: float | None = None) -> Iterator[bool]:
+    """The data set's commit lock: shared by commits (``wait_s`` None: waits as long as it takes),
+    alone for a cleanup (True once it has it; False when commits still hold it after ``wait_s``)."""
+    fd = os.open(root / COMMIT_LOCK, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
+    try:
+        if wait_s is None:
+            fcntl.flock(fd, fcntl.LOCK_SH)
+            yield True
+            return
+        deadline = time.monotonic() + wait_s
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() >= deadline:
+                    yield False
+                    return
+                time.sleep(0.05)
+        yield True
+    finally:
+        os.close(fd)  # (the lock goes with it)
+
+
+def hold_stage(stage: Path) -> int:
+    """The lock on a staging folder (``<folder>.lock``, taken before the folder is made): a
+    descriptor held while the writer lives. A cleanup removes a lock file only while it holds it,
+    so a lock that is no longer the file at its path is taken again."""
+    path = stage.with_name(stage.name + ".lock")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        try:
+            if os.stat(path).st_ino == os.fstat(fd).st_ino:
+                return fd
+        except FileNotFoundError:
+            pass
+        os.close(fd)
+
+
+def _remove_stages(staging: Path) -> int:
+    """The staging folders (and lock files) of writers that are gone; those of live writers stay."""
+    if not staging.is_dir():
+        return 0
+    n = 0
+    for entry in sorted(staging.iterdir()):
+        if entry.name.endswith(".lock"):
+            continue
+        lock = entry.with_name(entry.name + ".lock")
+        fd = _free_lock(lock)
+        if fd == -1:  # its writer is alive
+            continue
+        if entry.is_dir() and not entry.is_symlink():
+            shutil.rmtree(entry, ignore_errors=True)
+        else:
+            entry.unlink(missing_ok=True)
+        n += 1
+        if fd is not None:
+            lock.unlink(missing_ok=True)
+            os.close(fd)
+    for lock in staging.glob("*.lock"):  # a writer gone before it made its folder
+        if not lock.with_suffix("").exists() and (fd := _free_lock(lock)) not in (None, -1):
+            lock.unlink(missing_ok=True)
+            os.close(fd)  # type: ignore[arg-type]
+    return n
+
+
+def _held_stages(staging: Path) -> bool:
+    """Whether some staging folder's writer is alive."""
+    held = False
+    for lock in staging.glob("*.lock") if staging.is_dir() else ():
+        fd = _free_lock(lock)
+        if fd == -1:
+            held = True
+        elif fd is not None:
+            os.close(fd)
+    return held
+
+
+def _free_lock(path: Path) -> int | None:
+    """A staging lock taken if nobody holds it (its descriptor); -1 if a writer holds it; None if
+    there is no such file."""
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_NOFOLLOW | os.O_CLOEXEC)
+    except FileNotFoundError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        return -1
+    return fd
 
 
 def summary_path(root: Path, machine: str, key: str) -> Path | None:
@@ -328,6 +445,12 @@ def check_files(root: Path, machine: str, record: dict[str, Any], tables: Any = 
     except ValueError:
         return [f"the commit record of {machine} {record.get('log_name')} lists its files unreadably"]
     problems = []
+    ticks = record.get("ticks") or 0
+    if "timeline" in tables and ticks > 0 and not any(f["table"] == "timeline" for f in files):
+        # a commit whose staged files were removed under it: its record lists less than it had
+        problems.append(
+            f"the commit record of {machine} {record.get('log_name')} lists no timeline file for its {ticks} ticks"
+        )
     for f in files:
         if f["table"] not in tables:
             continue
@@ -473,8 +596,10 @@ class LogWriter:
         self.prov = prov
         self.stage = root / STAGING / f"{prov.key}.{uuid.uuid4().hex[:8]}"
         with writing("create a staging folder", self.stage):
-            self.stage.mkdir(parents=True)
+            self._lock: int | None = hold_stage(self.stage)  # before the folder: a cleanup leaves it alone
+            self.stage.mkdir()
         self._writers: dict[tuple[str, str], Any] = {}
+        self._written: set[tuple[str, str]] = set()  # the (table, day) files staged: what the commit lists
         self._buffers: dict[tuple[str, str], list[Any]] = {}
         self._buffered: dict[tuple[str, str], int] = {}
 
@@ -513,13 +638,15 @@ class LogWriter:
                 path.parent.mkdir(parents=True, exist_ok=True)
                 w = pq.ParquetWriter(path, t.schema, compression="zstd", write_page_checksum=True)
                 self._writers[key] = w
+                self._written.add(key)
             w.write_table(t.cast(w.schema))
 
     def commit(
         self, summary: dict[str, Any], day: str, move_from: tuple[str, ...] = (), path_keys: tuple[str, ...] = ()
     ) -> None:
-        """Old results of this log out (summary first; on this machine and the ``move_from`` ones),
-        new data files in, the new summary (the commit record, listing each file's size and hash)
+        """The commit record (listing each staged file's size and hash, every one checked there first)
+        into the staging folder; then, under the commit lock, old results of this log out (summary
+        first; on this machine and the ``move_from`` ones), the new data files in, the new summary
         last; then the log's quarantine rows go (``path_keys``: those written before its hash was
         known)."""
         for key in list(self._buffers):
@@ -528,45 +655,53 @@ class LogWriter:
             for w in self._writers.values():
                 w.close()
         self._writers.clear()
-        staged = sorted(self.stage.rglob("*.parquet"))
-        files = []
-        with writing("check a staged file", self.stage):
-            for f in staged:
-                files.append(
-                    {
-                        "table": f.parts[-3],
-                        "day": f.parts[-2].split("=", 1)[1],
-                        "name": f.name,
-                        "bytes": f.stat().st_size,
-                        "sha256": sha256_file(f),
-                    }
-                )
-        write_record(
-            self.stage / SUMMARY_TABLE / f"day={day}" / f"{self.prov.key}.parquet",
-            {**summary, FILES: json.dumps(files), **self.prov.columns()},
-        )
+        files = [self._listed(*key) for key in sorted(self._written)]
+        record = self.stage / SUMMARY_TABLE / f"day={day}" / f"{self.prov.key}.parquet"
+        write_record(record, {**summary, FILES: json.dumps(files), **self.prov.columns()})
         hash16 = self.prov.log_hash[:16]
-        for other in move_from:
-            if other != self.machine:
-                remove_log(self.root, other, hash16)
-        remove_log(self.root, self.machine, hash16, keep_key=self.prov.key)
-        with writing("commit", partition(self.root, SUMMARY_TABLE, self.machine)):
-            staged = sorted(self.stage.rglob("*.parquet"), key=lambda p: p.parts[-3] == SUMMARY_TABLE)
-            for f in staged:  # the summary sorts last
-                table, dpart = f.parts[-3], f.parts[-2]
-                dest = partition(self.root, table, self.machine) / dpart / f.name
+        with writing("commit", partition(self.root, SUMMARY_TABLE, self.machine)), commit_lock(self.root):
+            for other in move_from:
+                if other != self.machine:
+                    remove_log(self.root, other, hash16)
+            remove_log(self.root, self.machine, hash16, keep_key=self.prov.key)
+            for f in [*(self._staged(x["table"], x["day"]) for x in files), record]:  # the summary last
+                dest = partition(self.root, f.parts[-3], self.machine) / f.parts[-2] / f.name
                 dest.parent.mkdir(parents=True, exist_ok=True)
                 os.replace(f, dest)
         for m in {self.machine, *move_from}:
             remove_quarantine(self.root, m, list(path_keys), hash16)
+        self._drop_stage()
+
+    def _listed(self, table: str, day: str) -> dict[str, Any]:
+        """A staged file as the commit record lists it; a file that is gone fails the commit."""
+        f = self._staged(table, day)
+        try:
+            size = f.stat().st_size
+            digest = sha256_file(f)
+        except FileNotFoundError:
+            raise DatasetError(
+                f"{f}: a staged file of the log is gone (its staging folder was removed): nothing of the log is "
+                "committed",
+                Kind.TEMPFAIL,
+            ) from None
+        except OSError as exc:
+            raise dataset_error(exc, "check a staged file", f) from None
+        return {"table": table, "day": day, "name": f.name, "bytes": size, "sha256": digest}
+
+    def _drop_stage(self) -> None:
+        """The staging folder removed, then its lock."""
         shutil.rmtree(self.stage, ignore_errors=True)
+        if self._lock is not None:
+            self.stage.with_name(self.stage.name + ".lock").unlink(missing_ok=True)
+            os.close(self._lock)
+            self._lock = None
 
     def abort(self) -> None:
         for w in self._writers.values():
             with contextlib.suppress(Exception):
                 w.close()
         self._writers.clear()
-        shutil.rmtree(self.stage, ignore_errors=True)
+        self._drop_stage()
 
 
 def write_quarantine(root: Path, machine: str, key: str, row: dict[str, Any]) -> None:

@@ -37,6 +37,7 @@ from cmcan.fleet.task import LogJob, Options, hash_key, path_key, probe_log, pro
 
 log = logging.getLogger("cmcan.fleet")
 IN_FLIGHT_PER_THREAD = 2
+WORKERS_END_S = 15.0  # how long a cleanup after the workers were stopped waits for them to end
 
 
 @dataclass
@@ -196,9 +197,12 @@ def run_fleet(
     finally:
         if own:
             close_client(client)
+            if report.interrupted:  # the staging folders of the workers just stopped (kept while they ran)
+                _clean(root, locked=False, writers_wait_s=WORKERS_END_S)
     if failed is not None:
         if (root / "_dataset.json").exists():
-            _clean(root)  # what the tasks were staging when the data set failed them (if it can)
+            # what the tasks were staging when the data set failed them (if it can)
+            _clean(root, locked=False, writers_wait_s=WORKERS_END_S if own else 0.0)
         raise failed
     return report
 
@@ -231,9 +235,16 @@ def _run(
                 _clean(root)
 
 
-def _clean(root: Path) -> None:
+def _clean(root: Path, locked: bool = True, writers_wait_s: float = 0.0) -> None:
+    """What the tasks left (``locked``: this run holds the writer lock; else it is taken, and
+    another run that holds it meanwhile cleans for itself); workers that are ending waited for up
+    to ``writers_wait_s``."""
     with contextlib.suppress(CmcanError):
-        ds.remove_orphans(root)
+        if locked:
+            ds.remove_orphans(root, writers_wait_s=writers_wait_s)
+            return
+        with ds.writer_lock(root):
+            ds.remove_orphans(root, writers_wait_s=writers_wait_s)
 
 
 def _record_refused(
