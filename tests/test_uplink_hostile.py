@@ -15,13 +15,13 @@ from pathlib import Path
 
 import pytest
 
-from cmcan.cli.errors import EX_CONFIG, EX_IOERR, EX_OK, EX_SOFTWARE, EX_TEMPFAIL, EXIT_CODES
+from cmcan.cli.errors import EX_CANTCREAT, EX_CONFIG, EX_IOERR, EX_OK, EX_SOFTWARE, EX_TEMPFAIL, EXIT_CODES
 from cmcan.config import load as load_config
 from cmcan.schema import SchemaError
 from cmcan.uplink.config import MQTT_MAX_BYTES, mqtt_string_problem, publish_topic_problem
 from cmcan.uplink.outbox import Outbox
 from cmcan.uplink.records import Entry
-from cmcan.uplink.setup import OutboxLock
+from cmcan.uplink.setup import OutboxLock, SetupError
 from cmcan.uplink.writer import OutboxWriter
 from tests.conftest import ROOT, run_cli
 from tests.test_bad_inputs import refused
@@ -217,3 +217,34 @@ def test_status_is_a_query_that_creates_nothing(tmp_path, state):
     r = run_cli("uplink", "--status", "--config", str(cfg))
     assert r.returncode == EX_OK, r.stderr
     assert json.loads(r.stdout)["entries"] == 0 and list(state.iterdir()) == []
+
+
+# -- the outbox lock is opened as the state directory's files are ------------------------------------------
+
+
+@pytest.mark.parametrize("kind", ["link to a file", "dangling link", "fifo"])
+def test_an_outbox_lock_that_is_a_link_or_a_fifo_is_refused_and_nothing_is_written_through_it(tmp_path, state, kind):
+    """Whoever can write the state directory must not get the uplink to create or write any other file
+    the uplink's user may open (before: the lock was opened following links, made at the link's target)."""
+    import os
+
+    lock = state / "outbox.sqlite.lock"
+    victim = tmp_path / "victim"
+    if kind == "link to a file":
+        victim.write_text("keep me\n")
+        lock.symlink_to(victim)
+    elif kind == "dangling link":
+        lock.symlink_to(victim)
+    else:
+        os.mkfifo(lock)
+    with pytest.raises(SetupError) as err:
+        OutboxLock(state / "outbox.sqlite").acquire()
+    assert err.value.problem == "cantcreat" and str(lock) in str(err.value), str(err.value)
+    assert ("symbolic link" if "link" in kind else "not a regular file") in str(err.value)
+    if kind == "link to a file":
+        assert victim.read_text() == "keep me\n"
+    else:
+        assert not victim.exists()
+    cfg = uplink_config(tmp_path / "c.yaml", state, 1883)  # refused before any connection
+    refused(run_cli("uplink", "--config", str(cfg), "--check"), EX_CANTCREAT, str(lock))
+    assert not victim.exists() or victim.read_text() == "keep me\n"

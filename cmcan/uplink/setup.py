@@ -3,6 +3,7 @@ field it comes from and the kind of sysexits code it deserves."""
 
 from __future__ import annotations
 
+import errno
 import os
 import socket
 import sqlite3
@@ -136,7 +137,7 @@ class OutboxLock(StateLock):
         """Take the lock, or raise a temporary failure (75) naming the lock file and the holder's pid;
         a lock file that cannot be made or written is said with its cause (a full disk: 75)."""
         try:  # opened here first for the cause of a failure, which the state lock's message leaves out
-            os.close(os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o640))
+            self._probe()
             super().acquire()
         except OSError as exc:  # creating the file, or writing the pid into it on a full disk
             problem = _OUTBOX_PROBLEMS.get(problem_kind(exc, "cantopen"), "ioerr")
@@ -153,6 +154,27 @@ class OutboxLock(StateLock):
             problem = next(p for p, k in _KINDS.items() if k is exc.kind)
             raise SetupError(f"{self.path}: cannot take the outbox lock: {exc.strerror}", problem) from None
         return self
+
+    def _probe(self) -> None:
+        """The lock file made if there is none, as the state directory's lock and request files are
+        opened: never through a link (whoever can write the folder could point it at any file the
+        uplink's user may open, or a FIFO that blocks it), never blocking, a regular file only."""
+        flags = os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC
+        try:
+            fd = os.open(self.path, flags, 0o640)
+        except OSError as exc:
+            if exc.errno == errno.ELOOP:  # (O_NOFOLLOW: the last part of the path is a symbolic link)
+                raise SetupError(
+                    f"{self.path}: a symbolic link, not the outbox lock (lock files are never opened through one)",
+                    "cantcreat",
+                ) from None
+            raise
+        try:
+            mode = os.fstat(fd).st_mode
+        finally:
+            os.close(fd)
+        if not stat.S_ISREG(mode):
+            raise SetupError(f"{self.path}: not a regular file, expected the outbox lock", "cantcreat")
 
 
 def require_folder(path: Path, source: str = "the configuration") -> None:
