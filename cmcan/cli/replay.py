@@ -115,8 +115,10 @@ def run(args: argparse.Namespace) -> int:
                 mon = build_monitor(cfg, asm.db, asm.model, Totals.from_dict(state) if state else None, aliases)
                 if note is not None:
                     print(f"cmcan replay: {log}: the state starts afresh: {note}", file=sys.stderr)
+            last = mon.totals.history[-1] if mon.totals.history else None  # of the state it starts from
             res, cut = _replay(log, args, mon, life)
             assert res.first_t is not None  # a log without frames raised NoFrames, leaving no output behind
+            res.warnings = res.warnings[_after(mon.totals.history, last) :]  # this log's own level changes
             summaries.append((log, res, _summary(log, args, cfg, mon, res, sinks.fit.verdict(), cut, not aliases)))
     except BaseException:
         for s in life:
@@ -138,6 +140,14 @@ def run(args: argparse.Namespace) -> int:
         for log, res, summary in summaries:
             _print(str(log), res, summary)
     return 0
+
+
+def _after(history: list[Any], last: Any) -> int:
+    """Where the level changes after ``last`` (the carried state's newest, None: none) begin in
+    ``history``; 0 when the history has been trimmed past it (all are new)."""
+    if last is None:
+        return 0
+    return next((i + 1 for i in range(len(history) - 1, -1, -1) if history[i] is last), 0)
 
 
 def _logs(given: list[str]) -> list[Path]:
@@ -343,7 +353,7 @@ def _summary(
         "channels_renamed": sorted(k for k, v in seen.items() if v is not None and k != v),
         "first_timestamp_s": res.first_t,
         "duration_h": res.duration_h,
-        "warnings": [w for w in res.warnings if w["t_s"] >= res.first_t],  # this log's (not a carried state's)
+        "warnings": res.warnings,
         "final": res.snapshot,
         "totals": res.totals,
         "frames_emitted": res.frames_emitted if args.emit else None,
