@@ -34,14 +34,29 @@ def digest(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
+def simulated_log(name: str, hours: float | None, log: Path) -> Path:
+    """The candump log ``cmcan simulate NAME --candump LOG [--duration-h HOURS]`` writes, made in this
+    process (the command's steps without its run CSV, which the replay does not read)."""
+    from cmcan.dbc import load_dbc
+    from cmcan.io.candump import write_candump
+    from cmcan.sim import scenario as scn
+    from cmcan.sim.frames import frames_from_run
+    from cmcan.sim.run import simulate
+
+    s = scn.load(scn.resolve(name))
+    s = s.with_overrides(duration_h=hours) if hours is not None else s
+    db = load_dbc(None)
+    f = frames_from_run(simulate(s, db, None), db, plan=None)
+    write_candump(
+        log, f.timestamp_s, f.arbitration_id, f.dlc, f.data, channel=f.channels("can0"), extended=f.is_extended()
+    )
+    return log
+
+
 def replay_digests(name: str, hours: float | None, work: Path) -> dict[str, object]:
-    """Simulate the scenario to a candump log, replay it, and digest what came out."""
+    """Simulate the scenario to a candump log, replay it with ``cmcan replay``, and digest what came out."""
     log, emit, timeline = work / f"{name}.log", work / f"{name}.emit.log", work / f"{name}.csv"
-    args = ["simulate", name, "--out", str(work / f"{name}.run.csv"), "--candump", str(log), "--force"]
-    if hours is not None:
-        args += ["--duration-h", str(hours)]
-    r = run_cli(*args)
-    assert r.returncode == 0, r.stderr
+    simulated_log(name, hours, log)
     r = run_cli("replay", str(log), "--emit", str(emit), "--out", str(timeline), "--json", "--force")
     assert r.returncode == 0, r.stderr
     summary = json.loads(r.stdout)

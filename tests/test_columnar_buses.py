@@ -173,6 +173,15 @@ def corrupt(frames: list[Frame], rng: np.random.Generator, share: float) -> list
     return out
 
 
+@pytest.fixture(scope="module")
+def shipped():
+    """72 s of the shipped 11-bit machine, simulated once for every example."""
+    from tests.helpers import as_frames, sim_frames
+
+    _, sim = sim_frames("two_set_validation", duration_h=0.02)
+    return as_frames(sim)
+
+
 _SETTINGS = {"deadline": None, "suppress_health_check": [HealthCheck.function_scoped_fixture, HealthCheck.too_slow]}
 
 
@@ -196,14 +205,11 @@ def test_corrupted_j1939_frames_replay_the_same(j1939, seed, share, chunk, dm1):
 
 @settings(max_examples=12, **_SETTINGS)
 @given(seed=st.integers(0, 2**31), share=st.sampled_from([0.002, 0.02, 0.2]), chunk=st.sampled_from([97, 4096]))
-def test_corrupted_and_dropped_frames_on_the_shipped_machine_replay_the_same(seed, share, chunk):
+def test_corrupted_and_dropped_frames_on_the_shipped_machine_replay_the_same(shipped, seed, share, chunk):
     """The shipped 11-bit machine checks its alive counters: lost frames (jumps), repeated frames
     (frozen), flipped bytes, and a message silent long enough to time out."""
-    from tests.helpers import as_frames, sim_frames
-
     rng = np.random.default_rng(seed)
-    _, sim = sim_frames("two_set_validation", duration_h=0.02)
-    frames = as_frames(sim)
+    frames = shipped  # a new list is made of it below, it stays as it is
     keep = rng.random(len(frames)) > share  # lost frames
     frames = [f for f, k in zip(frames, keep, strict=True) if k]
     dup = [f for f in frames if rng.random() < share]  # repeated ones, right after themselves

@@ -27,9 +27,11 @@ def emitted(path):
     return [(m.arbitration_id, bytes(m.data)) for m in can.LogReader(str(path))]
 
 
-def test_replay_writes_timeline_emit_plot_and_warnings(logs):
+@pytest.fixture(scope="module")
+def replayed(logs):
+    """``cmcan replay`` of the 1.2 h log writing everything it can, once: its process and files."""
     d, log, _run = logs
-    res = run_cli(
+    return run_cli(
         "replay",
         str(log),
         "--out",
@@ -40,6 +42,11 @@ def test_replay_writes_timeline_emit_plot_and_warnings(logs):
         str(d / "ratio.png"),
         "--json",
     )
+
+
+def test_replay_writes_timeline_emit_plot_and_warnings(logs, replayed):
+    d, _log, _run = logs
+    res = replayed
     assert res.returncode == 0, res.stderr
     summary = json.loads(res.stdout)
     lows = [w for w in summary["warnings"] if w["to"] == "low"]
@@ -87,17 +94,20 @@ def test_replay_missing_and_garbage_logs(tmp_path):
     assert res.returncode == EX_DATAERR and "bad.log" in res.stderr
 
 
-def test_operating_hours_go_on_through_a_step_back_of_the_wall_clock(logs, tmp_path):
-    """An NTP or GPS fix sets the clock back 3 days half an hour into the log: the monitor re-bases
-    (one clock step), and operating hours (the warnings', the timeline's, the duration) go on as if the
-    clock had not moved, the same from both engines. They used to go 72 h negative."""
-    _, frames = sim_frames("two_set_validation", duration_h=1.2)
+def test_operating_hours_go_on_through_a_step_back_of_the_wall_clock(tmp_path):
+    """An NTP or GPS fix sets the clock back 3 days three minutes into the log, before the leak's low
+    warning: the monitor re-bases (one clock step), and operating hours (the warnings', the
+    timeline's, the duration) go on as if the clock had not moved, the same from both engines. They
+    used to go 72 h negative."""
+    leak = {"type": "leakage", "start_h": 0.03, "extra_lpm": 8.0, "ref_dp_bar": 300}
+    _, frames = sim_frames("two_set_validation", duration_h=0.12, events=[leak])
     t = frames.timestamp_s.copy()
     t0 = float(t[0])
-    t[t >= t0 + 1800.0] -= 3 * 86400.0
+    t[t >= t0 + 180.0] -= 3 * 86400.0
     write_candump(tmp_path / "step.log", t, frames.arbitration_id, frames.dlc, frames.data)
-    _d, log, _run = logs
+    log = write_log(tmp_path / "plain.log", frames)
     plain = json.loads(run_cli("replay", str(log), "--json").stdout)
+    assert [w["operating_h"] > 180.0 / 3600.0 for w in plain["warnings"] if w["to"] == "low"] == [True]
     out = {}
     for engine in ("columnar", "streaming"):
         tl, em = tmp_path / f"{engine}.csv", tmp_path / f"{engine}.log"
@@ -117,7 +127,7 @@ def test_operating_hours_go_on_through_a_step_back_of_the_wall_clock(logs, tmp_p
     assert hours[0] >= 0 and (np.diff(hours) > 0).all() and hours[-1] == pytest.approx(plain["duration_h"], abs=1e-3)
 
 
-def test_replay_says_when_the_configuration_does_not_fit_the_machine(logs, tmp_path):
+def test_replay_says_when_the_configuration_does_not_fit_the_machine(logs, replayed, tmp_path):
     """A healthy drive read through a mapping 20 % off (a speed's gear ratio written wrong) sits far
     from 100 % from its first hour: replay says the configuration or model does not fit (a warning,
     and ``fit`` in --json) instead of leaving it to read as a worn drive; the right mapping fits."""
@@ -126,7 +136,7 @@ def test_replay_says_when_the_configuration_does_not_fit_the_machine(logs, tmp_p
     from tests.conftest import ROOT
 
     _d, log, _run = logs
-    good = json.loads(run_cli("replay", str(log), "--json").stdout)
+    good = json.loads(replayed.stdout)  # the same log through the shipped configuration
     assert good["fit"]["verdict"] == "fits" and 99.0 < good["fit"]["median_pct"] < 101.0
     raw = yaml.safe_load((ROOT / "config" / "cmcan.yaml").read_text())
     raw["dbc"] = str(ROOT / "dbc" / "cmcan.dbc")
