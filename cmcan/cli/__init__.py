@@ -58,6 +58,9 @@ def _unraisable(u: sys.UnraisableHookArgs) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    from cmcan.io import mf4support
+
+    mf4support.defer()  # python-can without asammdf and pandas until a log is an MF4 (1.1 s a start)
     parser = build_parser()
     args = parser.parse_args(argv)
     level = logging.WARNING - 10 * min(args.verbose, 2)

@@ -497,6 +497,10 @@ def _python_can_frames(p: Path, keep_truncated: bool = False, on_cut: CutHandler
     import can
 
     fmt = log_format(p)
+    if fmt == ".mf4":
+        from cmcan.io import mf4support
+
+        mf4support.enable()
     if fmt not in LOG_FORMATS:
         raise LogError(f"{p}: unknown CAN log format {fmt or '(no suffix)'!r}; cmcan reads {', '.join(LOG_FORMATS)}")
     cut: Cut | None = None
