@@ -40,12 +40,13 @@ CMCAN_HEAVY = ("cmcan.config", "cmcan.assemble", "cmcan.monitor", "cmcan.daemon"
 
 
 def imported_by(code: str) -> set[str]:
-    """The modules a fresh interpreter holds after running ``code`` (its output discarded)."""
+    """The modules a fresh interpreter holds after running ``code`` (its output discarded); a name
+    held as None (blocked, as cmcan.io.mf4support defers asammdf) is not imported."""
     script = (
         "import contextlib, io, json, sys\n"
         "with contextlib.redirect_stdout(io.StringIO()):\n"
         + "".join(f"    {line}\n" for line in code.splitlines())
-        + "print(json.dumps(sorted(sys.modules)))\n"
+        + "print(json.dumps(sorted(k for k, v in sys.modules.items() if v is not None)))\n"
     )
     r = subprocess.run(
         [sys.executable, "-c", script],
@@ -100,3 +101,13 @@ def test_what_the_parsers_say_without_importing_the_commands_is_what_the_command
 def test_the_check_finds_heavy_modules():
     found = among({"numpy", "numpy.linalg", "canmatrix.formats", "cmcan", "candle", "cantools", "yamlsafe"}, HEAVY)
     assert found == ["canmatrix.formats", "cantools", "numpy", "numpy.linalg"]
+
+
+def test_a_replay_of_a_candump_log_imports_no_mf4_support(tmp_path):
+    """python-can's MF4 reader (asammdf, pandas) only for an MF4: not for a candump log."""
+    log = tmp_path / "x.log"
+    log.write_text("(1.000000) can0 100#0102030405060708\n")
+    code = f"import cmcan.cli\ntry:\n    cmcan.cli.main(['replay', {str(log)!r}])\nexcept SystemExit:\n    pass"
+    mods = imported_by(code)
+    assert "cmcan.replay" in mods and "can" in mods
+    assert among(mods, ("asammdf", "pandas", "openpyxl")) == []
