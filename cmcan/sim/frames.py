@@ -151,7 +151,9 @@ def frames_from_run(
         counter = plan.counter.get(msg.name)
         for sig in msg.signals:  # alive counters count frames of this message
             if (sig.name == counter or sig.name.endswith("counter")) and sig.name not in sig_values:
-                sig_values[sig.name] = np.arange(len(rows)) % (1 << sig.length)
+                # J1939-71: a counter's all-ones value means "not available": it counts 0..2^n - 2
+                span = (1 << sig.length) - (1 if plan.fill_unused and sig.length >= 2 else 0)
+                sig_values[sig.name] = np.arange(len(rows)) % span
         stamp = run.start_epoch_s + t[rows] + k * INTER_FRAME_S
         if jitter_ms > 0:
             # within 3 sigma, and less than half a period: a cyclic message never overtakes itself
