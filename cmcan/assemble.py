@@ -623,6 +623,7 @@ def dm1_params(cfg: Config, db: Database) -> Dm1Params | None:
         priority=prio,
         bam_gap_s=cfg.j1939.bam_packet_gap_ms / 1000.0,
         channel=cfg.output_channel,
+        answers_waiting_max=cfg.j1939.answers.waiting_max,
     )
 
 
@@ -761,6 +762,8 @@ def node_params(cfg: Config, db: Database) -> NodeParams | None:
         claim=claim,
         output_pgns=frozenset(int(ids.pgn(m.frame_id)) for m in out if _j1939_matched(cfg, m)),
         request_interval_s=j.request_interval_ms / 1000.0,
+        trust=j.clears,
+        answers=j.answers,
     )
 
 

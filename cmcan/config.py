@@ -17,8 +17,10 @@ from cmcan.checksums import ALGORITHMS
 from cmcan.io.points import Condition, PointsError, PointSpec
 from cmcan.j1939.dm1 import PROPRIETARY_SPNS
 from cmcan.j1939.name import Name
+from cmcan.j1939.requests import AnswerLimits
 from cmcan.monitor.baseline import BaselineSettings
 from cmcan.monitor.gating import REFERENCE_PUMP_DISP_CC, REFERENCE_PUMP_SPEED_RPM, GateLimits, scaled
+from cmcan.monitor.node import ClearTrust
 from cmcan.monitor.prognosis import PrognosisParams
 from cmcan.monitor.warnings import Thresholds
 from cmcan.oil import Oil, oil_from_grade
@@ -264,6 +266,8 @@ def _j1939_rule(j: dict[str, Any]) -> tuple[str, str] | None:
         return "dm1.enabled", "DM1 is a J1939 message: set j1939.enabled: true as well"
     if j["dm1"]["spn"] == j["dm1"]["input_spn"]:
         return "dm1.input_spn", "must differ from dm1.spn (the inputs' faults are another DTC than the condition)"
+    if j["source_address"] is not None and j["source_address"] in j["clears"]["trusted_addresses"]:
+        return "clears.trusted_addresses", f"includes cmcan's own address {j['source_address']}: never trusted"
     return _name_rule(j)
 
 
@@ -373,6 +377,10 @@ _BUS_SECTIONS = {
             "name": _NAME,
             "addresses": Seq(Num(0, 253, integer=True), default=[]),
             "request_interval_ms": Num(50, 10000, "ms", default=300.0),
+            # J1939-73 DM3/DM11: who may clear (declared once, in ClearTrust)
+            "clears": section(ClearTrust),
+            # all requesters together: a global rate and a bound on answers waiting (declared once, in AnswerLimits)
+            "answers": section(AnswerLimits),
         },
         default={},
         rule=_j1939_rule,
@@ -563,6 +571,8 @@ class J1939Config:
     name: Name | None = None  # J1939-81 NAME: cmcan claims its address (None: a fixed address, no claim)
     addresses: tuple[int, ...] = ()  # an arbitrary address capable NAME's addresses to move to, in order
     request_interval_ms: float = 300.0  # one answer per requester and PGN per this much frame time
+    clears: ClearTrust = field(default_factory=ClearTrust)  # who may clear DTCs (DM3/DM11): nobody by default
+    answers: AnswerLimits = field(default_factory=AnswerLimits)  # answers to requests, all requesters together
 
 
 @dataclass(frozen=True)
@@ -839,6 +849,8 @@ def _with_bus_sections(cfg: Config, raw: dict[str, Any], source: str) -> Config:
             Name(**j["name"]) if j["name"] is not None else None,
             tuple(j["addresses"]),
             float(j["request_interval_ms"]),
+            ClearTrust(**values_of(ClearTrust, j["clears"])),
+            AnswerLimits(**values_of(AnswerLimits, j["answers"])),
         ),
     )
 
@@ -907,4 +919,8 @@ def reference_rows() -> list[str]:
         *reference(BaselineSettings, "baseline", _BASELINE_HEAD),
         "",
         *reference(PrognosisParams, "prognosis", _PROGNOSIS_HEAD),
+        "",
+        *reference(ClearTrust, "j1939.clears"),
+        "",
+        *reference(AnswerLimits, "j1939.answers"),
     ]

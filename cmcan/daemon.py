@@ -10,7 +10,15 @@ with rate limits and recovered from by reopening that bus with a growing back-of
 on; no frame and no bus error stops it, and a channel that cannot be opened (not there yet, unplugged)
 is such a link down. Under systemd it reports READY, WATCHDOG and STATUS; the watchdog is pinged at
 its interval whatever the links do (every wait of the loop ends by the next ping: a daemon retrying its
-links is working, a hung loop is what the watchdog is for). SIGTERM and SIGINT stop it cleanly. A
+links is working, a hung loop is what the watchdog is for). SIGTERM and SIGINT stop it cleanly.
+
+Its send schedule waits for no input: each wait of the loop ends by the next output the core has
+queued (a transport packet, a delayed Cannot Claim, an answer's BAM) and, while the inputs are silent,
+by the next evaluation tick, so periodic frames and answers leave at their frame time whether the
+bus is silent, flooded or full of requests. Frame time at a moment of the loop is the wall clock
+where the bus stamps frames with it, else (and across a step of the wall clock) the last frame's time
+plus the loop's clock since it arrived; the core only ever takes such times. A request or claim for the J1939 node is no
+input: it moves frame time on, but not the idle clock that says the inputs are silent. A
 reload (SIGHUP, :meth:`Daemon.request_reload`) swaps in a new configuration and model validated by the
 caller, between two frames, with the monitor's state carried over. A stop or reload request wakes the
 loop from any wait (through a socket pair a signal handler can write to: no lock taken there).
@@ -43,7 +51,7 @@ from cmcan.j1939 import ids, transport
 from cmcan.monitor.baseline import MODE_NAMES, Mode
 from cmcan.monitor.clock import STEP_BACK_S
 from cmcan.monitor.core import Monitor
-from cmcan.monitor.inputs import InputMessage
+from cmcan.monitor.inputs import NODE_PFS, InputMessage
 from cmcan.ratelog import RateLimitedLog
 from cmcan.sdnotify import Notifier
 from cmcan.statefile import StateStore, done_baseline_request, read_baseline_request, write_node_status
@@ -61,6 +69,9 @@ CAN_ERR_MASK = 0x04 | 0x40 | 0x100
 
 
 WALL_STEP_S = 1.0  # a jump of frame time against boot time beyond this is a wall-clock step
+TICK_LAG_S = 1e-5  # a tick on the wall clock is evaluated this long after its time (the core's epsilon)
+HOUSEKEEPING_GAP_S = 0.03  # the status line and a save run when no output is due within this
+HOUSEKEEPING_WAIT_S = 1.0  # and wait for such a gap at most this long
 
 
 def _boot_time() -> float:
@@ -86,15 +97,18 @@ class _LoopState:
     last_save: float
     started: float = 0.0
     saved_ticks: int = -1
-    last_rx_wall: float | None = None  # when the last frame arrived
+    last_rx_wall: float | None = None  # when the last frame arrived (any frame: frame time's anchor)
     last_frame_t: float = math.nan  # and its timestamp
+    last_input_wall: float | None = None  # when the last frame that is no node frame arrived
+    idle_failed: float = -math.inf  # when the idle step last failed (no wake-up for it for a receive timeout)
     baseline_state: str | None = None  # the on-board baseline's state last said
+    save_since: float | None = None  # a save due since then, waiting for a gap in the outputs
 
 
 @dataclass
 class DaemonOptions:
     recv_timeout_s: float = 0.1
-    idle_after_s: float = 1.0  # no frame for this long: advance the core's time on the wall clock
+    idle_after_s: float = 1.0  # no input frame for this long: advance the core's time on the wall clock
     backoff_min_s: float = 0.5
     backoff_max_s: float = 10.0
     status_every_s: float = 2.0
@@ -111,9 +125,10 @@ MAX_BATCH = 4096  # several buses: frames read before some go on
 J1939_PGN_MASK = 0x03FFFF00  # EDP, DP, PF, PS: the priority and the source address left out
 # A filter no real frame matches: a channel that only carries cmcan's outputs receives nothing.
 NOTHING = {"can_id": 0, "can_mask": 0x1FFFFFFF, "extended": True}
-# cmcan's J1939 node hears every Request (PF 0xEA) and Address Claimed (PF 0xEE), whatever the
-# destination and sender: the priority bits left out, EDP, DP and PF compared
-NODE_FILTERS = [{"can_id": pf << 16, "can_mask": 0x03FF0000, "extended": True} for pf in (0xEA, 0xEE)]
+# cmcan's J1939 node hears every frame the router hands it (NODE_PFS: Request, Address Claimed and TP.CM,
+# the CTS and EndOfMsgAck of its connections), whatever the destination and sender: the priority bits
+# left out, EDP, DP and PF compared. They are no inputs (they do not hold the idle ticks back).
+NODE_FILTERS = [{"can_id": pf << 16, "can_mask": 0x03FF0000, "extended": True} for pf in sorted(NODE_PFS)]
 CAN_ERR_BUSOFF, CAN_ERR_RESTARTED = 0x40, 0x100  # error classes (linux/can/error.h)
 
 
@@ -293,8 +308,8 @@ class Daemon:
             batch = self.receive(live)
             if batch:
                 self.handle_frames(batch)
-            elif batch is not None:  # (None: the bus failed, and is being reopened)
-                self.idle()
+            if batch is not None:  # (None: the bus failed, and is being reopened)
+                self.idle()  # what is due by now goes, flood or silence
         self._shutdown()
 
     def _start(self) -> None:
@@ -334,18 +349,27 @@ class Daemon:
         if wd_every is not None and now >= st.next_wd:
             self.notifier.watchdog()
             st.next_wd = now + wd_every
-        if now >= st.next_status:
+        # the status line's snapshot and a save take tens of ms on a slow gateway: they wait for a gap
+        # before the next output, at most HOUSEKEEPING_WAIT_S (the frames keep their period)
+        gap = not self._live or self.until_due(now) >= HOUSEKEEPING_GAP_S  # (no bus: nothing to send)
+        if now >= st.next_status and (gap or now >= st.next_status + HOUSEKEEPING_WAIT_S):
             self.notifier.status(self._status_text())
             st.next_status = now + self.opt.status_every_s
         ticks = self.monitor.n_ticks
         changed = self._baseline_news()
-        if self.store is not None and (
-            changed
-            or self.monitor.transitions_since_save
-            or (now - st.last_save >= self.save_every_s and ticks != st.saved_ticks)
+        if (
+            self.store is not None
+            and st.save_since is None
+            and (
+                changed
+                or self.monitor.transitions_since_save
+                or (now - st.last_save >= self.save_every_s and ticks != st.saved_ticks)
+            )
         ):
+            st.save_since = now
+        if st.save_since is not None and (gap or now >= st.save_since + HOUSEKEEPING_WAIT_S):
             self._save()
-            st.last_save, st.saved_ticks = now, ticks
+            st.last_save, st.saved_ticks, st.save_since = now, ticks, None
 
     def _baseline_news(self) -> bool:
         """Say a change of the on-board baseline's state in the journal (a suspect machine as a
@@ -392,10 +416,10 @@ class Daemon:
         self._sleep(max(0.0, wait))
 
     def receive(self, live: list[Link]) -> Sequence[tuple[Link, can.Message]] | None:
-        """The frames that arrived within the receive timeout (shorter while transport packets wait);
-        None when the one bus failed."""
+        """The frames that arrived within the receive timeout (shorter while transport packets wait,
+        and never past the next output due: :meth:`until_due`); None when the one bus failed."""
         now = self.clock()
-        timeout = min(self.opt.recv_timeout_s, self._until_watchdog(now))
+        timeout = min(self.opt.recv_timeout_s, self._until_watchdog(now), self.until_due(now))
         if self._tp_waiting:
             timeout = min(timeout, self._tp_last_sent + self._tp_gap_s - now)
         timeout = max(0.0, timeout)  # a ping already due (a loop that fell behind): look, do not wait
@@ -421,6 +445,7 @@ class Daemon:
         counted and logged, never the daemon's end."""
         st = self.loop
         now = self.clock()
+        inputs = False
         for link, msg in batch:
             if msg.is_error_frame:
                 self.ratelog(
@@ -442,6 +467,9 @@ class Daemon:
                 self._send(out)
             st.last_rx_wall = now
             st.last_frame_t = msg.timestamp
+            inputs = inputs or not (msg.is_extended_id and ids.pdu_format(msg.arbitration_id) in NODE_PFS)
+        if inputs:  # a request is no input: the idle clock runs on; a long batch is no silence
+            st.last_input_wall = self.clock()
         if self.monitor.node is not None:
             self._node_news()
 
@@ -455,26 +483,59 @@ class Daemon:
                 "the wall clock stepped back by %.3f s; monitoring goes on on the new time base",
                 last_frame_t - msg.timestamp,
             )
-        if out and self.monitor.next_due_t != math.inf:  # a transport session's packets: spaced here
-            out += self.monitor.due(math.inf)
         return out
 
-    def idle(self) -> None:
-        """No frame within the receive timeout: after ``idle_after_s`` without frames, time goes on
-        in the core on the wall clock (ticks keep coming on a silent bus); waiting packets go out."""
+    def frame_now(self, now: float) -> float:
+        """Frame time at the loop's clock ``now``: the wall clock where the bus stamps frames with it,
+        else (and across a step of the wall clock) the last frame's time plus the time since it came;
+        before any frame the time the bus would stamp one with (NaN where that is no wall clock)."""
         st = self.loop
+        wall = self.wall_clock() if self.opt.stamps_on_wall_clock else math.nan
+        if st.last_rx_wall is None or not math.isfinite(st.last_frame_t):
+            return wall
+        est = st.last_frame_t + (now - st.last_rx_wall)
+        # the bus stamps with the wall clock: read it (no jitter of when a batch was handled), unless it
+        # stepped since the last frame (that frame's step check moves the monitor; until then, the estimate)
+        return wall if abs(wall - est) < WALL_STEP_S else est
+
+    def inputs_silent(self, now: float) -> bool:
+        """No input frame for ``idle_after_s`` (requests and claims do not count): ticks then come
+        from the wall clock."""
+        st = self.loop
+        return now - (st.last_input_wall if st.last_input_wall is not None else st.started) >= self.opt.idle_after_s
+
+    def until_due(self, now: float) -> float:
+        """Seconds of the loop's clock until the next output is due: the core's next queued frame,
+        and while the inputs are silent its next tick (until then, the moment they fall silent)."""
+        st = self.loop
+        if now < st.idle_failed + self.opt.recv_timeout_s:  # a core that fails: not woken again at once
+            return st.idle_failed + self.opt.recv_timeout_s - now
+        due = self.monitor.next_due_t
+        if self.inputs_silent(now):
+            clock = self.monitor.clock  # no tick yet: the first idle step starts the tick clock
+            due = min(due, clock.next_k * clock.period + TICK_LAG_S if clock.next_k is not None else -math.inf)
+            silence = math.inf
+        else:
+            since = st.last_input_wall if st.last_input_wall is not None else st.started
+            silence = since + self.opt.idle_after_s - now
+        t = self.frame_now(now)
+        return max(0.0, min(silence, due - t if t == t else math.inf))
+
+    def idle(self) -> None:
+        """After every receive: while no input frame came for ``idle_after_s`` time goes on in the
+        core on the wall clock (ticks keep coming on a silent bus), and the queued output frames due
+        by now go out (transport packets, a delayed Cannot Claim), whatever else arrives."""
         now = self.clock()
+        t = self.frame_now(now)
         out: list[Frame] = []
-        if now - (st.last_rx_wall if st.last_rx_wall is not None else st.started) >= self.opt.idle_after_s:
-            if st.last_rx_wall is not None:  # frame time goes on from the last frame's
-                t = st.last_frame_t + (now - st.last_rx_wall)
-            else:  # no frame yet: the time the bus would stamp a frame with (where that is the wall clock)
-                t = self.wall_clock() if self.opt.stamps_on_wall_clock else math.nan
-            try:
+        try:
+            if self.inputs_silent(now):
                 out = self.monitor.advance(t)
-                out += self.monitor.due(math.inf)
-            except Exception:
-                self._internal_error()
+            if t == t and self.monitor.next_due_t <= t:
+                out += self.monitor.due(t)
+        except Exception:
+            self.loop.idle_failed = now
+            self._internal_error()
         if out or self._tp_waiting:
             self._send(out)
         if self.monitor.node is not None:
@@ -824,13 +885,27 @@ class Daemon:
             bus = ", ".join(f"{x.name} {_updown(x)}" for x in self.links)
         health = "".join(
             f", {k.replace('_', ' ')} {c[k]}"
-            for k in ("checksum", "counter_frozen", "counter_jump", "timeout", "bad_fd", "unknown_channel")
+            for k in (
+                "checksum",
+                "counter_frozen",
+                "counter_jump",
+                "counter_not_available",
+                "checksum_not_available",
+                "timeout",
+                "bad_fd",
+                "unknown_channel",
+            )
             if c[k]
         )
         node = self.monitor.node
         if node is not None and node.claim is not None:
             a = node.address
             bus += f", J1939 {node.state}" + (f" 0x{a:02X}" if a is not None else "")
+        if node is not None:  # a flood of requests: what was not answered (the global rate, the bound)
+            dm = self.monitor.dm1_producer
+            refused, dropped = node.limit.refused_global, dm.dropped if dm is not None else 0
+            if refused or dropped:
+                bus += f", answers refused {refused} (rate), dropped {dropped} (queue)"
         return (
             f"{s['level']} ({s['reason']}), ratio {ratio}, {s['warning_count']} warnings, {bus}; "
             f"frames {c['frames_total']} (inputs {c['accepted']}, bad length {c['bad_length']}, "

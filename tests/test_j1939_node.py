@@ -23,6 +23,7 @@ from cmcan.j1939 import claim as ac
 from cmcan.j1939 import dm1, ids, transport
 from cmcan.j1939 import requests as rq
 from cmcan.j1939.name import Name
+from cmcan.monitor.node import ClearTrust
 from cmcan.monitor.totals import StateError, Totals
 from cmcan.replay import FrameCollector, TimelineCollector, replay, replay_columns
 from cmcan.schema import SchemaError
@@ -43,6 +44,16 @@ def name_of(**kw) -> Name:
 def req(t: float, sa: int, dest: int, pgn: int, channel: str = "can0") -> Frame:
     fid = ids.make_id(rq.REQUEST_PRIORITY, rq.PGN_REQUEST, sa, dest)
     return Frame(t, channel, fid, True, False, False, False, rq.request_data(pgn))
+
+
+def tp_cm(t: float, sa: int, dest: int, data: bytes, channel: str = "can0") -> Frame:
+    fid = ids.make_id(transport.TP_PRIORITY, transport.PGN_TP_CM, sa, dest)
+    return Frame(t, channel, fid, True, False, False, False, data)
+
+
+def trusting(cfg, *addresses: int, names: tuple[int, ...] = ()):
+    """``cfg`` with DM3/DM11 trusted from these source addresses (and NAMEs)."""
+    return replace(cfg, j1939=replace(cfg.j1939, clears=ClearTrust(addresses, names)))
 
 
 def claim_frame(t: float, sa: int, name: Name | int, channel: str = "can0") -> Frame:
@@ -210,23 +221,29 @@ def from_cmcan(out: list[Frame], pgn: int, source: int = SA) -> list[Frame]:
 
 
 def dm_payloads(out: list[Frame], pgn: int) -> list[tuple[float, bytes]]:
-    r = transport.BamReceiver()
+    """Each message of ``pgn`` cmcan sent: in one frame, by BAM, or by RTS/CTS (to whomever)."""
+    r, c = transport.BamReceiver(), transport.ConnectionReceiver()
     got = []
     for f in out:
         if ids.source_address(f.arbitration_id) != SA:
             continue
+        to_one = ids.destination(f.arbitration_id) != ids.GLOBAL_ADDRESS
         if ids.pgn(f.arbitration_id) == pgn:
             got.append((f.timestamp_s, f.data))
-        elif (done := r.feed(f.arbitration_id, f.data)) is not None and done[1] == pgn:
+            continue
+        done = c.feed(f.arbitration_id, f.data)[1] if to_one else r.feed(f.arbitration_id, f.data)
+        if done is not None and done[1] == pgn:
             got.append((f.timestamp_s, done[2]))
     return got
 
 
 @pytest.fixture(scope="module")
 def service(leak40):
-    """A service tool at 0xF9 (it claims its address) asks cmcan for what a workshop asks; cmcan
-    started with two previously active DTCs in its state; a leak from 12 s raises the low warning."""
+    """A service tool at 0xF9 (it claims its address; the configuration trusts it to clear) asks cmcan
+    for what a workshop asks; cmcan started with two previously active DTCs in its state; a leak from
+    12 s raises the low warning. DM2 of two DTCs goes by RTS/CTS to the tool, which takes it at once."""
     cfg, frames = leak40
+    cfg = trusting(cfg, TOOL)
     t0 = frames[0].timestamp_s
     tool = Name(identity_number=7, manufacturer_code=11, function=129, industry_group=0)
     extra = [
@@ -239,6 +256,8 @@ def service(leak40):
         req(t0 + 3.08, TOOL, SA, 65312),  # again within 300 ms: not answered
         req(t0 + 3.2, TOOL, 0x00, dm1.PGN_DM1),  # to the engine: not for cmcan
         req(t0 + 4.0, TOOL, SA, rq.PGN_DM2),
+        tp_cm(t0 + 4.02, TOOL, SA, transport.cts_data(255, 1, rq.PGN_DM2)),
+        tp_cm(t0 + 4.04, TOOL, SA, transport.eoma_data(10, rq.PGN_DM2)),
         req(t0 + 5.0, TOOL, SA, rq.PGN_DM3),
         req(t0 + 6.0, TOOL, SA, rq.PGN_DM2),
         req(t0 + 22.0, TOOL, SA, rq.PGN_DM11),
@@ -267,21 +286,30 @@ def test_a_service_tool_gets_its_answers_in_both_engines(service, chunk):
     ]
     ratio = from_cmcan(out, 65312)
     answer = [f for f in ratio if abs(f.timestamp_s - (t0 + 3.03)) < 1e-9]
-    assert len(answer) == 1 and answer[0].data == [f for f in ratio if f.timestamp_s < t0 + 3.03][-1].data
+    # the answer: the last CM_RATIO with the alive counter's next value (bits 56-59), which moves on
+    before = [f for f in ratio if f.timestamp_s < t0 + 3.03][-1].data
+    after = next(f for f in ratio if f.timestamp_s > t0 + 3.03).data
+    assert len(answer) == 1 and answer[0].data[:7] == before[:7] and answer[0].data[7] >> 4 == before[7] >> 4
+    alive = [d[7] & 0xF for d in (before, answer[0].data, after)]
+    assert alive == [alive[0], (alive[0] + 1) % 16, (alive[0] + 2) % 16]
     assert not [f for f in ratio if abs(f.timestamp_s - (t0 + 3.08)) < 1e-9]
-    # DM2 before DM3: both previously active DTCs with their counts (two DTCs: BAM); after: none
+    # DM2 before DM3: both previously active DTCs with their counts (two DTCs: RTS/CTS to the tool,
+    # nothing to all); after: none
     dm2 = dm_payloads(out, rq.PGN_DM2)
-    assert [round(t - t0, 1) for t, _ in dm2] == [4.2, 6.0]  # (the BAM complete with its last packet)
+    assert [round(t - t0, 2) for t, _ in dm2] == [4.02, 6.0]  # (the message whole with its last packet)
+    tp = [f for f in out if ids.pdu_format(f.arbitration_id) in (0xEB, 0xEC) and f.timestamp_s < t0 + 5]
+    assert {ids.destination(f.arbitration_id) for f in tp} == {TOOL} and tp[0].data[0] == transport.CM_RTS
+    assert mon.node.counts["connections_sent"] == 1 and not mon.node.connections
     assert [(d.spn, d.fmi, d.occurrence) for d in dm1.decode(dm2[0][1])[1]] == [(520193, 2, 1), (520193, 9, 3)]
     assert dm1.decode(dm2[1][1])[1] == []
-    # DM11 at 22 s while low: the DTC goes, and comes back (count 1) when the monitor finds it again
-    dm1s = [(t - t0, dm1.decode(p)[1]) for t, p in dm_payloads(out, dm1.PGN_DM1)]
-    before = [d for t, d in dm1s if 20 < t < 22]
-    after = [d for t, d in dm1s if 22 <= t < 23]
-    later = [d for t, d in dm1s if t > 26]
-    assert before and before[-1] and before[-1][0].fmi in (17, 18)
-    assert after and after[0] == []
-    assert later and later[-1][0].fmi in (17, 18) and later[-1][0].occurrence == 1
+    # DM11 at 22 s while low: the DTC's count goes, the DTC is active again at once (count 1: the
+    # leak is still there), the amber lamp stays on, the warning never says ok
+    dm1s = [(t - t0, dm1.decode(p)) for t, p in dm_payloads(out, dm1.PGN_DM1)]
+    before = [d for t, (_, d) in dm1s if 20 < t < 22]
+    after = [(lamps, d) for t, (lamps, d) in dm1s if 22 <= t < 23]
+    assert before and before[-1] and before[-1][0].fmi in (17, 18) and before[-1][0].occurrence >= 1
+    assert after and after[0][1] and after[0][1][0].fmi in (17, 18) and after[0][1][0].occurrence == 1
+    assert all(lamps.amber_warning == dm1.Lamp.ON for lamps, _ in after)
     clears = mon.totals.dtc_clears
     assert [(c["kind"], c["by_address"], c["by_name"]) for c in clears] == [
         ("dm3", TOOL, f"0x{Name(7, 11, 129).value:016X}"),
@@ -289,8 +317,13 @@ def test_a_service_tool_gets_its_answers_in_both_engines(service, chunk):
     ]
     assert clears[0]["cleared"] == ["520193:2", "520193:9"] and clears[1]["t_s"] == t0 + 22.0
     levels = [(h["from"], h["to"]) for h in mon.totals.history]
-    assert ("low", "ok") in levels and levels[-1] == ("ok", "low")
-    assert mon.counters["node_frames"] == 12
+    assert ("low", "ok") not in levels and levels[-1] == ("ok", "low")
+    assert (mon.node.counts["clears_dm3"], mon.node.counts["clears_dm11"], mon.node.counts["clears_refused"]) == (
+        1,
+        1,
+        0,
+    )
+    assert mon.counters["node_frames"] == 14
 
 
 def test_a_lower_name_on_cmcans_address_silences_it(leak40):

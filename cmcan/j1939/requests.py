@@ -19,7 +19,10 @@ transport protocol.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
+
+from cmcan.schema import Num, setting
 
 PGN_REQUEST = 59904  # 0xEA00
 PGN_ACK = 59392  # 0xE800
@@ -67,19 +70,48 @@ def decode_ack(data: bytes) -> Ack:
     return Ack(data[0], data[1], data[4], data[5] | data[6] << 8 | (data[7] & 0x03) << 16)
 
 
+@dataclass(frozen=True)
+class AnswerLimits:
+    """How much answering cmcan does whatever the requesters (the YAML section ``j1939.answers``).
+
+    A flood of requests from rotating source addresses passes any per-requester limit: a global rate
+    in frame time caps the answers (a token bucket: ``burst`` at once, then ``rate_per_s``), and the
+    answers that need the bus's one BAM session wait in a bounded queue, behind cmcan's own DM1."""
+
+    rate_per_s: float = setting(
+        Num(0.1, 1000, "/s", default=10.0),
+        "answers to requests per second of frame time, from all requesters together (Address Claimed aside); "
+        "requests beyond it are not answered and are counted",
+    )
+    burst: int = setting(
+        Num(1, 1000, integer=True, default=10), "answers given at once before the rate applies (the bucket's size)"
+    )
+    waiting_max: int = setting(
+        Num(0, 64, integer=True, default=4),
+        "answers by BAM (DM1, DM2 with more than one DTC) waiting for the node's BAM session; more are dropped "
+        "and counted",
+    )
+
+
 @dataclass
 class RequestLimit:
-    """How often one requester gets an answer for one PGN: at most once per ``interval_s`` of frame time.
+    """How often one requester gets an answer for one PGN: at most once per ``interval_s`` of frame time;
+    and all requesters together at most ``answers.rate_per_s`` (``answers.burst`` at once).
 
     J1939-21 asks a requester to keep its requests to a few a second (a request is not a polling
     mechanism; periodic data is broadcast); a node answering every request of a requester that floods
-    the bus would double the flood. Requests that come sooner are not answered (nor NACKed: silence
-    costs the bus nothing). At most ``keys_max`` (requester, PGN) pairs are remembered; the oldest go."""
+    the bus would double the flood, and one that answers every source address of a rotating flood
+    the same. Requests refused are not answered (nor NACKed: silence costs the bus nothing). At most
+    ``keys_max`` (requester, PGN) pairs are remembered; the oldest go."""
 
     interval_s: float = 0.3
     keys_max: int = 512
+    answers: AnswerLimits = field(default_factory=AnswerLimits)
     last: dict[tuple[int, int], float] = field(default_factory=dict)
-    refused: int = 0
+    refused: int = 0  # by the per-requester limit
+    refused_global: int = 0  # by the global rate
+    tokens: float = math.nan  # the bucket (NaN: full, before the first request)
+    tokens_t: float = -math.inf  # the frame time it was filled to
 
     def allow(self, t: float, requester: int, pgn: int) -> bool:
         key = (requester, pgn)
@@ -87,8 +119,25 @@ class RequestLimit:
         if before is not None and before <= t < before + self.interval_s:
             self.refused += 1
             return False
+        if not self.take_token(t):
+            self.refused_global += 1
+            return False
         self.last.pop(key, None)
         self.last[key] = t
         if len(self.last) > self.keys_max:
             del self.last[next(iter(self.last))]
+        return True
+
+    def take_token(self, t: float) -> bool:
+        """One answer from the global bucket at frame time ``t`` (a time earlier than the last, a step
+        of the clock back, refills nothing and becomes the bucket's time)."""
+        a = self.answers
+        if self.tokens != self.tokens:
+            self.tokens = float(a.burst)
+        else:
+            self.tokens = min(float(a.burst), self.tokens + max(0.0, t - self.tokens_t) * a.rate_per_s)
+        self.tokens_t = t
+        if self.tokens < 1.0:
+            return False
+        self.tokens -= 1.0
         return True

@@ -101,6 +101,8 @@ COUNTERS = (
     "other_sender",
     "error_code",
     "not_available",
+    "counter_not_available",
+    "checksum_not_available",
     "node_frames",
 )
 _CONDITION = {
@@ -281,7 +283,7 @@ class Monitor:
             if self.queue.later:
                 out = self.queue.release(out, t)
         out = node.outgoing(out)
-        answers, clear = node.handle(frame, self.dm1_producer)
+        answers, clear = node.handle(frame, self.dm1_producer, self.payloads)
         if clear is not None:
             self._clear(clear)
         now: list[Frame] = []
@@ -289,17 +291,17 @@ class Monitor:
         return out + node.outgoing(now)
 
     def _clear(self, c: Clear) -> None:
-        """DM3 (previously active DTCs) or DM11 (active ones: the warning state too, so a condition
-        still there is found again, with its debounce, and becomes active again), recorded with who
-        asked and when."""
+        """DM3 (previously active DTCs) or DM11 (active ones: the DTCs and their counts, and a condition
+        the filtered ratio no longer shows; one it still shows stays, so its DTC is active again at the
+        next tick with count 1), recorded with who asked and when."""
         dm = self.dm1_producer
         assert dm is not None
         if c.kind == "dm11":
             keys = dm.clear_active()
             old = self.machine.level
-            self.machine = WarningMachine(self.params.thresholds)
-            if old != Level.OK:
-                self._record(Transition(c.t_s, old, Level.OK, Reason.NONE, None))
+            self.machine.clear(self.filter.ratio_pct if self.filter.valid else None)
+            if self.machine.level != old:
+                self._record(Transition(c.t_s, old, self.machine.level, self.machine.reason, None))
             self.totals.condition = LEVEL_NAMES[self.machine.condition]
         else:
             keys = dm.clear_previous()
@@ -341,6 +343,8 @@ class Monitor:
         out: list[Frame] = []
         for k in self.clock.advance(t):
             out += self._evaluate(k)
+        if self.node is not None and math.isfinite(t):
+            out += self.node.expire(t)  # an RTS/CTS connection whose time ran out: its abort
         return pre + self._gate(self.queue.release(out, t) if self.queue.later else out)
 
     def due(self, t: float) -> list[Frame]:
@@ -849,7 +853,12 @@ class Monitor:
         if self.dm1 is not None:
             same_dm1 = old.dm1_producer is not None and self.dm1 == old.dm1
             self.dm1_producer = old.dm1_producer if same_dm1 else Dm1Producer(self.dm1, self.totals)
-        if self.node is not None and old.node is not None and self.node.p == old.node.p:
+        if (
+            self.node is not None
+            and old.node is not None
+            and replace(self.node.p, trust=old.node.p.trust) == old.node.p
+        ):
+            old.node.p = self.node.p  # (who may clear: the new configuration's)
             self.node = old.node  # the claim stands: a node claims again only with another NAME or address
         return self._take_inputs(old)
 

@@ -15,8 +15,16 @@ DTCs active at the last save are not counted again when they are still active af
 
 DM1 goes out every ``every_ticks`` ticks (1 s) and at once when the lamp or the active DTCs change;
 with one DTC or none in one frame (the all-zero DTC when none is active), with more over BAM
-(:mod:`cmcan.j1939.transport`): TP.CM at the tick's time, each TP.DT ``bam_gap_s`` later. A node has
-one BAM at a time, so a change during a BAM is sent at the first tick after that BAM's last packet.
+(:mod:`cmcan.j1939.transport`): TP.CM at the tick's time, each TP.DT ``bam_gap_s`` later.
+
+Answers to requests for DM1 and DM2 (:meth:`Dm1Producer.answer`) come after the node's own DM1: a
+node has one BAM at a time (J1939-21), and cmcan's periodic DM1 is not to wait for anybody's
+request. An answer of one frame goes at once (a single frame needs no session). An answer by BAM
+starts at once when no BAM is on the wire and it ends before the next periodic DM1; otherwise it
+waits (at most ``answers_waiting_max``; more are dropped and counted in ``dropped``) and starts at
+the first tick where it can, after any DM1 due. An answer too long to fit between two DM1s at all
+starts at the first tick after a DM1. A DM1 by BAM due while a BAM is on the wire goes at the first
+tick after its last packet, ahead of the answers waiting.
 
 One tick at a time (:meth:`Dm1Producer.step`), or a stretch of ticks (:meth:`Dm1Producer.run_columns`),
 which steps only the ticks where a step could do something.
@@ -24,6 +32,8 @@ which steps only the ticks where a step could do something.
 
 from __future__ import annotations
 
+import math
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -49,6 +59,7 @@ class Dm1Params:
     priority: int = dm1.DM1_PRIORITY
     bam_gap_s: float = 0.1
     channel: str = ""
+    answers_waiting_max: int = 4  # answers by BAM waiting for the session (AnswerLimits.waiting_max)
 
 
 _FAULT_FMI = {
@@ -60,6 +71,7 @@ _FAULT_FMI = {
 
 class Dm1Producer:
     __slots__ = (
+        "_dm1_until",
         "_every",
         "_hi_off",
         "_hi_on",
@@ -67,14 +79,17 @@ class Dm1Producer:
         "_lo_off",
         "_lo_on",
         "_payload",
+        "_tick_s",
         "active",
         "busy_until",
         "changed",
+        "dropped",
         "frame_id",
         "high_severe",
         "low_severe",
         "p",
         "totals",
+        "waiting",
     )
 
     def __init__(self, p: Dm1Params, totals: Totals) -> None:
@@ -92,6 +107,10 @@ class Dm1Producer:
         self._lo_on, self._lo_off = p.low_severe_pct, p.low_severe_pct + p.hysteresis_pct
         self._hi_on, self._hi_off = p.high_severe_pct, p.high_severe_pct - p.hysteresis_pct
         self._every = p.every_ticks
+        self.waiting: deque[int] = deque()  # the PGNs of answers by BAM waiting for the session
+        self.dropped = 0  # answers dropped: more waiting than answers_waiting_max
+        self._dm1_until = -1e300  # the last packet of the last BAM of DM1 (a DM1 frame goes after it)
+        self._tick_s = 0.0  # the tick's period (from the first tick: t = k x period), 0 before
 
     def dtcs(self, condition: Level, fault: Reason) -> list[tuple[int, int]]:
         """(SPN, FMI) of the active DTCs, condition first."""
@@ -107,6 +126,8 @@ class Dm1Producer:
 
     def step(self, k: int, t: float, condition: Level, fault: Reason, ratio_pct: float | None) -> list[Frame]:
         """One tick: update the active DTCs and counts; the DM1 frames due (times >= ``t``)."""
+        if not self._tick_s and k:
+            self._tick_s = t / k
         if ratio_pct is not None:  # the severity (kept while nothing is evaluated), inline: every tick
             if ratio_pct < self._lo_on:
                 self.low_severe = True
@@ -120,12 +141,13 @@ class Dm1Producer:
         state = (condition, fault, self.low_severe, self.high_severe)
         if state == self._last and not self.changed:
             if k % self._every:  # nothing changed, nothing to send: the common tick
-                return []
+                return self._answer_waiting(t) if self.waiting else []
             # due, nothing changed since the last DM1 (any change of DTCs, lamp or counts sets
             # ``changed`` until it is sent): the same single frame again
             pl = self._payload
             if self._single_ready(pl, t):
-                return [Frame(t, self.p.channel, self.frame_id, True, False, False, False, pl[1])]  # type: ignore[index]
+                dm = [Frame(t, self.p.channel, self.frame_id, True, False, False, False, pl[1])]  # type: ignore[index]
+                return dm + self._answer_waiting(t) if self.waiting else dm
         self._last = state
         now = self.dtcs(condition, fault)
         keys = [f"{s}:{f}" for s, f in now]
@@ -138,38 +160,92 @@ class Dm1Producer:
             self.totals.dtc_active = list(keys)
             self.changed = True
         due = k % self.p.every_ticks == 0 or self.changed
-        if not due or t <= self.busy_until:
+        if not due:
+            return self._answer_waiting(t) if self.waiting else []
+        payload = self._dm1_payload(condition, now)
+        single = len(payload) <= 8
+        # a single frame needs no session (an answer's BAM does not hold it back), but does not overtake
+        # a DM1 still on the wire; one BAM at a time: a DM1 by BAM goes next, ahead of the answers waiting
+        if t <= (self._dm1_until if single else self.busy_until):
+            self.changed = True
             return []
         self.changed = False
+        if single:
+            dm = [Frame(t, self.p.channel, self.frame_id, True, False, False, False, payload)]
+        else:
+            dm = transport.bam_frames(t, self.p.bam_gap_s, dm1.PGN_DM1, payload, self.p.source, self.p.channel)
+            self.busy_until = self._dm1_until = dm[-1].timestamp_s
+        return dm + self._answer_waiting(t) if self.waiting else dm
+
+    def _dm1_payload(self, condition: Level, now: list[tuple[int, int]]) -> bytes:
+        """DM1's payload for the active DTCs ``now`` (the one of the last DM1 when nothing changed)."""
+        counts = self.totals.dtc_occurrences
         amber = condition in (Level.LOW, Level.HIGH)
         made_of = (amber, *(x for s, f in now for x in (s, f, counts.get(f"{s}:{f}", 0))))
         if self._payload is not None and self._payload[0] == made_of:  # the same DM1 as a second ago
-            payload = self._payload[1]
-        else:
-            lamps = Lamps(amber_warning=Lamp.ON if amber else Lamp.OFF)
-            payload = dm1.encode(lamps, [Dtc(s, f, counts.get(f"{s}:{f}", 0)) for s, f in now])
-            self._payload = (made_of, payload)
-        if len(payload) <= 8:
-            return [Frame(t, self.p.channel, self.frame_id, True, False, False, False, payload)]
-        frames = transport.bam_frames(t, self.p.bam_gap_s, dm1.PGN_DM1, payload, self.p.source, self.p.channel)
-        self.busy_until = frames[-1].timestamp_s
-        return frames
+            return self._payload[1]
+        lamps = Lamps(amber_warning=Lamp.ON if amber else Lamp.OFF)
+        payload = dm1.encode(lamps, [Dtc(s, f, counts.get(f"{s}:{f}", 0)) for s, f in now])
+        self._payload = (made_of, payload)
+        return payload
 
     # -- answers to requests and clears (DM1, DM2, DM3, DM11) ----------------------------------------
 
     def answer(self, pgn: int, t: float) -> list[Frame]:
         """The frames answering a request at ``t`` for DM1 (the active DTCs as DM1 would send them now)
         or DM2 (the previously active ones: an occurrence count, not active now), the lamps as they are
-        now; longer than 8 bytes by BAM, after any BAM of this node in progress (one at a time)."""
+        now. Longer than 8 bytes by BAM: at once where the session is free and the BAM ends before the
+        next DM1, else none now: the answer waits for a tick where it can go (see the module), or is
+        dropped (counted) when ``answers_waiting_max`` wait already."""
+        if not self.waiting and t > self.busy_until:
+            frames = self._answer_now(pgn, t)
+            if frames is not None:
+                return frames
+        elif len(dm_payload(self.p, self.active, self.totals.dtc_occurrences, pgn)) <= 8:
+            return self._answer_now(pgn, t) or []
+        if len(self.waiting) < self.p.answers_waiting_max:
+            self.waiting.append(pgn)
+        else:
+            self.dropped += 1
+        return []
+
+    def _answer_now(self, pgn: int, t: float) -> list[Frame] | None:
+        """The answer for ``pgn`` at ``t`` where it can go now (None: a BAM that would still be on the
+        wire at the next periodic DM1, while a DM1 by BAM could be due then)."""
         p = self.p
         payload = dm_payload(p, self.active, self.totals.dtc_occurrences, pgn)
-        fid = ids.make_id(p.priority, pgn, p.source)
         if len(payload) <= 8:
-            return [Frame(t, p.channel, fid, True, False, False, False, payload)]
-        t0 = t if t > self.busy_until else self.busy_until + p.bam_gap_s
-        frames = transport.bam_frames(t0, p.bam_gap_s, pgn, payload, p.source, p.channel)
+            return [Frame(t, p.channel, ids.make_id(p.priority, pgn, p.source), True, False, False, False, payload)]
+        t_end = t + (len(payload) + 6) // 7 * p.bam_gap_s  # the last packet's time
+        if self._tick_s and not self._fits(t, t_end):
+            return None
+        frames = transport.bam_frames(t, p.bam_gap_s, pgn, payload, p.source, p.channel)
         self.busy_until = frames[-1].timestamp_s
+        if pgn == dm1.PGN_DM1:
+            self._dm1_until = self.busy_until
         return frames
+
+    def _fits(self, t: float, t_end: float) -> bool:
+        """Whether a BAM from ``t`` to ``t_end`` leaves the next periodic DM1 alone: it ends before
+        that DM1's tick, or DM1 is a single frame now, or no BAM could (longer than DM1's period: it
+        goes right after a DM1, the earliest it can)."""
+        pl = self._payload
+        if pl is not None and len(pl[1]) <= 8 and not self.changed:
+            return True
+        every, tick = self._every, self._tick_s
+        k_next = (math.floor(t / tick + 1e-6) // every + 1) * every  # the next DM1 tick after t
+        return t_end < k_next * tick or t_end - t + self.p.bam_gap_s >= every * tick
+
+    def _answer_waiting(self, t: float) -> list[Frame]:
+        """At a tick ``t`` with no DM1 to go: the answers waiting that can go now (one BAM at most)."""
+        out: list[Frame] = []
+        while self.waiting and not self.changed and t > self.busy_until:
+            frames = self._answer_now(self.waiting[0], t)
+            if frames is None:
+                break
+            self.waiting.popleft()
+            out += frames
+        return out
 
     def clear_previous(self) -> list[str]:
         """DM3: forget the previously active DTCs (their occurrence counts); the keys forgotten."""
@@ -228,9 +304,9 @@ class Dm1Producer:
                 if dm:
                     queue(dm, t, now)
                     now_at.extend([i] * (len(now) - len(now_at)))
-                if not self.changed or i + 1 >= n:
+                if not (self.changed or self.waiting) or i + 1 >= n:
                     return i
-                i += 1  # a change waits to go out: every tick until it has
+                i += 1  # a change or an answer waits to go out: every tick until it has
 
         q = 0
         while q < len(must_i):
@@ -254,7 +330,7 @@ class Dm1Producer:
         p = self.p
         with np.errstate(invalid="ignore"):
             severe = (ratio < self._lo_on) | (ratio > self._hi_on)  # where step could set a severe flag
-        if self.low_severe or self.high_severe or severe.any():
+        if self.low_severe or self.high_severe or self.waiting or severe.any():
             every = np.ones(len(ks), dtype=bool)
             return every, every
         event = np.zeros(len(ks), dtype=bool)  # the severity flags stay: only these ticks change anything
@@ -264,14 +340,16 @@ class Dm1Producer:
         return event | (ks % p.every_ticks == 0), event
 
     def _single_ready(self, pl: tuple[tuple[int, ...], bytes] | None, t: float) -> bool:
-        """A cached DM1 that fits one frame, and no transport of this node in progress at ``t``: what
-        a due tick with nothing changed resends (:meth:`step`, and the runs of :meth:`run_columns`)."""
-        return pl is not None and len(pl[1]) <= 8 and t > self.busy_until
+        """A cached DM1 that fits one frame and no DM1 by BAM on the wire at ``t`` (an answer's BAM of
+        DM2 does not hold it back): what a due tick with nothing changed resends (:meth:`step`, and the
+        runs of :meth:`run_columns`)."""
+        return pl is not None and len(pl[1]) <= 8 and t > self._dm1_until
 
     def _resends(self, pl: tuple[tuple[int, ...], bytes] | None, cond: int, fault: int, t: float) -> bool:
         """Whether a due tick with nothing changed would resend the cached single frame."""
         return (
             not self.changed
+            and not self.waiting
             and self._last == (cond, fault, self.low_severe, self.high_severe)
             and self._single_ready(pl, t)
         )

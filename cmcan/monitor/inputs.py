@@ -36,8 +36,10 @@ MEMO_MAX = 1 << 16  # identifiers remembered per channel (a flood of random ones
 # why a frame is no input (:class:`Router`); 0 and up: the input message's index
 UNKNOWN_ID, UNKNOWN_CHANNEL, BAD_FD, NOT_DATA = -1, -2, -3, -4
 OWN_ADDRESS = -6  # a J1939 frame claiming cmcan's own source address
-NODE = -7  # a J1939 Request or Address Claimed on the output channel: for cmcan's node
-NODE_PFS = frozenset((0xEA, 0xEE))  # the PDU formats of Request (PGN 59904) and Address Claimed (60928)
+NODE = -7  # a J1939 Request, Address Claimed or TP.CM on the output channel: for cmcan's node
+# the PDU formats of Request (PGN 59904), Address Claimed (60928) and the transport protocol's
+# connection management (TP.CM, 60416: the CTS and EndOfMsgAck of cmcan's RTS/CTS connections)
+NODE_PFS = frozenset((0xEA, 0xEE, 0xEC))
 # the router's counters: every frame, and each reason a frame is no input
 ROUTED = (
     "frames_total",

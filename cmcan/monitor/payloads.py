@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from cmcan.codec import Layout, encode_all, frame_encoder
+from cmcan.codec import Layout, encode_all, frame_encoder, insert
 from cmcan.frame import Frame, FrameColumns
 from cmcan.monitor.baseline import Mode
 from cmcan.monitor.gating import Gate, is_evaluated
@@ -24,6 +24,7 @@ from cmcan.monitor.warnings import Level, Reason
 from cmcan.roles import MOTOR_SPEED, QUANTITY_SIGNALS
 
 ALIVE_MODULO = 16
+ALIVE_SIGNAL = "cm_alive_counter"
 WARNING_COUNT_MODULO = 65536  # warning_count is sent modulo this (a 16-bit counter wraps)
 # The CM ratios an output must carry: a drive that delivers nothing to twice its prediction. Beyond
 # that the ratio says "broken" either way; a signal that saturates there loses nothing a reader uses.
@@ -152,6 +153,29 @@ class Payloads:
     def _frame(self, t: float, msg: OutputMessage, values: Mapping[str, float]) -> Frame:
         return Frame(t, self.outputs.channel, msg.frame_id, msg.extended, False, False, False, msg.encode(values))
 
+    def answer(self, last: Frame, t: float) -> Frame:
+        """The frame answering a request for an output message: ``last`` (its last frame sent) at ``t``
+        with the alive counter's next value where it carries one; the counter moves on, so no
+        receiver sees a value twice in a row (the periodic frames after it step by 2 at most)."""
+        msg = next(
+            (
+                m
+                for m in self._messages()
+                if m.extended == last.extended and (m.frame_id ^ last.arbitration_id) & ~0xFF == 0
+            ),
+            None,
+        )
+        lay = None if msg is None else next((x for x in msg.layouts if x.name == ALIVE_SIGNAL), None)
+        if msg is None or lay is None:
+            return last._replace(timestamp_s=t)
+        data = with_raw(bytes(last.data), lay, msg.size, self.alive)
+        self.alive = (self.alive + 1) % ALIVE_MODULO
+        return last._replace(timestamp_s=t, data=data)
+
+    def _messages(self) -> tuple[OutputMessage, ...]:
+        o = self.outputs
+        return (o.ratio, o.quantity, o.warning, *(m for m in (o.baseline, o.prognosis) if m is not None))
+
     def frames(self, k: int, tick: Tick, warning_count: int) -> list[Frame]:
         """The frames of tick ``k``: each message due by its send rule, its values by
         :func:`_values` (the same definitions :meth:`frames_columns` applies over arrays)."""
@@ -243,6 +267,13 @@ class Payloads:
             dlc=np.array([m.length for m in msgs], dtype=np.int16)[kind_of],
             data=data,
         )
+
+
+def with_raw(data: bytes, lay: Layout, size: int, raw: int) -> bytes:
+    """``data`` (a frame of a message of ``size`` bytes) with one signal's bits set to ``raw``."""
+    order = "big" if lay.big_endian else "little"  # the word the encoder builds for this byte order
+    word = int.from_bytes(data.ljust(size, b"\0"), order) & ~(lay.mask << lay.shift)
+    return int(insert(word, raw, lay)).to_bytes(size, order)[: len(data)]
 
 
 # -- what each message carries and when: one definition for one tick (floats) and for columns ------

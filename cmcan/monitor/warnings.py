@@ -195,6 +195,20 @@ class WarningMachine:
             self._set(Level.OK, Reason.NONE)
             self.time_below_s = 0.0
 
+    def clear(self, ratio_filt_pct: float | None) -> None:
+        """A DM11 (active DTCs cleared): a low or high condition the filtered ratio no longer shows goes
+        back to ok; one it still shows stays raised (it is there: raised again at once, not after a new
+        debounce). The debounce accumulators and the fault go on as they were."""
+        if ratio_filt_pct is not None:
+            below, above, _ = band(ratio_filt_pct, self.th)
+            if (self.condition == Level.LOW and below) or (self.condition == Level.HIGH and above):
+                return
+        if self.condition != Level.OK:
+            self.condition, self.condition_reason = Level.OK, Reason.NONE
+            self.inside_s = 0.0
+            if ratio_filt_pct is None or not band(ratio_filt_pct, self.th)[0]:
+                self.time_below_s = 0.0
+
     def _set(self, level: Level, reason: Reason) -> None:
         self.condition = level
         self.condition_reason = reason
