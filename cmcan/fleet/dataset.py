@@ -271,6 +271,8 @@ def remove_orphans(root: Path, wait_s: float = CLEANUP_WAIT_S, writers_wait_s: f
         while _held_stages(root / STAGING) and time.monotonic() < deadline:
             time.sleep(0.1)
             n += _remove_stages(root / STAGING)
+        with contextlib.suppress(OSError):  # the staging area itself, once empty (a writer's lock keeps it)
+            (root / STAGING).rmdir()
         for table in TABLES:
             for tmp in (root / table).rglob(".*.tmp"):
                 tmp.unlink(missing_ok=True)

@@ -12,6 +12,7 @@ the reader python-can's ``LogReader`` already holds works from then on.
 from __future__ import annotations
 
 import importlib
+import logging
 import sys
 
 _DEFERRED = "asammdf"
@@ -31,4 +32,7 @@ def enable() -> None:
         del sys.modules[_DEFERRED]
     mf4 = sys.modules.get("can.io.mf4")
     if mf4 is not None and getattr(mf4, "asammdf", None) is None:
+        logger = logging.getLogger("asammdf")
+        level = logger.level  # the command line's (asammdf sets its own when imported)
         importlib.reload(mf4)
+        logger.setLevel(level)
