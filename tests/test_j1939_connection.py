@@ -46,18 +46,21 @@ def run(steps: list) -> tuple[transport.Sender, list[tuple[float, str, Frame]]]:
     log = [(t, "start", f) for f in s.start(t)]
     for dt, (kind, a, b) in steps:
         t += dt
-        if kind == "cts":
-            out = s.on_cm(t, transport.cts_data(a, b, PGN))
-        elif kind == "eoma":
-            out = s.on_cm(t, transport.eoma_data(len(PAYLOAD), PGN))
-        elif kind == "abort":
-            out = s.on_cm(t, transport.abort_data(a, PGN))
-        elif kind == "other_pgn":
-            out = s.on_cm(t, transport.cts_data(a, b, PGN + 1))
-        else:
-            out = s.expire(t)
-        log += [(t, kind, f) for f in out]
+        log += [(t, kind, f) for f in receiver_does(s, t, kind, a, b)]
     return s, log
+
+
+def receiver_does(s: transport.Sender, t: float, kind: str, a: int, b: int) -> list[Frame]:
+    """One step of the receiver (STEP) at ``t``: the sender's answer."""
+    if kind == "cts":
+        return s.on_cm(t, transport.cts_data(a, b, PGN))
+    if kind == "eoma":
+        return s.on_cm(t, transport.eoma_data(len(PAYLOAD), PGN))
+    if kind == "abort":
+        return s.on_cm(t, transport.abort_data(a, PGN))
+    if kind == "other_pgn":
+        return s.on_cm(t, transport.cts_data(a, b, PGN + 1))
+    return s.expire(t)
 
 
 @given(STEPS)
@@ -74,16 +77,7 @@ def test_the_sender_follows_j1939_21_whatever_the_receiver_does(steps):
     for dt, (kind, a, b) in steps:
         t += dt
         state_before = s.state
-        if kind == "cts":
-            out = s.on_cm(t, transport.cts_data(a, b, PGN))
-        elif kind == "eoma":
-            out = s.on_cm(t, transport.eoma_data(len(PAYLOAD), PGN))
-        elif kind == "abort":
-            out = s.on_cm(t, transport.abort_data(a, PGN))
-        elif kind == "other_pgn":
-            out = s.on_cm(t, transport.cts_data(a, b, PGN + 1))
-        else:
-            out = s.expire(t)
+        out = receiver_does(s, t, kind, a, b)
         for f in out:
             assert f.timestamp_s == t and ids.source_address(f.arbitration_id) == SA
             assert ids.destination(f.arbitration_id) == TOOL and ids.priority(f.arbitration_id) == 7
