@@ -12,6 +12,7 @@ import socket
 import subprocess
 import time
 
+import cantools
 import pytest
 
 from cmcan.io.candump import iter_frames
@@ -21,6 +22,7 @@ from cmcan.monitor.totals import Totals
 from cmcan.statefile import StateStore
 from tests.vcan.node_cases import (
     IFACE,
+    ROOT,
     SA,
     SOL_CAN_J1939,
     TOOL,
@@ -149,15 +151,20 @@ def test_j1939_a_directed_dm2_of_three_dtcs_reaches_the_requesters_kernel_socket
 @pytest.mark.vcan
 def test_j1939_dm11_from_an_untrusted_node_is_refused_and_a_trusted_one_keeps_the_warning(trust_run):
     run, tool, other, asked = trust_run, trust_run["tool"], trust_run["other"], trust_run["asked"]
-    # the untrusted directed DM11: "access denied" to 0xF1; to all: silence; nothing cleared
-    denied = [rq.decode_ack(d) for _, _, d in other.from_cmcan(rq.PGN_ACK, asked["untrusted_dm11"])]
-    assert [(a.control, a.pgn, a.address) for a in denied] == [(rq.ACCESS_DENIED, rq.PGN_DM11, OTHER)], _seen(run)
+    # the untrusted directed DM11: "access denied" to 0xF1; to all: silence; nothing cleared.
+    # J1939-21 sends an ACK to the global address, the requester named in its address byte: 0xF1's
+    # socket also hears the trusted tool's ACK, told apart by that byte
+    acks_heard = [rq.decode_ack(d) for _, _, d in other.from_cmcan(rq.PGN_ACK, asked["untrusted_dm11"])]
+    denied = [a for a in acks_heard if a.address == OTHER]
+    assert [(a.control, a.pgn) for a in denied] == [(rq.ACCESS_DENIED, rq.PGN_DM11)], _seen(run)
     clears = run["state"].dtc_clears
     assert [(c["kind"], c["by_address"]) for c in clears] == [("dm11", TOOL)], clears
     # the trusted one: ACK, and the low warning's DTC back at once (count 1, amber lamp on) within
     # one debounce of the acknowledgment, while the leak is there
     acks = [(t, rq.decode_ack(d)) for t, _, d in tool.from_cmcan(rq.PGN_ACK, asked["dm11"])]
-    t_ack = min((t for t, a in acks if a.control == rq.ACK and a.pgn == rq.PGN_DM11), default=None)
+    t_ack = min(
+        (t for t, a in acks if a.control == rq.ACK and a.pgn == rq.PGN_DM11 and a.address == TOOL), default=None
+    )
     assert t_ack is not None, _seen(run)
     dm1s = [(t - t_ack, dm1.decode(d)) for t, _, d in tool.from_cmcan(dm1.PGN_DM1, 0.0)]
     before = [dtcs for t, (_, dtcs) in dm1s if -3 < t < 0]
@@ -166,6 +173,8 @@ def test_j1939_dm11_from_an_untrusted_node_is_refused_and_a_trusted_one_keeps_th
     assert back and all(lamps.amber_warning == dm1.Lamp.ON for _, lamps, _ in back), dm1s
     assert any(d and d[0].spn == 520192 and d[0].occurrence == 1 for _, _, d in back), dm1s
     # CM_WARNING on the bus never says ok again after the warning rose (despite three DM11s)
-    warn = [f for f in run["bus"] if ids.source_address(f.arbitration_id) == SA and ids.pgn(f.arbitration_id) == 65313]
-    levels = [f.data[0] & 0x0F for f in warn]
+    msg = cantools.database.load_file(str(ROOT / "dbc" / "j1939-example.dbc")).get_message_by_name("CM_WARNING")
+    mine = [f for f in run["bus"] if ids.source_address(f.arbitration_id) == SA]
+    warn = [f for f in mine if ids.pgn(f.arbitration_id) == ids.pgn(msg.frame_id)]
+    levels = [int(msg.decode(f.data, decode_choices=False)["warning_level"]) for f in warn]
     assert 1 in levels and 0 not in levels[levels.index(1) :], levels
