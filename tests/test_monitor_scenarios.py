@@ -4,12 +4,23 @@ import json
 
 import pytest
 
+from cmcan import config as cfgmod
+from cmcan.assemble import assemble
+from cmcan.replay import replay_columns
 from cmcan.sim import degradation
 from cmcan.sim import scenario as scn
 from tests.conftest import ROOT, run_cli
-from tests.helpers import feed_all, monitor, sim_frames
+from tests.helpers import sim_frames
 
 pytestmark = pytest.mark.slow
+
+
+def columnar(frames):
+    """The shipped configuration's monitor after the replay's columnar engine took ``frames``."""
+    cfg = cfgmod.load()
+    mon = assemble(cfg).monitor
+    replay_columns(mon, frames.to_columns(cfg.bus.channel))
+    return mon
 
 
 def warnings_h(mon, start):
@@ -17,9 +28,11 @@ def warnings_h(mon, start):
 
 
 def test_run_to_failure_warns_before_each_failure():
+    # the whole life at full rate (10 M frames) through the replay's columnar engine; the daemon's
+    # frame-by-frame path plays the same life in the demo (below), and the two engines are held
+    # equal frame for frame in test_columnar
     run, frames = sim_frames("run_to_failure")
-    mon = monitor()
-    feed_all(mon, frames)
+    mon = columnar(frames)
     events = warnings_h(mon, run.start_epoch_s)
     print(events)
     assert not [e for e in events if e[0] < 200.0]
@@ -37,8 +50,7 @@ def test_run_to_failure_warns_before_each_failure():
 def test_healthy_mixed_duty_100h_with_oil_30_to_90_raises_no_warning():
     run, frames = sim_frames("healthy_mixed_100h")
     assert run["temp_c"].min() < 31 and run["temp_c"].max() > 89
-    mon = monitor()
-    feed_all(mon, frames)
+    mon = columnar(frames)
     assert mon.totals.history == [] and mon.totals.warning_count == 0
     assert mon.counters["evaluated"] > 10_000  # the drive was really evaluated, not gated out
 

@@ -77,6 +77,9 @@ from cmcan.monitor.warnings import Level, Reason, Thresholds, Transition, Warnin
 from cmcan.monitor.windows import Affine, DpFromHighLow, Target, Windows
 from cmcan.roles import DP, MODEL_INPUTS, PUMP_DISP, PUMP_SPEED, TEMP, gated_roles
 
+# The first window a stretch is looked for in (frames); then twice the last stretch's length.
+STRETCH_WINDOW_MIN = 4096
+
 COUNTERS = (
     "frames_total",
     "accepted",
@@ -203,6 +206,7 @@ class Monitor:
         self.dm1_producer = Dm1Producer(dm1, self.totals) if dm1 is not None else None
         self.accepted = 0
         self.n_ticks = 0
+        self._window = STRETCH_WINDOW_MIN  # where the columnar engine looks for its next stretch
         # The wall clock's steps undone: frame time t is ``t + run_shift_s`` on the run's own continuous
         # time base (a clock correction is no time the machine ran), which operating hours count on.
         self.run_shift_s = 0.0
@@ -677,18 +681,27 @@ class Monitor:
     def _stretch(
         self, t_all: NDArray[np.float64], groups_all: list[NDArray[np.int64]], dec: _Decoded, pos: int, out: _Out
     ) -> int:
-        """Take the regular stretch of routed frames starting at ``pos``; returns its end."""
-        t = t_all[pos:]
+        """Take the regular stretch of routed frames starting at ``pos``; returns its end.
+
+        The stretch is looked for in a window of the frames after ``pos``: every rule reads only the
+        frames before, so a stretch cut at the window's end is one cut at a chunk's end. The window
+        follows the stretches' length (twice the last), so a log of short bursts costs its frames,
+        not its frames times its bursts."""
+        end = min(len(t_all), pos + self._window)
+        t = t_all[pos:end]
         plan = self.clock.plan(t)
-        # each message's frames from pos on that reach the checks (not late), in arrival order
-        reach = [g[np.searchsorted(g, pos) :] - pos for g in groups_all] if pos else groups_all
+        # each message's frames in the window that reach the checks (not late), in arrival order
+        reach = [g[np.searchsorted(g, pos) : np.searchsorted(g, end)] - pos for g in groups_all]
         reach = [g[~plan.late[g]] for g in reach]
-        sa = dec.sa[pos:]
-        values = dec.values[pos:]
-        checks, until = self.health.check_columns(t, reach, dec.ctr[pos:], dec.cs_ok[pos:], sa, values == NOT_AVAILABLE)
+        sa = dec.sa[pos:end]
+        values = dec.values[pos:end]
+        checks, until = self.health.check_columns(
+            t, reach, dec.ctr[pos:end], dec.cs_ok[pos:end], sa, values == NOT_AVAILABLE
+        )
         verdict = np.where(checks != OK, checks, values).astype(np.int8)
         accepted = (verdict == OK) & ~plan.late
         stop, last_frame_t = self.clock.regular_until(plan, accepted, until)
+        self._window = max(STRETCH_WINDOW_MIN, 2 * stop)
         if stop == 0:
             return pos
         self.health.commit_counters(stop)
