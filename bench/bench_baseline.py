@@ -31,12 +31,11 @@ them at all. Per machine also the share of the envelope's bins its learnable tic
 fill with ``min_points`` each over its whole log: the most coverage that log could give.
 
 Time-lapse: the fleet is sampled in bursts (``--burst-s`` 10 s every ``--every-min`` 20 min, 1/120 of
-the operation), so a learned tick stands for 120 of a gateway's. The section's ``min_hours`` (learned,
-i.e. evaluated, ticks times the tick period) is ``--min-hours`` (the learned hours a gateway needs: 2.0,
-the configuration's default) times the sampled share, so it is reached after the same operating hours
-as on a gateway; ``min_points`` (ticks per bin) is left as configured, so the coverage needs the same
-number of sampled ticks per bin, i.e. up to 120 times the operating hours a gateway would need: the
-hours to leave learning here are an upper bound (which bins a machine visits at all does not change).
+the operation). The section's ``min_hours`` is ``--min-hours`` (2.0, the configuration's default)
+as it is: operating hours, which the operating clock counts across the gaps between bursts as on a
+gateway. ``min_points`` (ticks per bin) is left as configured, so the coverage needs the same number of
+sampled ticks per bin, i.e. up to 120 times the operating hours a gateway would need: the hours to
+leave learning here are an upper bound (which bins a machine visits at all does not change).
 
 On-board fit cost, on one healthy machine (``--cost-machine``, default the first healthy one): the
 learning stage alone (the configuration's baseline parameters, with the gateway's own ``min_hours``),
@@ -354,7 +353,7 @@ def learning_cost(params: Any, ev: dict[str, np.ndarray], max_ticks: int) -> dic
     ended = False
     while k < max_ticks and not ended:  # as the daemon's core: the tick's start, then its point
         x, mv, pv = rows[k % n]
-        ended = bl.tick(k, k * period)
+        ended = bl.tick(k, k * period, k * period, True)
         if not ended:
             bl.add(k * period, x, mv, pv)
             k += 1
@@ -383,7 +382,14 @@ def learning_cost(params: Any, ev: dict[str, np.ndarray], max_ticks: int) -> dic
     ks = np.arange(k + 1, dtype=np.int64)  # and the tick that checks the last block
     t = np.append(t[:k], k * period)
     split, _, _ = bc.run_columns(
-        ks, t, np.arange(k), x[:k], np.tile(ev["measured"], reps)[:k], np.tile(ev["predicted"], reps)[:k]
+        ks,
+        t,
+        t,
+        np.ones(len(ks), bool),
+        np.arange(k),
+        x[:k],
+        np.tile(ev["measured"], reps)[:k],
+        np.tile(ev["predicted"], reps)[:k],
     )
     end = split if split <= k else -1
     out["columns_cpu_s"] = time.process_time() - cpu
@@ -642,7 +648,7 @@ def main() -> None:
     root = fleet(args.cache, spec)
     truth = json.loads((root / "truth.json").read_text())
     share = args.burst_s / (args.every_min * 60.0)
-    section = {"enabled": True, "min_hours": round(args.min_hours * share, 6), **overrides(args.set)}
+    section = {"enabled": True, "min_hours": args.min_hours, **overrides(args.set)}
     gateway_section = {**section, "min_hours": args.min_hours}
     arms = ARMS
     from cmcan.assemble import assemble
@@ -659,7 +665,7 @@ def main() -> None:
     )
     print(f"engineer: cmcan train on the first {args.train_h:g} h of each machine's own log")
     print(
-        f"onboard: baseline section {section} (min_hours: {args.min_hours:g} h of a gateway's ticks x {share:.5g}"
+        f"onboard: baseline section {section} (min_hours: {args.min_hours:g} operating hours"
         + (", WHAT-IF: " + ", ".join(args.set) if args.set else ", every other key the configuration's default")
         + f"): {'x'.join(str(len(e) - 1) for e in params.edges)} bins over "
         + ", ".join(f"{r} {e[0]:g}..{e[-1]:g}" for r, e in zip(BIN_ROLES, params.edges, strict=True))

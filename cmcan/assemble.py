@@ -713,6 +713,23 @@ BASELINE_BINS = {PUMP_SPEED: 3, DP: 3, TEMP: 2}
 SUSPECT_SHARE_OF_NOMINAL = 0.02
 
 
+def suspect_allowance(cfg: Config, model: GrayBoxModel) -> tuple[float, str]:
+    """The baseline guard's allowance (l/min) and where it comes from, in words."""
+    b = cfg.baseline.settings
+    if b.suspect_lpm is not None:
+        return float(b.suspect_lpm), "configured (baseline.suspect_lpm)"
+    spread = (model.meta.training or {}).get("unit_spread") or {}
+    sd = spread.get("offset_sd_lpm") if isinstance(spread, dict) else None
+    if isinstance(sd, (int, float)) and not isinstance(sd, bool) and math.isfinite(sd) and sd > 0:
+        return b.suspect_sigmas * float(sd), (
+            f"{b.suspect_sigmas:g} x the type's unit spread ({float(sd):.3g} l/min, the model's metadata)"
+        )
+    share = SUSPECT_SHARE_OF_NOMINAL
+    return share * cfg.drive.nominal_flow_lpm, (
+        f"{100 * share:g} % of the nominal flow (the model records no unit spread: fleet train writes one)"
+    )
+
+
 def baseline_params(cfg: Config, model: GrayBoxModel) -> BaselineParams | None:
     """The on-board baseline where the configuration enables it: the envelope's bins (configured, or the
     model's envelope split in :data:`BASELINE_BINS`), the guard's allowance (configured, or
@@ -722,24 +739,30 @@ def baseline_params(cfg: Config, model: GrayBoxModel) -> BaselineParams | None:
         return None
     b = cfg.baseline.settings
     env = model.envelope
+    gated = envelope_for(cfg, env)  # a tick outside this is not evaluated, so never learned
     edges = []
     for role in BIN_ROLES:
         if role in b.edges:
-            edges.append(tuple(b.edges[role]))
+            e = tuple(b.edges[role])
+            lo, hi = gated[role]
+            if e[-1] <= lo or e[0] >= hi:
+                raise SchemaError(
+                    cfg.source,
+                    f"baseline.edges.{role}",
+                    f"[{e[0]:g}, {e[-1]:g}] lies outside the model's envelope [{lo:g}, {hi:g}] ({model.path}): "
+                    "no tick there is evaluated, so the baseline would learn nothing",
+                )
+            edges.append(e)
         else:
             lo, hi = env[role]
             edges.append(tuple(float(v) for v in np.linspace(lo, hi, BASELINE_BINS[role] + 1)))
-    suspect = b.suspect_lpm
-    if suspect is None:
-        spread = (model.meta.training or {}).get("unit_spread") or {}
-        sd = spread.get("offset_sd_lpm") if isinstance(spread, dict) else None
-        ok = isinstance(sd, (int, float)) and not isinstance(sd, bool) and math.isfinite(sd) and sd > 0
-        suspect = b.suspect_sigmas * float(sd) if ok else SUSPECT_SHARE_OF_NOMINAL * cfg.drive.nominal_flow_lpm
+    suspect, _ = suspect_allowance(cfg, model)
     given = {"edges": tuple(edges), "suspect_lpm": float(suspect)}  # the settings' derived from the model
     return BaselineParams(
         **{**carried(b, BaselineParams), **given},
         lpm_per_unit=cfg.lpm_per_unit,
         period_s=1.0 / cfg.rate_hz,
+        max_gap_s=cfg.prognosis.params.max_gap_h * 3600.0,  # the operating clock the prognosis counts on
         oil=cfg.oil,
         learning_thresholds=replace(cfg.thresholds, low_pct=b.learning_low_pct, high_pct=b.learning_high_pct),
         block_ticks=max(1, round(b.check_every_s * cfg.rate_hz)),

@@ -716,6 +716,13 @@ def from_dict(data: Any, source: str, base_dir: Path) -> Config:
     if raw["prognosis"]["enabled"] and not th["low_pct"] < 100.0 < th["high_pct"]:
         field_ = "thresholds.low_pct" if th["low_pct"] >= 100.0 else "thresholds.high_pct"
         raise SchemaError(source, field_, "the prognosis needs a band around 100 % (low_pct < 100 < high_pct)")
+    eol = raw["prognosis"]["end_of_life"]
+    if raw["prognosis"]["enabled"] and eol["kind"] == "ratio_pct" and not eol["value"] < th["low_pct"]:
+        raise SchemaError(
+            source,
+            "prognosis.end_of_life.value",
+            f"a ratio end of life must lie below thresholds.low_pct ({th['low_pct']:g} %): the warning comes first",
+        )
     if raw["prognosis"]["enabled"] and not eol_high > th["high_pct"]:
         raise SchemaError(
             source, "prognosis.end_of_life.high_pct", f"must lie above thresholds.high_pct ({th['high_pct']:g})"

@@ -129,16 +129,15 @@ def windows_of(cfg: cfgmod.Config) -> dict[str, float]:
     }
 
 
-def with_baseline(cfg: cfgmod.Config, s: scn.Scenario, burst_s: float, every_min: float) -> cfgmod.Config:
+def with_baseline(cfg: cfgmod.Config, s: scn.Scenario) -> cfgmod.Config:
     """The on-board baseline on: the envelope the machine works in (the rig's one operating point, a
-    few percent either way, and its oil's swing), and the learned hours that :data:`LEARNING_H` of
-    the time-lapse's operation hold (it samples ``burst_s`` of every ``every_min``)."""
+    few percent either way, and its oil's swing), learning for :data:`LEARNING_H` operating hours
+    (the operating clock counts the time between the time-lapse's bursts, as on a gateway)."""
     d, oil = s.duty, s.oil
     speed, dp = float(d["pump_speed_rpm"]), float(d["dp_bar"])
     t_lo, t_hi = oil["temp_c"] - oil["swing_c"] - 2.0, oil["temp_c"] + oil["swing_c"] + 2.0
     edges = {"pump_speed_rpm": (0.95 * speed, 1.05 * speed), "dp_bar": (0.95 * dp, 1.05 * dp), "temp_c": (t_lo, t_hi)}
-    learned_h = LEARNING_H * burst_s / (every_min * 60.0)
-    settings = replace(cfg.baseline.settings, edges=edges, min_hours=round(0.8 * learned_h, 6), coverage_pct=100.0)
+    settings = replace(cfg.baseline.settings, edges=edges, min_hours=LEARNING_H, coverage_pct=100.0)
     b = replace(cfg.baseline, enabled=True, settings=settings)
     return replace(cfg, baseline=b)
 
@@ -167,15 +166,13 @@ def end_of_life(cfg: cfgmod.Config) -> dict[str, Any]:
     """What end of life the demo's prognosis counts to, and why: the rig's own loss of function, which
     the scenario knows and a machine in the field does not; and the default a machine gets."""
     p, d = cfg.prognosis.params, cfgmod.PrognosisConfig.on().params
-    low = f"{p.eol_value:g} l/min of extra leakage" if p.eol_kind == "leak_lpm" else f"the ratio at {p.eol_value:g} %"
     return {
         "configured": {"kind": p.eol_kind, "value": p.eol_value, "high_pct": p.eol_high_pct},
-        "configured_text": f"{low} (at {p.dp_ref_bar:g} bar, {p.temp_ref_c:g} C), the ratio at {p.eol_high_pct:.1f} % "
-        "above",
+        "configured_text": p.end_of_life_text,
         "why": "the scenario's own loss of function (its wear's fail_extra_lpm, the ratio its misposition fails at): "
         "the demo's estimates count to the failures themselves, which a machine in the field does not know",
         "default": {"kind": d.eol_kind, "value": d.eol_value, "high_pct": d.eol_high_pct},
-        "default_text": f"the ratio at {d.eol_value:g} % below, {d.eol_high_pct:g} % above (docs/prognosis.md)",
+        "default_text": f"{d.end_of_life_text} (docs/prognosis.md)",
     }
 
 
@@ -510,7 +507,7 @@ def run_demo(
 ) -> DemoResult:
     t0 = time.monotonic()
     s = demo_scenario(burst_s, every_min)
-    cfg = with_baseline(scale_windows(cfgmod.load(config_path), burst_s, every_min), s, burst_s, every_min)
+    cfg = with_baseline(scale_windows(cfgmod.load(config_path), burst_s, every_min), s)
     cfg = with_prognosis(cfg, s)
     if cfg.quantity != MOTOR_SPEED:
         raise CmcanError(

@@ -224,6 +224,16 @@ class Setting:
     path: str = ""  # its dotted place in the YAML section when not the field's name
 
 
+def finite_number(x: Any) -> bool:
+    """A JSON number that is a finite float or int (not a bool): what a saved state may hold."""
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def integer(x: Any) -> bool:
+    """An int that is not a bool."""
+    return isinstance(x, int) and not isinstance(x, bool)
+
+
 def setting(spec: Any, doc: str, path: str = "") -> Any:
     """A dataclass field declared as a configuration setting (its default the spec's)."""
     default = spec.default

@@ -31,9 +31,11 @@ import numpy as np
 from cmcan.errors import CmcanError, Kind, kind_of_oserror
 from cmcan.monitor.baseline import BIN_ROLES, MODE_NAMES, N_FEATURES
 from cmcan.monitor.baseline import FORMAT as BASELINE_FORMAT
+from cmcan.monitor.operating import OperatingClock
 from cmcan.monitor.prognosis import FORMAT as PROGNOSIS_FORMAT
-from cmcan.monitor.prognosis import Prognosis, PrognosisParams, count, finite_number, integer
+from cmcan.monitor.prognosis import Prognosis, PrognosisParams, count
 from cmcan.monitor.totals import StateError, Totals
+from cmcan.schema import finite_number, integer
 
 log = logging.getLogger("cmcan.state")
 STATE_FILE = "state.json"
@@ -254,6 +256,14 @@ def _rising(e: Any) -> bool:
     )
 
 
+def _clock_ok(c: Any) -> bool:
+    try:
+        OperatingClock.state_from(c, "clock")
+    except ValueError:
+        return False
+    return True
+
+
 def _baseline_scalars(d: dict[str, Any]) -> str | None:
     theta = d.get("theta")
     checks = (
@@ -264,6 +274,11 @@ def _baseline_scalars(d: dict[str, Any]) -> str | None:
         ("started_t_s", d.get("started_t_s") is None or finite_number(d.get("started_t_s")), "a time or null"),
         ("finished_t_s", d.get("finished_t_s") is None or finite_number(d.get("finished_t_s")), "a time or null"),
         ("block", d.get("block") is None or integer(d.get("block")), "a block number or null"),
+        (
+            "clock",
+            d.get("clock") is None or _clock_ok(d.get("clock")),
+            "{operating_s: seconds, last_t_s: seconds or null}",
+        ),
         ("history", isinstance(d.get("history", []), list), "a list of records"),
     )
     for name, ok, expected in checks:
@@ -281,16 +296,13 @@ def _prognosis_part(d: dict[str, Any]) -> tuple[str | None, dict[str, Any]]:
     if problem is not None:
         return problem, {}
     c = d.get("clock")
-    ok = c is None or (
-        isinstance(c, dict)
-        and finite_number(c.get("operating_s"))
-        and c["operating_s"] >= 0
-        and (c.get("last_t_s") is None or finite_number(c.get("last_t_s")))
-    )
-    if ok:
+    if c is None:
         return None, {"prognosis": d}
-    problem = f"field 'prognosis.clock': expected {{operating_s: seconds, last_t_s: seconds or null}}, got {c!r:.80}"
-    return problem, {"prognosis": {k: v for k, v in d.items() if k != "clock"}}
+    try:
+        OperatingClock.state_from(c, "prognosis.clock")
+    except ValueError as exc:
+        return str(exc), {"prognosis": {k: v for k, v in d.items() if k != "clock"}}
+    return None, {"prognosis": d}
 
 
 def _prognosis_problem(d: dict[str, Any]) -> str | None:

@@ -53,7 +53,8 @@ def learn_all(bl: Baseline, x: np.ndarray, meas: np.ndarray, k0: int = 0) -> int
     """Every row a tick the gate passed, ticks k0, k0 + 1, ...: the first tick in the new state, or -1."""
     n = len(x)
     ks = np.arange(k0, k0 + n, dtype=np.int64)
-    split, _, _ = bl.run_columns(ks, ks * 0.1, np.arange(n), x, meas, np.zeros(n))
+    t = ks * 0.1
+    split, _, _ = bl.run_columns(ks, t, t, np.ones(n, bool), np.arange(n), x, meas, np.zeros(n))
     return split if split < n else -1
 
 
@@ -91,9 +92,29 @@ def test_hours_are_needed_besides_coverage():
     x = points(30000, 2)
     bl = Baseline(p)
     end = learn_all(bl, x, np.zeros(len(x)))
-    # the end is checked once per block of 100 ticks: at the first block that starts with 18000 learned
-    assert end > 0 and end % 100 == 0 and 18000 <= bl.learned_ticks < 18000 + 100
-    assert bl.learned_h >= 0.5
+    # the end is checked once per block of 100 ticks: at the first block that starts 0.5 operating
+    # hours in (the ticks outside the envelope run the clock, not the bins)
+    assert end in (18000, 18100) and bl.learned_ticks < end
+    assert bl.learned_h == pytest.approx(end * 0.1 / 3600.0)
+
+
+def test_hours_are_operating_hours_a_logger_of_bursts_counts_the_time_between():
+    # a time-lapse logger: 60 s of ticks every 30 min; the machine runs in between. min_hours 2 h is
+    # operating hours (the prognosis's clock), not the 4 min of ticks logged in them
+    p = params(min_hours=2.0, min_points=5, coverage_pct=20.0)
+    burst = np.arange(600)
+    ks = np.concatenate([b * 18000 + burst for b in range(6)]).astype(np.int64)
+    t = ks * 0.1
+    n = len(ks)
+    bl = Baseline(p)
+    split, shown, _ = bl.run_columns(ks, t, t, np.ones(n, bool), np.arange(n), points(n, 7), np.zeros(n), np.zeros(n))
+    # the fifth burst starts at 2.0 h: the first block past it ends the learning, 2400 ticks logged
+    assert split < n and bl.mode == Mode.MONITORING and ks[split] // 18000 == 4
+    assert bl.learned_h == pytest.approx(2.0, abs=0.01) and shown.max() <= bl.learned_h * 3600.0
+    # a gap longer than the clock's max_gap_s is the machine off: it adds nothing
+    off = Baseline(params(min_hours=2.0, min_points=5, coverage_pct=20.0, max_gap_s=600.0))
+    off.run_columns(ks, t, t, np.ones(n, bool), np.arange(n), points(n, 7), np.zeros(n), np.zeros(n))
+    assert off.mode == Mode.LEARNING and off.learned_h == pytest.approx(6 * 59.9 / 3600.0)
 
 
 def test_a_machine_arriving_with_a_leak_is_suspect_and_keeps_the_type_model():
@@ -107,11 +128,11 @@ def test_a_machine_arriving_with_a_leak_is_suspect_and_keeps_the_type_model():
     assert not bl.applies and np.all(bl.correction_lpm(x[:5]) == 0.0)
 
 
-def _per_tick(p, ks, t, x, meas, pred, passed):
+def _per_tick(p, ks, t, x, meas, pred, passed, live):
     bl = Baseline(p)
     ended = -1
     for i in range(len(ks)):
-        if bl.tick(int(ks[i]), float(t[i])) and ended < 0:
+        if bl.tick(int(ks[i]), float(t[i]), float(t[i]), bool(live[i])) and ended < 0:
             ended = i
         if passed[i]:
             bl.add(float(t[i]), tuple(x[i]), float(meas[i]), float(pred[i]))
@@ -126,28 +147,33 @@ def _per_tick(p, ks, t, x, meas, pred, passed):
     min_points=st.integers(1, 15),
     coverage=st.floats(5.0, 100.0),
     block=st.integers(1, 120),
+    min_hours=st.sampled_from([0.0, 0.002, 0.01]),
 )
-def test_per_tick_and_columns_give_the_same_state_bit_for_bit(n, seed, chunks, min_points, coverage, block):
-    p = params(min_points=min_points, coverage_pct=coverage, min_hours=0.0, block_ticks=block)
+def test_per_tick_and_columns_give_the_same_state_bit_for_bit(n, seed, chunks, min_points, coverage, block, min_hours):
+    # the clock's max gap between the ticks' steps of 0.1 and 0.2 s: some gaps count, some do not
+    p = params(min_points=min_points, coverage_pct=coverage, min_hours=min_hours, block_ticks=block, max_gap_s=0.15)
     rng = np.random.default_rng(seed)
     x = points(n, seed)
     meas = rng.normal(0.0, 2.0, n)
     pred = np.zeros(n)
     ks = np.cumsum(rng.integers(1, 3, n)) + 1000  # tick indexes with a gap now and then
     t = ks * 0.1
-    passed = rng.random(n) < 0.7  # the ticks the gate passed
-    a, ended = _per_tick(p, ks, t, x, meas, pred, passed)
+    live = rng.random(n) < 0.9  # the ticks with input
+    passed = live & (rng.random(n) < 0.7)  # the ticks the gate passed
+    a, ended = _per_tick(p, ks, t, x, meas, pred, passed, live)
     b = Baseline(p)
     lo, ended_b = 0, -1
     for c in [*chunks, n]:
         hi = min(n, lo + c)
         if hi > lo:
             cand = np.flatnonzero(passed[lo:hi])
-            split, _, _ = b.run_columns(ks[lo:hi], t[lo:hi], cand, x[lo:hi][cand], meas[lo:hi][cand], pred[lo:hi][cand])
+            split, _, _ = b.run_columns(
+                ks[lo:hi], t[lo:hi], t[lo:hi], live[lo:hi], cand, x[lo:hi][cand], meas[lo:hi][cand], pred[lo:hi][cand]
+            )
             if split < hi - lo and ended_b < 0:
                 ended_b = lo + split
         lo = hi
-    event(f"ended: {ended >= 0}")
+    event(f"ended: {ended >= 0}, by the hours: {ended >= 0 and min_hours > 0}")
     assert ended == ended_b
     assert json.dumps(a.to_dict()) == json.dumps(b.to_dict())
 

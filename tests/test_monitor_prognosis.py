@@ -93,7 +93,7 @@ def test_the_hours_are_operating_hours_a_night_parked_counts_nothing(rig):
     tl, mon = a[0], a[2]
     op_h = (tl.t_s - run.start_epoch_s - np.where(tl.t_s > at_s, park_s, 0.0)) / 3600.0
     # the clock: the hours since the first tick less the night and the one sampled hour it swallowed
-    clock_h = mon.prognosis.operating_s / 3600.0
+    clock_h = mon.prognosis.clock.operating_s / 3600.0
     assert clock_h == pytest.approx(op_h[-1] - op_h[0] - 1.0, abs=0.01), (clock_h, op_h[-1])
     near = (op_h > 279.0) & (op_h < 281.0)
     assert near.any() and np.all(tl.prognosis_state[near] >= 2)
@@ -108,7 +108,7 @@ def test_a_silent_bus_adds_no_operating_hours():
     t0 = 1.7e9
     for k in range(1, 1201):  # 20 minutes, 12,000 ticks
         mon.advance(t0 + k)
-    assert mon.prognosis.operating_s == 0.0 and mon.last_tick.gate == 1  # no input
+    assert mon.prognosis.clock.operating_s == 0.0 and mon.last_tick.gate == 1  # no input
 
 
 @pytest.mark.parametrize(

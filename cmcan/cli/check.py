@@ -183,6 +183,16 @@ def run_one(args: argparse.Namespace) -> int:
             else None
         ),
     }
+    result["baseline"] = learning_plan(cfg, prep.parts)
+    result["prognosis"] = (
+        {
+            "end_of_life": cfg.prognosis.params.end_of_life_text,
+            "imminent_h": cfg.prognosis.params.imminent_h,
+            "max_gap_h": cfg.prognosis.params.max_gap_h,
+        }
+        if cfg.prognosis.enabled
+        else None
+    )
     if result["j1939"] is not None and cfg.j1939.name is not None:
         result["j1939"]["name"] = cfg.j1939.name.hex()
         result["j1939"]["bus"] = node  # who holds the address now (--channel-check)
@@ -247,6 +257,21 @@ def run_one(args: argparse.Namespace) -> int:
                 print(f"  j1939  on the bus: {j['bus']['state']}: {j['bus']['text']}")
         for m in result["input_messages"]:
             print(f"  {m['message']:<18} {m['match']} on {m['channel']}; {m['health']}")
+        bl = result["baseline"]
+        if bl is None:
+            print("  baseline  off (the type model judges alone: baseline.enabled)")
+        else:
+            print(
+                f"  baseline  learns {bl['bins']} bins over {bl['envelope']}; ends with {bl['bins_needed']} of them "
+                f"holding {bl['min_points']} ticks each and {bl['min_hours']:g} operating hours; judged meanwhile "
+                f"at {bl['learning_low_pct']:g} / {bl['learning_high_pct']:g} %"
+            )
+            print(f"  baseline  suspect beyond {bl['suspect_lpm']:.3g} l/min from the type model: {bl['suspect_from']}")
+        pr = result["prognosis"]
+        if pr is None:
+            print("  prognosis off (no hours to service: prognosis.enabled)")
+        else:
+            print(f"  prognosis end of life: {pr['end_of_life']}; imminent within {pr['imminent_h']:g} h (p10)")
         for r, tm in result["timing"].items():
             print(f"  {r:<18} {tm['text']}")
         if "state" in result:
@@ -265,6 +290,31 @@ def run_one(args: argparse.Namespace) -> int:
             for note in st["notes"]:
                 print(f"  state  note: {note}")
     return 0
+
+
+def learning_plan(cfg: Config, parts: Any) -> dict[str, Any] | None:
+    """What the on-board baseline will learn and when it ends (None: off)."""
+    from cmcan.assemble import suspect_allowance
+    from cmcan.monitor.baseline import BIN_ROLES
+
+    bl = parts.monitor.baseline
+    if bl is None:
+        return None
+    p = bl.p
+    lo_hi = [f"{r} {e[0]:g}..{e[-1]:g}" for r, e in zip(BIN_ROLES, p.edges, strict=True)]
+    b = cfg.baseline.settings
+    return {
+        "bins": "x".join(str(len(e) - 1) for e in p.edges),
+        "edges": {r: list(e) for r, e in zip(BIN_ROLES, p.edges, strict=True)},
+        "envelope": ", ".join(lo_hi),
+        "bins_needed": p.bins_needed,
+        "min_points": p.min_points,
+        "min_hours": p.min_hours,
+        "suspect_lpm": p.suspect_lpm,
+        "suspect_from": suspect_allowance(cfg, parts.model)[1],
+        "learning_low_pct": b.learning_low_pct,
+        "learning_high_pct": b.learning_high_pct,
+    }
 
 
 def state_notes(monitor: Any, directory: Path) -> list[str]:

@@ -22,11 +22,14 @@ normal equations, each covered bin weighted equally, so hours of idling at one p
 the rest of the envelope), float64, in microseconds: it runs at the tick that ends the learning, not
 on the receive path. Only ticks the gate passed inside the envelope (``EVALUATING``) are learned.
 
-Learning ends when ``coverage_pct`` of the bins hold ``min_points`` ticks each *and* ``min_hours`` of
-learned operation have passed, never after a fixed time alone. Then the guard: a bin whose mean
-residual lies further than ``suspect_lpm`` from the type model (a machine that arrived with a leak, a
-wrong sensor) makes the baseline ``baseline_suspect``: the type model stays the reference, the state
-says by how much (l/min). Otherwise the machine is ``monitoring`` against its own baseline.
+Learning ends when ``coverage_pct`` of the bins hold ``min_points`` ticks each (the evidence) *and*
+``min_hours`` of operation have passed while learning, never after a fixed time alone. The hours are
+operating hours on the prognosis's clock (:mod:`cmcan.monitor.operating`): a logger that records
+bursts some minutes apart, or a machine whose ticks mostly fall outside the envelope, still runs them.
+Then the guard: a bin whose mean residual lies further than ``suspect_lpm`` from the type model (a
+machine that arrived with a leak, a wrong sensor) makes the baseline ``baseline_suspect``: the type
+model stays the reference, the state says by how much (l/min). Otherwise the machine is
+``monitoring`` against its own baseline.
 
 One tick at a time (:meth:`Baseline.learn`), or a stretch of ticks (:meth:`Baseline.learn_columns`)
 with the same additions in the same order: the same state bit for bit.
@@ -43,6 +46,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from cmcan.monitor.operating import OperatingClock
 from cmcan.monitor.warnings import Thresholds
 from cmcan.oil import VG46, Oil
 from cmcan.roles import DP, MODEL_INPUTS, PUMP_DISP, PUMP_SPEED, TEMP
@@ -92,7 +96,10 @@ class BaselineSettings:
         Num(1, 10_000_000, "ticks", default=100, integer=True), "evaluated ticks a bin needs to count as covered"
     )
     coverage_pct: float = setting(Num(1, 100, "%", default=20.0), "share of the bins that must be covered")
-    min_hours: float = setting(Num(0, 10000, "h", default=2.0), "and at least this much steady operation learned")
+    min_hours: float = setting(
+        Num(0, 10000, "h", default=2.0),
+        "and at least this many operating hours while learning (the operating clock the prognosis counts on)",
+    )
     check_every_s: float = setting(
         Num(0.1, 3600, "s", default=60.0), "the learning's end is checked this often (tick time)"
     )
@@ -117,10 +124,11 @@ class BaselineParams:
     edges: tuple[tuple[float, ...], ...]  # bin edges along BIN_ROLES (ascending, >= 2 each)
     min_points: int  # ticks a bin needs to count as covered
     coverage_pct: float  # share of the bins that must be covered
-    min_hours: float  # learned operation (evaluated ticks) at least
+    min_hours: float  # operating hours while learning at least (the operating clock)
     suspect_lpm: float  # a bin's mean residual further than this from the type model: suspect
     lpm_per_unit: float  # the output quantity's unit in l/min (V_M / 1000 for motor speed)
     period_s: float  # one tick
+    max_gap_s: float = 3600.0  # the operating clock's: a longer gap between ticks is the machine off
     oil: Oil = VG46
     ref_dp_bar: float = 300.0
     ref_temp_c: float = 50.0
@@ -206,6 +214,8 @@ class Baseline:
         self.sy = np.zeros(b)
         self.covered = 0
         self.learned_ticks = 0
+        # the operating hours while learning, counted as the prognosis counts its hours
+        self.clock = OperatingClock(p.max_gap_s)
         self.theta = (0.0, 0.0, 0.0)
         self.distance_lpm = 0.0
         self.started_t_s: float | None = None  # frame time of the first learned tick
@@ -213,27 +223,28 @@ class Baseline:
         self.history: list[dict[str, Any]] = []
         self.block: int | None = None  # the block of ticks the newest tick is in (tick index // block_ticks)
         self._rows: list[tuple[float, ...]] = []  # ticks of the open block learned one at a time, not yet folded
-        self.shown = (0, 0)  # learned ticks and covered bins at the last check: the ticks' progress
+        self.shown = (0.0, 0)  # operating seconds learning and covered bins at the last check: the ticks' progress
 
     # -- what it tells ------------------------------------------------------------------------------
 
     @property
     def learned_h(self) -> float:
-        return self.progress_of(self.learned_ticks, self.covered)[0]
+        return self.progress_of(self.clock.operating_s, self.covered)[0]
 
     @property
     def coverage_pct(self) -> float:
-        return self.progress_of(self.learned_ticks, self.covered)[1]
+        return self.progress_of(self.clock.operating_s, self.covered)[1]
 
     @property
     def shown_progress(self) -> tuple[float, float]:
         """Hours learned and envelope covered (%) as of the last check: what the ticks carry."""
         return self.progress_of(*self.shown)
 
-    def progress_of(self, learned_ticks: Any, covered: Any) -> tuple[Any, Any]:
-        """Hours learned and share of the envelope covered (%) from ticks and bins, as :attr:`learned_h`
-        and :attr:`coverage_pct` compute them (the same operations for one value or an array)."""
-        return learned_ticks * self.p.period_s / 3600.0, 100.0 * covered / self.p.n_bins
+    def progress_of(self, learning_s: Any, covered: Any) -> tuple[Any, Any]:
+        """Hours learned and share of the envelope covered (%) from the operating seconds while
+        learning and the bins, as :attr:`learned_h` and :attr:`coverage_pct` compute them (the same
+        operations for one value or an array)."""
+        return learning_s / 3600.0, 100.0 * covered / self.p.n_bins
 
     @property
     def applies(self) -> bool:
@@ -273,22 +284,21 @@ class Baseline:
     # One tick at a time the rows wait in a list and are folded in per block, as arrays: learning
     # costs the receive path an append per tick, not numpy calls on single rows.
 
-    def _done(self) -> bool:
-        return self.covered >= self.p.bins_needed and self.learned_h >= self.p.min_hours - 1e-12
-
-    def tick(self, k: int, t_s: float) -> bool:
-        """The start of tick ``k`` (at ``t_s``), before it is judged: at the first tick of a new block
+    def tick(self, k: int, t_s: float, t_run_s: float, has_input: bool) -> bool:
+        """The start of tick ``k`` (at ``t_s``; ``t_run_s`` on the run's continuous base, with input or
+        not), before it is judged: the operating clock goes on, and at the first tick of a new block
         the rows so far are folded in and the learning's end checked. True when it ended here: from
         this tick on the machine is judged in its new state."""
         if self.mode != Mode.LEARNING:
             return False
+        self.clock.hours(t_run_s, has_input)
         blk = k // self.p.block_ticks
         if self.block is None or blk == self.block:
             self.block = blk
             return False
         self.block = blk
         self.fold()
-        return self._check(t_s)
+        return self._check(t_s, self.clock.operating_s)
 
     def add(self, t_s: float, x: tuple[float, float, float, float], measured: float, predicted: float) -> None:
         """One tick the gate passed inside the envelope, while learning (folded in at its block's end)."""
@@ -328,9 +338,11 @@ class Baseline:
         if self.started_t_s is None:
             self.started_t_s = float(t_s[pos[0]])
 
-    def _check(self, t_s: float) -> bool:
-        self.shown = (self.learned_ticks, self.covered)
-        if self._done():
+    def _check(self, t_s: float, learning_s: float) -> bool:
+        """The learning's end at a block's first tick (``learning_s``: the operating seconds while
+        learning up to it): enough bins covered and enough hours."""
+        self.shown = (learning_s, self.covered)
+        if self.covered >= self.p.bins_needed and learning_s / 3600.0 >= self.p.min_hours - 1e-12:
             self._finish(t_s)
             return True
         return False
@@ -339,20 +351,24 @@ class Baseline:
         self,
         ks: NDArray[np.int64],
         t_k: NDArray[np.float64],
+        t_run_s: NDArray[np.float64],
+        has_input: NDArray[np.bool_],
         cand: NDArray[np.int64],
         x: NDArray[np.float64],
         measured: NDArray[np.float64],
         predicted: NDArray[np.float64],
     ) -> tuple[int, NDArray[np.int64], NDArray[np.int64]]:
-        """:meth:`tick` and :meth:`add` for a stretch of ticks ``ks`` (at ``t_k``); ``cand``: the
-        indexes of the ticks the gate passed, whose points are ``x``, ``measured``, ``predicted``.
-        Returns the first tick judged in the new state (``len(ks)`` when the learning goes on) and
-        each tick's shown progress (learned ticks, covered bins)."""
+        """:meth:`tick` and :meth:`add` for a stretch of ticks ``ks`` (at ``t_k``, on the run's base
+        ``t_run_s``, with input or not); ``cand``: the indexes of the ticks the gate passed, whose
+        points are ``x``, ``measured``, ``predicted``. Returns the first tick judged in the new state
+        (``len(ks)`` when the learning goes on) and each tick's shown progress (operating seconds
+        while learning, covered bins)."""
         n = len(ks)
         split = n
-        ticks_shown, covered_shown = np.full(n, self.shown[0]), np.full(n, self.shown[1])
+        learning_shown, covered_shown = np.full(n, self.shown[0]), np.full(n, self.shown[1])
         if self.mode != Mode.LEARNING or not n:
-            return split, ticks_shown, covered_shown
+            return split, learning_shown, covered_shown
+        op_s = self.clock.seconds_columns(t_run_s, has_input, upto=0)  # the clock moves once the end is known
         blocks = ks // self.p.block_ticks
         prev = np.empty(n, dtype=np.int64)
         prev[0] = blocks[0] if self.block is None else self.block
@@ -363,16 +379,17 @@ class Baseline:
             self.fold()
             self._accumulate(t_k[cand[done:upto]], x[done:upto], measured[done:upto], predicted[done:upto])
             done = upto
-            ended = self._check(float(t_k[i]))
-            ticks_shown[i:], covered_shown[i:] = self.shown
+            ended = self._check(float(t_k[i]), float(op_s[i]))
+            learning_shown[i:], covered_shown[i:] = self.shown
             if ended:
                 split = i
                 break
         self.block = int(blocks[split - 1]) if split == n else int(blocks[split])
+        self.clock.seconds_columns(t_run_s, has_input, upto=n if split == n else split + 1)
         if split == n:  # the rest of the stretch's rows are learned; its end is checked at the next block
             self.fold()
             self._accumulate(t_k[cand[done:]], x[done:], measured[done:], predicted[done:])
-        return split, ticks_shown, covered_shown
+        return split, learning_shown, covered_shown
 
     def _finish(self, t_s: float) -> None:
         f = fit(self.p, self.n, self.sxx, self.sxy, self.sy)
@@ -413,6 +430,7 @@ class Baseline:
             "sxy": self.sxy.tolist(),
             "sy": self.sy.tolist(),
             "learned_ticks": self.learned_ticks,
+            "clock": self.clock.to_dict(),
             "block": self.block,
             "theta": list(self.theta),
             "distance_lpm": self.distance_lpm,
@@ -444,8 +462,10 @@ class Baseline:
         for name, v in (("started_t_s", started), ("finished_t_s", finished)):
             if v is not None and not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)):
                 raise BaselineStateError(f"baseline.{name}: expected a time or null, got {v!r:.40}")
+        learning_s, last_t_s = _saved_clock(d.get("clock"), ticks * p.period_s)
         if d.get("envelope") != p.describe():
             old = cls(p)
+            old.clock.operating_s = learning_s
             old.mode, old.theta, old.distance_lpm = _MODE_OF[state], tuple(theta), distance  # type: ignore[assignment]
             old.learned_ticks, old.started_t_s, old.finished_t_s = ticks, started, finished
             old.history = hist[-HISTORY_MAX:]
@@ -462,6 +482,7 @@ class Baseline:
         bl.n, bl.sxx, bl.sxy, bl.sy = n, sxx, sxy, sy
         bl.covered = int(np.count_nonzero(n >= p.min_points))
         bl.learned_ticks = ticks
+        bl.clock.operating_s, bl.clock.last_t_s = learning_s, last_t_s
         bl.mode = _MODE_OF[state]
         bl.theta = (theta[0], theta[1], theta[2])
         bl.distance_lpm = distance
@@ -471,8 +492,18 @@ class Baseline:
         if block is not None and (isinstance(block, bool) or not isinstance(block, int)):
             raise BaselineStateError(f"baseline.block: expected a block number or null, got {block!r:.40}")
         bl.block = block
-        bl.shown = (bl.learned_ticks, bl.covered)  # after a restart the ticks carry all that was saved
+        bl.shown = (learning_s, bl.covered)  # after a restart the ticks carry all that was saved
         return bl, None
+
+
+def _saved_clock(clock: Any, ticks_s: float) -> tuple[float, float]:
+    """The saved learning's operating clock; one saved before it: the time of its learned ticks."""
+    if clock is None:
+        return ticks_s, math.nan
+    try:
+        return OperatingClock.state_from(clock, "baseline.clock")
+    except ValueError as exc:
+        raise BaselineStateError(str(exc)) from None
 
 
 def _floats(v: Any, name: str, n: int) -> list[float]:

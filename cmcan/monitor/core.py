@@ -395,7 +395,7 @@ class Monitor:
         pt = self.ratio.point(mean, count, g)
         bl = self.baseline
         if bl is not None:
-            if bl.tick(k, t):  # the learning ended on the ticks before this one
+            if bl.tick(k, t, t + self.run_shift_s, pt.gate != Gate.NO_INPUT):  # the learning ended before it
                 self._baseline_changed()
             if bl.applies and pt.evaluated:
                 pt = self._corrected(pt, mean)
@@ -740,7 +740,11 @@ class Monitor:
         x = np.column_stack([mean[r][cand] for r in MODEL_INPUTS])
         t_k = ks.astype(np.float64) * self.period
         # split: the first tick judged in the state the learning's end brought (n: none in this stretch)
-        split, learned, covered = bl.run_columns(ks, t_k, cand, x, pts.measured[cand], pts.predicted[cand])
+        t_run = t_k + self.run_shift_s
+        has_input = pts.gate != Gate.NO_INPUT
+        split, learned, covered = bl.run_columns(
+            ks, t_k, t_run, has_input, cand, x, pts.measured[cand], pts.predicted[cand]
+        )
         state = np.full(n, int(mode_before), dtype=np.int8)
         distance = np.full(n, distance_before)
         state[split:], distance[split:] = int(bl.mode), bl.distance_lpm

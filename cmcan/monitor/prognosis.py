@@ -60,8 +60,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from cmcan.monitor.operating import OperatingClock
 from cmcan.oil import VG46, Oil
-from cmcan.schema import Num, Str, setting
+from cmcan.schema import Num, Str, finite_number, integer, setting
 
 FORMAT = "cmcan-prognosis/2"
 _FORMAT_V1 = "cmcan-prognosis/1"  # leakage as measured, not referred to reference conditions
@@ -178,6 +179,15 @@ class PrognosisParams:
                 f"dp_ref_bar must be positive, min_dp_bar not negative, temp_ref_c in "
                 f"[{_TEMP_LO_C:g}, {_TEMP_HI_C:g}] C"
             )
+
+    @property
+    def end_of_life_text(self) -> str:
+        """What end of life means for a machine with these settings, in one line for a planner."""
+        if self.eol_kind == "leak_lpm":
+            low = f"{self.eol_value:g} l/min of extra leakage (at {self.dp_ref_bar:g} bar, {self.temp_ref_c:g} C)"
+        else:
+            low = f"the CM ratio at {self.eol_value:g} % ({100.0 - self.eol_value:g} % of the flow lost to leakage)"
+        return f"wear: {low}; a drifting displacement control: the ratio at {self.eol_high_pct:g} %"
 
 
 Triple = tuple[float, float, float]
@@ -434,16 +444,6 @@ def _gain(p: PrognosisParams, dp_bar: NDArray[np.float64], temp_c: NDArray[np.fl
     f = x - i
     visc = tab[i] + f * (tab[i + 1] - tab[i])
     return dp_bar / p.dp_ref_bar * visc
-
-
-def finite_number(x: Any) -> bool:
-    """A JSON number that is a finite float or int (not a bool): what a saved state may hold."""
-    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
-
-
-def integer(x: Any) -> bool:
-    """An int that is not a bool."""
-    return isinstance(x, int) and not isinstance(x, bool)
 
 
 def count(x: Any) -> bool:
@@ -800,19 +800,17 @@ class Stage:
     def __init__(self, params: PrognosisParams, saved: Any = None) -> None:
         self.params = params
         self.every_h = params.estimate_every_h
-        self.max_gap_s = params.max_gap_h * 3600.0
         self.note = ""  # why a saved history was not continued
         self.history = Prognosis(params)
-        # the operating clock: seconds of operation so far, and the run time of the last tick
-        self.operating_s, self.last_t_s = 0.0, math.nan
+        self.clock = OperatingClock(params.max_gap_h * 3600.0)
         if saved is not None:
             try:
                 self.history = Prognosis.from_dict(saved, params)
                 self.note = self.history.restarted
                 try:
-                    self.operating_s, self.last_t_s = _clock_from(saved, self.history)
+                    self.clock.operating_s, self.clock.last_t_s = _clock_from(saved, self.history)
                 except ValueError as exc:  # the history is good: its clock goes on from its newest hour
-                    self.operating_s, self.last_t_s = _clock_from({}, self.history)
+                    self.clock.operating_s, self.clock.last_t_s = _clock_from({}, self.history)
                     self.note = f"the saved operating clock could not be used ({exc}): it goes on from the history"
             except ValueError as exc:  # the rest of the state is good: a new history, said
                 self.note = f"the saved prognosis history could not be used ({exc}): a new history begins"
@@ -821,37 +819,12 @@ class Stage:
         self.est = self.history.estimate() if self.history.points else Estimate()
 
     def hours(self, t_run_s: float, has_input: bool = True) -> float:
-        """The operating hour of a tick at ``t_run_s`` (its time on the run's continuous base): the
-        time since the last tick with input added, unless longer than ``max_gap_h`` (the machine was
-        off) or negative (a clock set back across a restart). A tick without input (the daemon's
-        ticks on a silent bus; a log has none there) neither adds nor moves the last tick, so the
-        daemon and a replay of its log count the same hours."""
-        if not has_input:
-            return self.operating_s / 3600.0
-        dt = t_run_s - self.last_t_s  # NaN for the first tick ever: adds nothing
-        if 0.0 < dt <= self.max_gap_s:
-            self.operating_s += dt
-        self.last_t_s = t_run_s
-        return self.operating_s / 3600.0
+        """The operating hour of a tick at ``t_run_s`` (:mod:`cmcan.monitor.operating`)."""
+        return self.clock.hours(t_run_s, has_input)
 
     def hours_columns(self, t_run_s: NDArray[np.float64], has_input: NDArray[np.bool_]) -> NDArray[np.float64]:
         """:meth:`hours` at every tick of a stretch: the same additions in the same order."""
-        n = len(t_run_s)
-        if not n:
-            return np.empty(0)
-        live = np.flatnonzero(has_input)
-        t = t_run_s[live]
-        prev = np.concatenate(([self.last_t_s], t[:-1]))
-        dt = t - prev
-        with np.errstate(invalid="ignore"):
-            dt = np.where((dt > 0.0) & (dt <= self.max_gap_s), dt, 0.0)
-        op_live = np.cumsum(np.concatenate(([self.operating_s], dt)))
-        # a tick without input keeps the hours of the last tick with input before it
-        at = np.searchsorted(live, np.arange(n), side="right")
-        op = op_live[at]
-        if len(live):
-            self.operating_s, self.last_t_s = float(op_live[-1]), float(t[-1])
-        return op / 3600.0
+        return self.clock.seconds_columns(t_run_s, has_input) / 3600.0
 
     def tick(self, hour: float) -> None:
         """The start of a tick at operating ``hour``: at a new block of hours the rows so far go into
@@ -944,8 +917,7 @@ class Stage:
 
     def to_dict(self) -> dict[str, Any]:
         self.fold()
-        last = self.last_t_s if math.isfinite(self.last_t_s) else None
-        return {**self.history.to_dict(), "clock": {"operating_s": self.operating_s, "last_t_s": last}}
+        return {**self.history.to_dict(), "clock": self.clock.to_dict()}
 
 
 def _clock_from(saved: dict[str, Any], history: Prognosis) -> tuple[float, float]:
@@ -953,11 +925,7 @@ def _clock_from(saved: dict[str, Any], history: Prognosis) -> tuple[float, float
     c = saved.get("clock")
     if c is None:
         return history.newest_h() * 3600.0, math.nan
-    ok = isinstance(c, dict) and finite_number(c.get("operating_s")) and c["operating_s"] >= 0
-    last = c.get("last_t_s") if isinstance(c, dict) else None
-    if not (ok and (last is None or finite_number(last))):
-        raise ValueError(f"field 'clock': expected {{operating_s: seconds, last_t_s: seconds or null}}, got {c!r:.80}")
-    return float(c["operating_s"]), math.nan if last is None else float(last)
+    return OperatingClock.state_from(c, "clock")
 
 
 def _left(hours: float, since: float) -> float:
