@@ -70,6 +70,26 @@ def add_subparser(sub: Subparsers) -> None:
     rep.add_argument("--force", action="store_true", help="overwrite an existing report")
     rep.set_defaults(func=run_report)
 
+    pl = fsub.add_parser(
+        "plan",
+        help="the service plan: one row per machine, ranked by urgency",
+        description="One row per machine of the data set, ranked: a warning now, the prognosis imminent, a "
+        "trend (by p10 then p50 hours to end of life), a ratio that cannot be judged (baseline suspect, "
+        "configuration or model not fitting, a sensor fault), learning, no trend, no prognosis. Each row: the "
+        "warning level, the baseline's and the prognosis's state, the operating hours to the warning and to "
+        "end of life (p10/p50/p90), a calendar date for each from the machine's utilisation, what end of life "
+        "means for it, and flags (docs/fleet.md).",
+    )
+    pl.add_argument("dataset", help="data set folder")
+    pl.add_argument(
+        "--at",
+        metavar="TIME",
+        help="the plan as it stood at TIME (ISO 8601 date or time, UTC unless it says otherwise, or epoch "
+        "seconds): only rows up to it; ages counted to it (default: everything, ages to now)",
+    )
+    pl.add_argument("--json", action="store_true", help='print {"machines": [...]} as JSON')
+    pl.set_defaults(func=run_plan)
+
     q = fsub.add_parser(
         "query",
         help="SQL over the data set with DuckDB",
@@ -206,6 +226,39 @@ def run_report(args: argparse.Namespace) -> int:
 
     n = write_report(args.dataset, out, args.trend_hours, args.max_machines)
     print(f"{out}: fleet report ({n / 1e3:.0f} kB, self-contained)")
+    return 0
+
+
+def parse_time(text: str, option: str) -> float:
+    """Epoch seconds from an ISO 8601 date or time (UTC unless it carries an offset) or a number."""
+    import datetime as dt
+
+    try:
+        return float(text)
+    except ValueError:
+        pass
+    try:
+        t = dt.datetime.fromisoformat(text)
+    except ValueError:
+        raise CmcanError(
+            f"{option} {text!r}: expected an ISO 8601 date or time (2026-03-01, 2026-03-01T14:30) or epoch seconds",
+            Kind.USAGE,
+        ) from None
+    if t.tzinfo is None:
+        t = t.replace(tzinfo=dt.UTC)
+    return t.timestamp()
+
+
+def run_plan(args: argparse.Namespace) -> int:
+    require_extra("fleet", "duckdb")
+    from cmcan.fleet.plan import build, format_table
+
+    at_s = None if args.at is None else parse_time(args.at, "--at")
+    rows = build(args.dataset, at_s, time.time() if at_s is None else at_s)
+    if args.json:
+        print_json({"at": at_s, "machines": [r.to_dict() for r in rows]})
+    else:
+        sys.stdout.write(format_table(rows) if rows else f"{args.dataset}: no machine heard\n")
     return 0
 
 

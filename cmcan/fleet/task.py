@@ -560,6 +560,8 @@ def _replay_and_commit(
         "oil_nu100_cst": float(inp.cfg.oil.nu100_cst),
         "threshold_low_pct": float(inp.cfg.thresholds.low_pct),
         "threshold_high_pct": float(inp.cfg.thresholds.high_pct),
+        # what the prognosis counts to, where it is on (``cmcan fleet plan`` says it per machine)
+        **_end_of_life(inp.cfg),
         "timeline_rate_hz": float(opt.rate_hz),
         "engine": opt.engine,
         "replay_s": time.monotonic() - started,
@@ -592,3 +594,16 @@ def _replay_and_commit(
         log_hash=job.log_hash,
         cut_line=cut_line,
     )
+
+
+def _end_of_life(cfg: Any) -> dict[str, Any]:
+    """The logs table's end-of-life columns: NULL where the prognosis is off."""
+    if not cfg.prognosis.enabled:
+        return {"eol_kind": None, "eol_value": None, "eol_high_pct": None, "end_of_life": None}
+    p = cfg.prognosis.params
+    return {
+        "eol_kind": p.eol_kind,
+        "eol_value": float(p.eol_value),
+        "eol_high_pct": float(p.eol_high_pct),
+        "end_of_life": p.end_of_life_text,
+    }
