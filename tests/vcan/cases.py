@@ -372,9 +372,9 @@ def test_kernel_filters_keep_the_load_flat_under_a_flood(daemon, work):
     assert np.median(gaps) == pytest.approx(0.1, abs=0.01), seen
     # On hardware no period stretches past 350 ms under the flood. In the emulated guest the flood's
     # generator (5000 frames/s, in the same two emulated CPUs) starves every process now and then: there
-    # the periods hold (95 % within 150 ms) and nothing stalls like the 1 s idle step of old.
+    # the periods hold (95 % within 250 ms) and nothing stalls like the 1 s idle step of old.
     if in_vm():
-        assert np.quantile(gaps, 0.95) < 0.15 and gaps.max() < 0.9, seen
+        assert np.quantile(gaps, 0.95) < 0.25 and gaps.max() < 0.9, seen
     else:
         assert gaps.max() < 0.35, seen
 
