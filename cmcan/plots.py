@@ -57,12 +57,15 @@ def draw_ratio(
     failures_h: Sequence[float] = (),
     log_starts_h: Sequence[float] = (),
     raw_label: str = "raw",
+    learning: tuple[Any, float, float] | None = None,
 ) -> None:
     """The CM ratio over operating hours as every cmcan figure shows it (the paper's Figure 9): the
     raw ratios as grey dots, the filtered ratio as a line, marked by level where ``levels`` (one
     :class:`Level` per point) says a warning was active, the thresholds, a dotted line where each
     warning was raised (``events``: hour, level name), failures in red, the start of each log in light
-    grey; NaN is a point not drawn; the axis from :func:`ratio_limits`."""
+    grey; NaN is a point not drawn; the axis from :func:`ratio_limits`. ``learning`` (a mask per
+    point, its low and high thresholds) draws the thresholds that judged each stretch: the learning
+    band where the on-board baseline was learning, the configured ones elsewhere."""
     h, raw, filt = (np.asarray(x, dtype=float) for x in (hours, raw_pct, filt_pct))
     for i, x in enumerate(log_starts_h):
         ax.axvline(x, color="0.85", lw=0.6, zorder=0, label="start of a log" if i == 0 else None)
@@ -78,8 +81,15 @@ def draw_ratio(
             if on.any():
                 name = LEVEL_NAMES[level]
                 ax.plot(h[okf][on], filt[okf][on], "o", ms=2, color=LEVEL_COLORS[name], label=f"warning {name}")
-    ax.axhline(low_pct, color=LEVEL_COLORS["low"], ls="--", lw=1, label=f"low threshold {low_pct:g} %")
-    ax.axhline(high_pct, color=LEVEL_COLORS["high"], ls="--", lw=1, label=f"high threshold {high_pct:g} %")
+    if learning is not None and len(h) and np.asarray(learning[0], dtype=bool).any():
+        on = np.asarray(learning[0], dtype=bool)
+        for name, conf, learn in (("low", low_pct, learning[1]), ("high", high_pct, learning[2])):
+            label = f"{name} threshold {conf:g} % ({learn:g} % while learning)"
+            ax.step(h, np.where(on, learn, conf), where="mid", color=LEVEL_COLORS[name], ls="--", lw=1, label=label)
+    else:
+        ax.axhline(low_pct, color=LEVEL_COLORS["low"], ls="--", lw=1, label=f"low threshold {low_pct:g} %")
+        ax.axhline(high_pct, color=LEVEL_COLORS["high"], ls="--", lw=1, label=f"high threshold {high_pct:g} %")
+        learning = None
     seen: set[str] = set()
     for x, level in events:
         label = None if level in seen else f"{level} raised" if level != "fault" else "fault"
@@ -87,7 +97,10 @@ def draw_ratio(
         seen.add(level)
     for i, x in enumerate(failures_h):
         ax.axvline(x, color="tab:red", lw=1, alpha=0.6, label="failure" if i == 0 else None)
-    ax.set_ylim(*ratio_limits([raw[ok], filt[okf]], low_pct, high_pct))
+    lo_pct, hi_pct = (
+        (low_pct, high_pct) if learning is None else (min(low_pct, learning[1]), max(high_pct, learning[2]))
+    )
+    ax.set_ylim(*ratio_limits([raw[ok], filt[okf]], lo_pct, hi_pct))
     ax.set_xlabel("operating hours (h)")
     ax.set_ylabel("CM ratio (%)")
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, markerscale=3, frameon=False)

@@ -1,6 +1,8 @@
-"""The fleet report's "Hours to service": the machines the prognosis sees wearing, imminent first, then by
-hours to end of life, each with its interval, the hour of the estimate and a sparkline; machines with no
-trend named after the table, machines without a prognosis counted apart; one line when no machine has one.
+"""The fleet report's service section is the service plan (:mod:`cmcan.fleet.plan`, one ranking):
+its rows in the plan's order with their hours and dates, a small chart with numbered axes for each
+machine with estimates; the statistics and the machines follow in the same order; each machine's
+chart draws the thresholds that judged each stretch (the learning band while its baseline learned)
+and its prognosis band.
 
 The data sets are written here row by row (the data set's own writer), with known prognosis columns: a
 simulated fleet would need hundreds of hours of wear before its prognosis sees a trend."""
@@ -22,8 +24,11 @@ pytest.importorskip("duckdb")
 
 from cmcan.cli import main
 from cmcan.fleet import dataset as ds
+from cmcan.fleet import figures
+from cmcan.fleet import plan as service
 from cmcan.fleet.query import connect
 from cmcan.fleet.report import build, service_series
+from cmcan.monitor.baseline import Mode
 from cmcan.monitor.prognosis import IMMINENT, NONE, STATE_CODES, TREND
 from cmcan.monitor.tick import PROGNOSIS_HOURS
 
@@ -44,6 +49,7 @@ def _log(
     p90_h: list[float],
     with_prognosis: bool = True,
     evaluated: list[int] | None = None,
+    baseline: list[int] | None = None,
 ) -> None:
     """Commit one log of ``ROWS`` timeline rows spread over ``duration_h``; the ``n``-th log of its
     machine starts after the earlier ones (its operating hours follow theirs)."""
@@ -57,6 +63,8 @@ def _log(
         "cm_ratio_raw_pct": np.full(ROWS, 99.0),
         "cm_ratio_filt_pct": np.full(ROWS, 99.0),
     }
+    if baseline is not None:
+        rows["baseline_state"] = np.asarray(baseline, np.int64)
     if with_prognosis:
         rows["prognosis_state"] = np.asarray(state, np.int64)
         for name in PROGNOSIS_HOURS:  # the low-warning hours are not the report's: NaN
@@ -78,6 +86,8 @@ def _log(
         "final_level": "ok",
         "threshold_low_pct": 98.0,
         "threshold_high_pct": 102.0,
+        "learning_low_pct": 95.0 if baseline is not None else None,
+        "learning_high_pct": 105.0 if baseline is not None else None,
         "count_frames_total": 1000,
         "fit": "fits",
         "fit_median_pct": 100.0,
@@ -119,31 +129,44 @@ def fleet(tmp_path_factory) -> Built:
     return Built(root, build(root))
 
 
-def _service_table(page: str) -> list[list[str]]:
-    table = re.search(r"<table id='service-table'>(.*?)</table>", page, re.S)
+def _table(page: str, table_id: str) -> list[list[str]]:
+    table = re.search(rf"<table id='{table_id}'>(.*?)</table>", page, re.S)
     assert table is not None
-    rows = re.findall(r"<tr class='(\w+)'>(.*?)</tr>", table.group(1), re.S)
+    rows = re.findall(r"<tr class='([\w -]+)'>(.*?)</tr>", table.group(1), re.S)
     return [[cls, *[re.sub(r"<[^>]+>", "", c) for c in re.findall(r"<td[^>]*>(.*?)</td>", r, re.S)]] for cls, r in rows]
 
 
-def test_machines_are_ordered_imminent_first_then_by_hours_to_end_of_life(fleet):
-    page = fleet.page
-    rows = _service_table(page)
-    assert [r[2] for r in rows] == ["m-imminent", "m-soon-a", "m-soon-b", "m-late", "m-never"]
-    assert [r[0] for r in rows] == ["imminent", "trend", "trend", "trend", "trend"]
-    assert page.index("id='ranking'") < page.index("id='service'") < page.index("id='machines'")
+# the plan: imminent, trend by p10 (m-never's p50 never gets there, its p10 is the largest), then no trend
+# at the latest evaluated row (m-late's last evaluated row has none, m-flat lost its trend) by name, then
+# the machine without a prognosis
+PLAN = ["m-imminent", "m-soon-a", "m-soon-b", "m-never", "m-flat", "m-late", "m-off"]
 
 
-def test_each_row_has_its_interval_and_the_operating_hour_of_its_estimate(fleet):
+def test_the_service_section_is_the_plan_and_everything_follows_its_order(fleet):
     page = fleet.page
-    by_machine = {r[2]: r for r in _service_table(page)}
-    # p50, "p10 - p90", estimated at (operating hours: the log's offset added)
-    assert by_machine["m-imminent"][4:7] == ["80.0", "12.0 &ndash; never", "10.0"]
-    assert by_machine["m-soon-a"][4:7] == ["60.0", "30.0 &ndash; 110.0", "10.0"]
-    assert by_machine["m-never"][4:7] == ["never", "300.0 &ndash; never", "10.0"]
-    # the second log's row 17 at 8.5 h: its row 18 has no estimate (its state, trend, counts), row 19 was
-    # not evaluated
-    assert by_machine["m-late"][4:7] == ["493.0", "393.0 &ndash; 693.0", "18.5"]
+    rows = _table(page, "ranking")
+    assert [r[2] for r in rows] == PLAN == [r.machine for r in service.build(fleet.root, None, T0_S)]
+    assert [r[1] for r in rows] == [str(i) for i in range(1, len(PLAN) + 1)]
+    assert [r[3] for r in rows] == ["imminent", "trend", "trend", "trend", "no trend", "no trend", "no prognosis"]
+    # one ranking: the statistics and the machines' charts in the plan's order, with the plan's rank
+    assert [r[2] for r in _table(page, "statistics")] == PLAN
+    assert [r[1] for r in _table(page, "statistics")] == [str(i) for i in range(1, len(PLAN) + 1)]
+    assert re.findall(r"<h3 id='m-([\w-]+)'>", page) == PLAN
+    assert page.index("id='service'") < page.index("id='overview'") < page.index("id='machines'")
+    assert "id='service-table'" not in page and "Hours to service" not in page  # no second ranking
+
+
+def test_each_row_has_the_plans_hours_and_states(fleet):
+    by_machine = {r[2]: r for r in _table(fleet.page, "ranking")}
+    # to end of life p10 / p50 / p90 as the plan has them ("never": the curve does not get there)
+    assert by_machine["m-imminent"][8] == "12 / 80 / never"
+    assert by_machine["m-soon-a"][8] == "30 / 60 / 110"
+    assert by_machine["m-never"][8] == "300 / never / never"
+    assert by_machine["m-late"][8] == "&ndash; / &ndash; / &ndash;"  # no estimate at its latest evaluated row
+    assert by_machine["m-imminent"][4] == "ok" and by_machine["m-imminent"][5] == "not configured"
+    assert by_machine["m-off"][6] == "not configured"
+    totals = re.search(r"<p id='plan-totals'>(.*?)</p>", fleet.page).group(1)
+    assert totals == "7 machines: 1 imminent, 3 trend, 2 no trend, 1 no prognosis."
 
 
 def _png_size(img_tag: str) -> tuple[int, int]:
@@ -152,15 +175,60 @@ def _png_size(img_tag: str) -> tuple[int, int]:
     return struct.unpack(">II", data[16:24])
 
 
-def test_one_inline_sparkline_per_ranked_machine(fleet):
+def test_a_small_chart_for_each_machine_with_estimates(fleet):
     page = fleet.page
-    table = re.search(r"<table id='service-table'>(.*?)</table>", page, re.S).group(1)
+    table = re.search(r"<table id='ranking'>(.*?)</table>", page, re.S).group(1)
+    charted = [m for m in PLAN if re.search(rf"<a href='#m-{m}'>.*?</tr>", table, re.S).group(0).count("<img")]
+    assert charted == ["m-imminent", "m-soon-a", "m-soon-b", "m-never", "m-flat", "m-late"]  # had estimates
     imgs = re.findall(r"<img [^>]*>", table)
-    assert len(imgs) == 5
-    assert all('src="data:image/png;base64,' in i for i in imgs)
     w, h = _png_size(imgs[0])
-    assert w <= 300 and h <= 80  # sparkline-sized
+    assert w <= 300 and h <= 130  # small, in a table cell
     assert "<script" not in page and "http" not in page.split("</style>", 1)[1]
+
+
+@pytest.fixture
+def drawn(monkeypatch) -> list:
+    """The figures drawn, kept open instead of turned into PNG bytes."""
+    figs: list = []
+    monkeypatch.setattr(figures, "png_bytes", lambda fig: figs.append(fig) or b"")
+    return figs
+
+
+def test_the_small_chart_has_numbered_axes(drawn):
+    figures.plot_service_spark([0.0, 5.0, 10.0], [30.0, 25.0, 20.0], [60.0, 55.0, 50.0], [math.inf] * 3)
+    (ax,) = drawn[0].axes
+    drawn[0].canvas.draw()
+    assert ax.axison and ax.get_xlabel() == "operating h" and ax.get_ylabel() == "to EOL h"
+    assert [t.get_text() for t in ax.get_xticklabels() if t.get_text()] and ax.get_ylim()[1] > 60.0
+    assert [t.get_text() for t in ax.get_yticklabels() if t.get_text()]
+
+
+def test_a_machines_chart_draws_the_thresholds_that_judged_and_its_prognosis_band(drawn):
+    h = np.arange(10.0)
+    learning = [True] * 4 + [False] * 6
+    prognosis = ([5.0, 9.0], [40.0, 30.0], [60.0, 50.0], [90.0, 80.0])
+    figures.plot_machine(h, h + 95, h + 95, 98.0, 102.0, [], [0.0], "m", learning=(learning, 95.0, 105.0),
+                         prognosis=prognosis)  # fmt: skip
+    ratio, band = drawn[0].axes
+    low = next(line for line in ratio.get_lines() if str(line.get_label()).startswith("low threshold"))
+    assert low.get_label() == "low threshold 98 % (95 % while learning)"
+    assert list(low.get_ydata()) == [95.0] * 4 + [98.0] * 6
+    assert band.get_ylabel() == "to end of life (h)" and [line.get_label() for line in band.get_lines()] == ["p50"]
+    figures.plot_machine(h, h + 95, h + 95, 98.0, 102.0, [], [0.0], "m")  # no baseline, no prognosis: one panel
+    assert len(drawn[1].axes) == 1
+
+
+def test_the_report_passes_the_learning_band_where_the_baseline_learned(tmp_path, monkeypatch):
+    root = ds.open_dataset(tmp_path / "ds", create=True)
+    baseline = [int(Mode.LEARNING)] * 8 + [int(Mode.MONITORING)] * 12
+    _log(
+        root, "m-new", 0, 10.0, [NO] * ROWS, [math.nan] * ROWS, [math.nan] * ROWS, [math.nan] * ROWS, baseline=baseline
+    )
+    seen = {}
+    monkeypatch.setattr("cmcan.fleet.figures.plot_machine", lambda *a, **k: seen.update(k) or b"")
+    build(root)
+    mask, low, high = seen["learning"]
+    assert (low, high) == (95.0, 105.0) and mask == [True] * 8 + [False] * 12
 
 
 def test_a_sparkline_draws_the_estimates_on_the_operating_hours(fleet):
@@ -177,16 +245,6 @@ def test_a_sparkline_draws_the_estimates_on_the_operating_hours(fleet):
     assert traces["m-never"][2][0] == math.inf  # drawn off the top, not dropped
 
 
-def test_no_trend_is_listed_and_no_prognosis_is_not_ranked(fleet):
-    page = fleet.page
-    no_trend = re.search(r"<p id='service-no-trend'>(.*?)</p>", page, re.S).group(1)
-    assert "m-flat" in no_trend and "(1)" in no_trend
-    off = re.search(r"<p id='service-off'>(.*?)</p>", page, re.S).group(1)
-    assert "1 machine without a prognosis configured" in off and "m-off" in off and "not ranked" in off
-    ranked = [r[2] for r in _service_table(page)]
-    assert "m-flat" not in ranked and "m-off" not in ranked
-
-
 def test_a_data_set_without_any_prognosis_says_so_in_one_line(tmp_path):
     root = ds.open_dataset(tmp_path / "ds", create=True)
     _constant(root, "m-off", NOT_CONFIGURED, math.nan, math.nan, math.nan)
@@ -194,7 +252,7 @@ def test_a_data_set_without_any_prognosis_says_so_in_one_line(tmp_path):
     page = build(root)
     section = page.split("<h2 id='service'>", 1)[1].split("<h2", 1)[0]
     assert "No machine in this data set has a prognosis configured" in section
-    assert "<table" not in section and "<img" not in section
+    assert "<img" not in section  # the plan's rows, no chart
 
 
 def test_a_data_set_written_before_the_prognosis_reports(tmp_path):

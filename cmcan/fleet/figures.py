@@ -1,8 +1,9 @@
 """The fleet report's figures (matplotlib, PNG bytes): every machine's ratio over its life, one chart
 per machine, drawn with the one ratio drawing of :mod:`cmcan.plots` (its axis shows a ratio at 43 % or
 139 %, not clipped), and the overview's machine names in a column beside the plot, spread so that none
-overlaps another, each joined to the end of its line. The hours-to-service table has a sparkline per
-machine: its hours to end of life (p50, p10-p90 band) over its operating hours.
+overlaps another, each joined to the end of its line. The service plan has a small chart per machine
+with estimates, and each machine's chart a panel under its ratio: its hours to end of life (p50 in
+its p10-p90 band) over its operating hours.
 """
 
 from __future__ import annotations
@@ -98,11 +99,20 @@ def plot_machine(
     events: list[tuple[float, str]],
     log_starts_h: list[float],
     title: str,
+    learning: tuple[Any, float, float] | None = None,
+    prognosis: tuple[Any, Any, Any, Any] | None = None,
 ) -> bytes:
-    """One machine: the CM ratio over its operating hours (means of the timeline), the thresholds,
-    each warning where it was raised and the start of each log; limits from the data; PNG bytes."""
+    """One machine: the CM ratio over its operating hours (means of the timeline), the thresholds
+    that judged each stretch (``learning``: a mask per point and the learning band, see
+    :func:`cmcan.plots.draw_ratio`), each warning where it was raised and the start of each log; under
+    it, where ``prognosis`` (hours, p10, p50, p90) has estimates, the hours to end of life over the
+    same operating hours (p50 in its p10-p90 band); PNG bytes."""
     plt = pyplot()
-    fig, ax = plt.subplots(figsize=(10, 3.4))
+    if prognosis is not None and len(prognosis[0]):
+        fig, (ax, bx) = plt.subplots(2, 1, figsize=(10, 5.2), sharex=True, height_ratios=(3.4, 1.8))
+    else:
+        fig, ax = plt.subplots(figsize=(10, 3.4))
+        bx = None
     draw_ratio(
         ax,
         hours,
@@ -113,32 +123,52 @@ def plot_machine(
         events=events,
         log_starts_h=log_starts_h,
         raw_label="raw (mean)",
+        learning=learning,
     )
-    ax.set_xlabel("operating hours (h, logged time of this machine)")
     ax.set_title(title, fontsize=10)
+    if bx is not None:
+        assert prognosis is not None
+        draw_eol_band(bx, *prognosis, fit_x=False)  # under the ratio, on the machine's whole life
+        bx.set_ylabel("to end of life (h)")
+        bx.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, frameon=False)
+        ax.set_xlabel("")
+        bx.set_xlabel("operating hours (h, logged time of this machine)")
+    else:
+        ax.set_xlabel("operating hours (h, logged time of this machine)")
     fig.tight_layout()
     out = png_bytes(fig)
     plt.close(fig)
     return out
 
 
-def plot_service_spark(hours: Any, p10_h: Any, p50_h: Any, p90_h: Any) -> bytes:
-    """A sparkline of one machine's operating hours to end of life over its operating hours: the p50
-    as a line in its p10-p90 band (no truth: in the field it is not known). An infinite hour (the
-    estimate never gets there) runs off the top, which is set by the finite values."""
-    plt = pyplot()
+def draw_eol_band(ax: Any, hours: Any, p10_h: Any, p50_h: Any, p90_h: Any, fit_x: bool = True) -> float:
+    """The hours to end of life over operating hours: the p50 as a line in its p10-p90 band. An
+    infinite hour (the estimate never gets there) runs off the top, which the finite values set;
+    returns that top. ``fit_x``: the x axis spans the estimates (a chart of its own)."""
     h, lo, mid, hi = (np.asarray(x, dtype=float) for x in (hours, p10_h, p50_h, p90_h))
     finite = np.concatenate([v[np.isfinite(v)] for v in (lo, mid, hi)])
     top_h = max(float(finite.max()) if finite.size else 1.0, 1.0) * (1 + 2 * PAD_FRACTION)
     lo, mid, hi = (np.minimum(v, top_h) for v in (lo, mid, hi))  # inf to the top edge
-    fig, ax = plt.subplots(figsize=(2.4, 0.6))
-    ax.fill_between(h, lo, hi, color="tab:blue", alpha=0.25, lw=0)
-    ax.plot(h, mid, "-", lw=1.0, color="tab:blue")
+    ax.fill_between(h, lo, hi, color="tab:blue", alpha=0.25, lw=0, label="p10-p90")
+    ax.plot(h, mid, "-", lw=1.0, color="tab:blue", label="p50")
     ax.set_ylim(0.0, top_h)
-    if len(h) > 1 and h[-1] > h[0]:
+    if fit_x and len(h) > 1 and h[-1] > h[0]:
         ax.set_xlim(h[0], h[-1])
-    ax.set_axis_off()
-    fig.subplots_adjust(0.01, 0.04, 0.99, 0.96)
+    return top_h
+
+
+def plot_service_spark(hours: Any, p10_h: Any, p50_h: Any, p90_h: Any) -> bytes:
+    """A small chart of one machine's operating hours to end of life over its operating hours: the
+    p50 as a line in its p10-p90 band (no truth: in the field it is not known), with numbered axes
+    (x: operating hours, y: hours to end of life)."""
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(3.0, 1.25))
+    draw_eol_band(ax, hours, p10_h, p50_h, p90_h)
+    ax.tick_params(labelsize=6, length=2, pad=1)
+    ax.locator_params(nbins=3)
+    ax.set_xlabel("operating h", fontsize=6, labelpad=1)
+    ax.set_ylabel("to EOL h", fontsize=6, labelpad=1)
+    fig.subplots_adjust(0.2, 0.27, 0.97, 0.95)
     out = png_bytes(fig)
     plt.close(fig)
     return out

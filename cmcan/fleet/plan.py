@@ -255,10 +255,31 @@ def build(root: Any, at_s: float | None, now_s: float) -> list[Row]:
         con.close()
 
 
-def _cell(x: float | None, fmt: str = "{:.0f}") -> str:
+def group_text(group: str) -> str:
+    """A group's name as the table and the report print it."""
+    return group.replace("_", " ")
+
+
+def hours_text(x: float | None, fmt: str = "{:.0f}", none: str = "-") -> str:
+    """An hour of the plan as text: ``none`` where there is none, "never" where it never gets there."""
     if x is None:
-        return "-"
+        return none
     return "never" if math.isinf(x) else fmt.format(x)
+
+
+def meanings(rows: Sequence[Row]) -> dict[str, list[str]]:
+    """What end of life means, and for which machines (machines configured alike share a line)."""
+    out: dict[str, list[str]] = {}
+    for r in rows:
+        if r.end_of_life:
+            out.setdefault(r.end_of_life, []).append(r.machine)
+    return out
+
+
+def totals(rows: Sequence[Row]) -> str:
+    """The machines per group in one line."""
+    counts = {g: sum(1 for r in rows if r.group == g) for g in GROUPS}
+    return f"{len(rows)} machines: " + ", ".join(f"{n} {group_text(g)}" for g, n in counts.items() if n)
 
 
 def format_table(rows: Sequence[Row]) -> str:
@@ -269,14 +290,14 @@ def format_table(rows: Sequence[Row]) -> str:
         (
             str(r.rank),
             r.machine,
-            r.group,
+            r.group,  # one word a column: the table stays easy to cut and grep
             r.warning_level,
             r.baseline_state,
             r.prognosis_state + (f" ({r.direction})" if r.direction else ""),
-            _cell(r.to_warning_h),
-            "/".join(_cell(h) for h in r.to_eol_h),
+            hours_text(r.to_warning_h),
+            "/".join(hours_text(h) for h in r.to_eol_h),
             " / ".join(d or "-" for d in r.due_date[:2]),
-            _cell(r.utilisation_h_per_day, "{:.1f}"),
+            hours_text(r.utilisation_h_per_day, "{:.1f}"),
             f"{r.last_heard[:10]} ({r.last_heard_days:.0f} d)",
             ",".join(r.flags) or "-",
         )
@@ -284,13 +305,8 @@ def format_table(rows: Sequence[Row]) -> str:
     ]
     widths = [max(len(c) for c in col) for col in zip(head, *body, strict=True)]
     lines = ["  ".join(c.ljust(w) for c, w in zip(line, widths, strict=True)).rstrip() for line in (head, *body)]
-    counts = {g: sum(1 for r in rows if r.group == g) for g in GROUPS}
     lines.append("")
-    lines.append(f"{len(rows)} machines: " + ", ".join(f"{n} {g.replace('_', ' ')}" for g, n in counts.items() if n))
-    meanings: dict[str, list[str]] = {}
-    for r in rows:
-        if r.end_of_life:
-            meanings.setdefault(r.end_of_life, []).append(r.machine)
-    for text, names in meanings.items():
+    lines.append(totals(rows))
+    for text, names in meanings(rows).items():
         lines.append(f"end of life for {', '.join(names)}: {text}")
     return "\n".join(lines) + "\n"

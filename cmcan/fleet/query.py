@@ -109,6 +109,8 @@ EMPTY: dict[str, dict[str, str]] = {
         "oil_nu100_cst": _F,
         "threshold_low_pct": _F,
         "threshold_high_pct": _F,
+        "learning_low_pct": _F,
+        "learning_high_pct": _F,
         "eol_kind": _S,
         "eol_value": _F,
         "eol_high_pct": _F,
@@ -228,6 +230,7 @@ def _records_table(table: str, rows: list[dict[str, Any]]) -> Any:
     names: dict[str, None] = {}
     for r in rows:
         names.update(dict.fromkeys(r))
+    names.update(dict.fromkeys(k for k in EMPTY[table] if k not in names))  # null in older records
     arrays = {}
     for k in names:
         values = [r.get(k) for r in rows]
@@ -260,7 +263,9 @@ def _data_dataset(root: Path, table: str, files: list[Path]) -> Any:
             problems.append(f"{f}: not readable ({str(exc).splitlines()[0][:120]})")
     if problems:
         raise ds.Damaged(problems)
-    schema = pa.unify_schemas([*schemas, part.schema], promote_options="permissive")
+    # the columns cmcan writes today are there in every data set (null in files written before them):
+    # a data set from an older cmcan answers the plan and the report instead of a binder error
+    schema = pa.unify_schemas([*schemas, part.schema, _empty(table).schema], promote_options="permissive")
     fmt = pds.ParquetFileFormat(
         default_fragment_scan_options=pds.ParquetFragmentScanOptions(page_checksum_verification=True)
     )

@@ -1,22 +1,17 @@
 """``cmcan fleet report``: one self-contained HTML page over the data set (no script, no link out).
 
-The fleet overview ranks the machines: those whose configuration or model does not fit
-(:mod:`cmcan.fitcheck`: their ratio says nothing about wear, they are not ranked as worn drives)
-first, then those with a warning active at the end of their last log, then those that had warnings,
-then faults, each group by the size of its CM ratio trend over its last ``trend_h`` operating hours.
-Each machine then gets its CM ratio over its operating hours with the thresholds and its warnings
-(the figures are PNG inlined as base64), and the quarantine list closes the page; a data set whose
-every log was quarantined still gets its page, with that list. A machine's operating hours are its
-logged hours: its logs in time order, each one's duration added (``machine_logs.offset_h``).
-
-Between the ranking and the machines, "Hours to service" orders the machines the on-board prognosis
-(:mod:`cmcan.monitor.prognosis`) sees trending (wear, or a drifting displacement control), by their
-state at their latest evaluated row: imminent first, then by the operating hours to end of life
-(p50, then p10), each with its p10-p90 interval, the hour of that estimate and a sparkline of its
-estimates over operating hours. Machines whose prognosis sees no trend are named after the table;
-those without a prognosis configured (state 0) are named apart, not ranked (beyond ``MAX_NAMED``
-names, counted). A data set where no machine has one, or written before the prognosis, says so in a
-line.
+The page opens with the service plan, the one ranking of the fleet: :mod:`cmcan.fleet.plan`'s rows
+as ``cmcan fleet plan`` prints them (warning now, imminent, trend by p10 then p50, cannot judge,
+learning, no trend, no prognosis), each with its hours and dates to the warning and to end of life,
+the machine's utilisation, flags, and a small chart with numbered axes of its estimates over its
+operating hours (the p50 in its p10-p90 band); what end of life means for whom follows the table.
+The fleet overview draws every machine's ratio and gives each machine's ratio statistics, in the
+plan's order. Each machine then gets its CM ratio over its operating hours with the thresholds that
+judged each stretch (the learning band while the on-board baseline learned, the configured ones
+otherwise), its warnings, and under it the prognosis's band where it had estimates (the figures are
+PNG inlined as base64); the quarantine list closes the page; a data set whose every log was
+quarantined still gets its page, with that list. A machine's operating hours are its logged hours:
+its logs in time order, each one's duration added (``machine_logs.offset_h``).
 """
 
 from __future__ import annotations
@@ -33,16 +28,16 @@ from typing import Any
 from cmcan import __version__
 from cmcan.errors import CmcanError, Kind
 from cmcan.fitcheck import DOES_NOT_FIT, FIT_BAND_PCT
+from cmcan.fleet import plan as service
 from cmcan.fleet.dataset import writing
 from cmcan.fleet.query import connect, require_duckdb
+from cmcan.monitor.baseline import Mode
 from cmcan.monitor.prognosis import IMMINENT, STATE_CODES, TREND
 from cmcan.monitor.tick import PROGNOSIS_HOURS
 
 ATTENTION = {4: "configuration or model does not fit", 3: "warning now", 2: "had warnings", 1: "faults", 0: "ok"}
 MAX_POINTS_PER_MACHINE = 1500
 SPARK_POINTS = 120  # estimates per sparkline: one per bin of a machine's span of estimates
-MAX_NAMED = 50  # machines named in the "no trend" and "not configured" lines, the rest counted
-STATE_NAMES = {code: name for name, code in STATE_CODES.items()}
 # the end-of-life hours among the prognosis's columns, in the order p10, p50, p90
 P10_H, P50_H, P90_H = (c for c in PROGNOSIS_HOURS if "_to_eol_" in c)
 
@@ -67,6 +62,8 @@ class MachineRow:
     fit: str = "unknown"
     fit_median_pct: float | None = None
     fit_log: str | None = None
+    learning_low_pct: float | None = None  # the learning band where the machine's baseline learned
+    learning_high_pct: float | None = None
 
     @property
     def misfit(self) -> bool:
@@ -102,8 +99,9 @@ def _f(x: Any) -> float | None:
     return None if math.isnan(x) else x
 
 
-_TIMELINE = """
-    SELECT t.machine, ml.offset_h + t.log_time_h AS op_h, t.cm_ratio_raw_pct AS raw, t.cm_ratio_filt_pct AS filt
+_TIMELINE = f"""
+    SELECT t.machine, ml.offset_h + t.log_time_h AS op_h, t.cm_ratio_raw_pct AS raw, t.cm_ratio_filt_pct AS filt,
+           coalesce(t.baseline_state, 0) = {int(Mode.LEARNING)} AS learning
     FROM timeline t JOIN machine_logs ml ON t.machine = ml.machine AND t.log_hash = ml.log_hash
     WHERE t.evaluated > 0"""
 
@@ -126,10 +124,12 @@ def machines(con: Any, trend_h: float) -> list[MachineRow]:
                    sum(warnings_low) AS wl, sum(warnings_high) AS wh, sum(faults) AS faults,
                    min(day) AS first_day, max(day) AS last_day,
                    arg_max(final_level, first_time_s) AS level_now,
-                   max(threshold_low_pct) AS low_pct, min(threshold_high_pct) AS high_pct
+                   max(threshold_low_pct) AS low_pct, min(threshold_high_pct) AS high_pct,
+                   min(learning_low_pct) AS learn_low, max(learning_high_pct) AS learn_high
             FROM machine_logs GROUP BY machine)
         SELECT agg.machine, logs, hours, evaluated_h, wl, wh, faults, first_day, last_day, level_now,
-               trend.recent, trend.trend, warn.first_h, low_pct, high_pct, mf.fit, mf.fit_median_pct, mf.fit_log
+               trend.recent, trend.trend, warn.first_h, low_pct, high_pct, mf.fit, mf.fit_median_pct, mf.fit_log,
+               learn_low, learn_high
         FROM agg LEFT JOIN trend USING (machine) LEFT JOIN warn USING (machine) LEFT JOIN machines mf USING (machine)
         """,
         [trend_h],
@@ -154,26 +154,31 @@ def machines(con: Any, trend_h: float) -> list[MachineRow]:
             r[15] or "unknown",
             _f(r[16]),
             r[17],
+            _f(r[18]),
+            _f(r[19]),
         )
         for r in rows
     ]
-    return sorted(out, key=lambda m: (-m.attention, -abs(m.trend_pct_per_100h or 0.0), m.machine))
+    return sorted(out, key=lambda m: m.machine)
 
 
-def series(con: Any, width_h: float) -> dict[str, tuple[list[float], list[float], list[float]]]:
+def series(con: Any, width_h: float) -> dict[str, tuple[list[float], list[float], list[float], list[bool]]]:
+    """Per machine: operating hour, raw and filtered ratio (means over bins of ``width_h``) and
+    whether its baseline was learning in the bin (the learning band judged it)."""
     rows = con.execute(
         f"""
         WITH tl AS ({_TIMELINE})
-        SELECT machine, avg(op_h), avg(raw), avg(filt) FROM tl
+        SELECT machine, avg(op_h), avg(raw), avg(filt), bool_or(learning) FROM tl
         GROUP BY machine, floor(op_h / ?) ORDER BY machine, 2""",
         [width_h],
     ).fetchall()
-    out: dict[str, tuple[list[float], list[float], list[float]]] = {}
-    for m, h, raw, filt in rows:
-        s = out.setdefault(m, ([], [], []))
+    out: dict[str, tuple[list[float], list[float], list[float], list[bool]]] = {}
+    for m, h, raw, filt, learning in rows:
+        s = out.setdefault(m, ([], [], [], []))
         s[0].append(h)
         s[1].append(raw if raw is not None else math.nan)
         s[2].append(filt if filt is not None else math.nan)
+        s[3].append(bool(learning))
     return out
 
 
@@ -189,22 +194,6 @@ def events(con: Any) -> dict[str, list[tuple[float, str]]]:
     return out
 
 
-@dataclass(frozen=True)
-class ServiceRow:
-    """A machine's prognosis at its latest evaluated row; the hours from its latest estimate (NaN: none)."""
-
-    machine: str
-    state: int  # STATE_CODES, 0 not configured
-    at_h: float = math.nan  # operating hour of the estimate
-    p10_h: float = math.nan
-    p50_h: float = math.nan
-    p90_h: float = math.nan
-
-    @property
-    def ranked(self) -> bool:
-        return STATE_NAMES.get(self.state) in (TREND, IMMINENT) and not math.isnan(self.p50_h)
-
-
 def has_prognosis_columns(con: Any) -> bool:
     """Data sets written before the prognosis have no such column in any timeline file."""
     names = {d[0] for d in con.execute("SELECT * FROM timeline LIMIT 0").description}
@@ -218,30 +207,6 @@ _PROGNOSIS_TIMELINE = f"""
     WHERE t.evaluated > 0"""
 # a row with an estimate: a trend and a p50 (NaN: no estimate; inf: never gets there, kept)
 _ESTIMATE = f"state IN ({STATE_CODES[TREND]}, {STATE_CODES[IMMINENT]}) AND p50 IS NOT NULL AND NOT isnan(p50)"
-
-
-def service_rows(con: Any) -> list[ServiceRow]:
-    """Every machine with an evaluated row: its state at the latest one and its latest estimate,
-    ordered for a service planner: imminent first, then trend, then the rest; each by p50, p10."""
-    rows = con.execute(
-        f"""
-        WITH tl AS ({_PROGNOSIS_TIMELINE}),
-        now AS (SELECT machine, arg_max(state, op_h) AS state FROM tl GROUP BY machine),
-        est AS (SELECT machine, arg_max([op_h, p10, p50, p90], op_h) AS e FROM tl WHERE {_ESTIMATE} GROUP BY machine)
-        SELECT now.machine, now.state, est.e FROM now LEFT JOIN est USING (machine)"""
-    ).fetchall()  # one list per arg_max: the hour and the hours of one row, without sorting the rows
-    out = [ServiceRow(m, int(state), *(math.nan if v is None else float(v) for v in e or ())) for m, state, e in rows]
-    # NaN sorts as the largest hour (no estimate after every estimate)
-    return sorted(
-        out,
-        key=lambda s: (
-            not s.ranked,
-            -s.state,
-            math.inf if math.isnan(s.p50_h) else s.p50_h,
-            math.inf if math.isnan(s.p10_h) else s.p10_h,
-            s.machine,
-        ),
-    )
 
 
 def service_series(con: Any) -> dict[str, tuple[list[float], list[float], list[float], list[float]]]:
@@ -316,53 +281,63 @@ def _hours(x_h: float) -> str:
     return "never" if math.isinf(x_h) else f"{x_h:.1f}"
 
 
-def _names(machines: list[str]) -> str:
-    shown = ", ".join(html.escape(m) for m in machines[:MAX_NAMED])
-    return shown + (f" and {len(machines) - MAX_NAMED} more" if len(machines) > MAX_NAMED else "")
+# a row's colour: the plan's groups that need someone now, then those that need a look
+GROUP_CLASS = {"warning_now": "a3", "imminent": "a3", "trend": "a2", "cannot_judge": "a4"}
 
 
-def service_section(rows: list[ServiceRow], all_machines: list[str], spark: dict[str, bytes]) -> list[str]:
-    """The "Hours to service" section's HTML parts (``spark``: a sparkline PNG per ranked machine)."""
-    parts = ["<h2 id='service'>Hours to service</h2>"]
-    configured = {r.machine for r in rows if r.state > 0}
-    if not configured:
+def _date_span(dates: list[str | None]) -> str:
+    return " / ".join(html.escape(d) if d else "&ndash;" for d in dates)
+
+
+def plan_section(rows: list[service.Row], spark: dict[str, bytes]) -> list[str]:
+    """The service plan's HTML parts: :mod:`cmcan.fleet.plan`'s rows, one ranking (``spark``: the
+    small chart of each machine with estimates)."""
+    parts = ["<h2 id='service'>Service plan</h2>"]
+    if not rows:
+        return [*parts, "<p>No machine has an evaluated row in this data set.</p>"]
+    parts.append(
+        "<p class='meta'>The same plan as <code>cmcan fleet plan</code>: warning now, imminent, trend (by the "
+        "p10, then the p50 of the operating hours to end of life), cannot judge, learning, no trend, no "
+        "prognosis; each machine at its latest evaluated row. Dates count the hours at the machine's own "
+        f"utilisation (operating hours per calendar day over its last {service.UTILISATION_DAYS:g} days). "
+        "The chart: the hours to end of life over the machine's operating hours, p50 in its p10-p90 band "
+        "(the truth is not known in the field).</p>"
+        "<table id='ranking'><tr><th>#</th><th class='l'>machine</th><th class='l'>group</th>"
+        "<th class='l'>level</th><th class='l'>baseline</th><th class='l'>prognosis</th>"
+        "<th>to warning (h)</th><th>to end of life p10 / p50 / p90 (h)</th><th class='l'>due p10 / p50 / p90</th>"
+        "<th>h/day</th><th class='l'>last heard</th><th class='l'>flags</th><th class='l'>estimates</th></tr>"
+    )
+    for r in rows:
+        name = html.escape(r.machine)
+        prognosis = html.escape(r.prognosis_state.replace("_", " ") + (f" ({r.direction})" if r.direction else ""))
+        warn = service.hours_text(r.to_warning_h, "{:.0f}", "&ndash;")
+        if r.warning_date and r.to_warning_h:
+            warn += f"<br><span class='meta'>{html.escape(r.warning_date)}</span>"
+        alt = f"{r.machine}: hours to end of life, p50 in its p10-p90 band, over operating hours"
+        chart = _img(spark[r.machine], alt) if r.machine in spark else ""
+        parts.append(
+            f"<tr class='{GROUP_CLASS.get(r.group, 'a0')} g-{r.group}'><td>{r.rank}</td>"
+            f"<td class='l'><a href='#m-{name}'>{name}</a></td><td class='l'>{service.group_text(r.group)}</td>"
+            f"<td class='l'>{_tag(r.warning_level)}</td>"
+            f"<td class='l'>{html.escape(r.baseline_state.replace('_', ' '))}</td>"
+            f"<td class='l'>{prognosis}</td><td>{warn}</td>"
+            f"<td>{' / '.join(service.hours_text(h, '{:.0f}', '&ndash;') for h in r.to_eol_h)}</td>"
+            f"<td class='l'>{_date_span(r.due_date)}</td>"
+            f"<td>{service.hours_text(r.utilisation_h_per_day, '{:.1f}', '&ndash;')}</td>"
+            f"<td class='l'>{html.escape(r.last_heard[:10])} ({r.last_heard_days:.0f} d)</td>"
+            f"<td class='l'>{html.escape(', '.join(f.replace('_', ' ') for f in r.flags)) or '&ndash;'}</td>"
+            f"<td class='l spark'>{chart}</td></tr>"
+        )
+    parts.append("</table>")
+    parts.append(f"<p id='plan-totals'>{html.escape(service.totals(rows))}.</p>")
+    meaning = service.meanings(rows)
+    if all(r.prognosis_state == service.NOT_CONFIGURED for r in rows):
         parts.append(
             "<p id='service-none'>No machine in this data set has a prognosis configured "
-            "(<code>prognosis: enabled</code> in its configuration, docs/prognosis.md): no hours to service.</p>"
+            "(<code>prognosis: enabled</code> in its configuration, docs/prognosis.md): no hours to end of life.</p>"
         )
-        return parts
-    ranked = [r for r in rows if r.ranked]
-    if ranked:
-        parts.append(
-            "<p class='meta'>Operating hours to end of life as each machine's prognosis estimated them at its "
-            "latest evaluated row: imminent first, then by p50 (then p10). The sparkline: the p50 in its "
-            "p10-p90 band over the machine's operating hours (the truth is not known in the field).</p>"
-            "<table id='service-table'><tr><th>#</th><th class='l'>machine</th><th class='l'>state</th>"
-            "<th>to end of life p50 (h)</th><th>interval p10&ndash;p90 (h)</th><th>estimated at (h)</th>"
-            "<th class='l'>estimates over operating hours</th></tr>"
-        )
-        for i, r in enumerate(ranked, 1):
-            name = STATE_NAMES[r.state]
-            alt = f"{r.machine}: hours to end of life, p50 in its p10-p90 band, over operating hours"
-            parts.append(
-                f"<tr class='{name}'><td>{i}</td><td class='l'><a href='#m-{html.escape(r.machine)}'>"
-                f"{html.escape(r.machine)}</a></td><td class='l'>{_tag(name)}</td><td>{_hours(r.p50_h)}</td>"
-                f"<td>{_hours(r.p10_h)} &ndash; {_hours(r.p90_h)}</td><td>{r.at_h:.1f}</td>"
-                f"<td class='l spark'>{_img(spark[r.machine], alt) if r.machine in spark else ''}</td></tr>"
-            )
-        parts.append("</table>")
-    else:
-        parts.append("<p>No machine's prognosis sees a trend.</p>")
-    flat = [r.machine for r in rows if r.state > 0 and not r.ranked]
-    if flat:
-        parts.append(f"<p id='service-no-trend'>No trend ({len(flat)}): {_names(flat)}.</p>")
-    off = sorted(set(all_machines) - configured)
-    if off:
-        parts.append(
-            f"<p id='service-off'>{len(off)} machine{'s' if len(off) != 1 else ''} without a prognosis configured "
-            f"(state 0 at the latest evaluated row, or none evaluated) {'are' if len(off) != 1 else 'is'} not ranked "
-            f"here: {_names(off)}.</p>"
-        )
+    for text, names in meaning.items():
+        parts.append(f"<p class='eol'>End of life for {html.escape(', '.join(names))}: {html.escape(text)}.</p>")
     return parts
 
 
@@ -378,7 +353,9 @@ def build(root: str | Path, trend_h: float = 50.0, max_machines: int = 50) -> st
 def _build(con: Any, root: str | Path, trend_h: float, max_machines: int) -> str:
     from cmcan.fleet.figures import plot_machine, plot_overview, plot_service_spark
 
-    ms = machines(con, trend_h)
+    plan_rows = service.plan(service.facts(con, math.inf), time.time())
+    rank = {r.machine: r.rank for r in plan_rows}
+    ms = sorted(machines(con, trend_h), key=lambda m: (rank.get(m.machine, len(rank) + 1), m.machine))
     total_h = max((m.hours for m in ms), default=1.0)
     ser = series(con, max(total_h / MAX_POINTS_PER_MACHINE, 1.0 / 3600.0))
     evs = events(con)
@@ -411,7 +388,7 @@ def _build(con: Any, root: str | Path, trend_h: float, max_machines: int) -> str
         f"{html.escape(tot[4] or '-')}</div>",
         "<div class='cards'>",
     ]
-    need = sum(1 for m in ms if m.attention >= 2)
+    need = sum(1 for r in plan_rows if r.group in GROUP_CLASS)
     misfits = sum(1 for m in ms if m.misfit)
     for value, label in (
         (len(ms), "machines"),
@@ -424,53 +401,62 @@ def _build(con: Any, root: str | Path, trend_h: float, max_machines: int) -> str
         (len(quarantine), "quarantined"),
     ):
         parts.append(f"<div class='card'><b>{value}</b><span>{label}</span></div>")
-    parts.append("</div><h2 id='overview'>Fleet overview</h2>")
-    lines = [(m.machine, *ser.get(m.machine, ([], [], []))[::2], m.state) for m in ms]
+    parts.append("</div>")
+    traces = service_series(con) if has_prognosis_columns(con) else {}
+    spark = {r.machine: plot_service_spark(*traces[r.machine]) for r in plan_rows if r.machine in traces}
+    parts += plan_section(plan_rows, spark)
+    if not ms:
+        parts.append(
+            "<p>No log is committed in this data set"
+            + (": every log that was tried is in the quarantine list below.</p>" if quarantine else ".</p>")
+        )
+    parts.append("<h2 id='overview'>Fleet overview</h2>")
+    lines = [(m.machine, *ser.get(m.machine, ([], [], [], []))[:3:2], m.state) for m in ms]
     if ms:
         parts.append(_img(plot_overview(lines, low, high), "filtered CM ratio of every machine"))
     parts.append(
-        "<table id='ranking'><tr><th>#</th><th class='l'>machine</th><th class='l'>state</th><th class='l'>now</th>"
+        "<table id='statistics'><tr><th>#</th><th class='l'>machine</th><th class='l'>state</th><th class='l'>now</th>"
         f"<th>trend (%/100 h, last {trend_h:g} h)</th><th>filtered ratio now (%)</th><th>low</th><th>high</th>"
         "<th>faults</th><th>first warning (h)</th><th>logs</th><th>logged (h)</th><th>evaluated (h)</th>"
         "<th class='l'>days</th></tr>"
     )
-    for i, m in enumerate(ms, 1):
+    for m in ms:
         parts.append(
-            f"<tr class='a{m.attention}'><td>{i}</td><td class='l'><a href='#m-{html.escape(m.machine)}'>"
-            f"{html.escape(m.machine)}</a></td><td class='l'>{ATTENTION[m.attention]}</td>"
+            f"<tr class='a{m.attention}'><td>{rank.get(m.machine, '&ndash;')}</td><td class='l'>"
+            f"<a href='#m-{html.escape(m.machine)}'>{html.escape(m.machine)}</a></td>"
+            f"<td class='l'>{ATTENTION[m.attention]}</td>"
             f"<td class='l'>{_tag(m.level_now)}</td><td>{_num(m.trend_pct_per_100h)}</td><td>{_num(m.ratio_now)}</td>"
             f"<td>{m.warnings_low}</td><td>{m.warnings_high}</td><td>{m.faults}</td>"
             f"<td>{_num(m.first_warning_h, '{:.1f}')}</td><td>{m.logs}</td><td>{m.hours:.1f}</td>"
             f"<td>{m.evaluated_h:.2f}</td><td class='l'>{m.first_day} &ndash; {m.last_day}</td></tr>"
         )
     parts.append("</table>")
-    if not ms:
-        parts.append(
-            "<p>No log is committed in this data set"
-            + (": every log that was tried is in the quarantine list below.</p>" if quarantine else ".</p>")
-        )
-    service = service_rows(con) if has_prognosis_columns(con) else []
-    traces = service_series(con) if any(r.ranked for r in service) else {}
-    spark = {m: plot_service_spark(*traces[m]) for m in (r.machine for r in service if r.ranked) if m in traces}
-    parts += service_section(service, [m.machine for m in ms], spark)
     parts.append("<h2 id='machines'>Machines</h2>")
     for m in ms[:max_machines]:
-        h, raw, filt = ser.get(m.machine, ([], [], []))
+        h, raw, filt, learning = ser.get(m.machine, ([], [], [], []))
         title = (
             f"{m.machine}: CM ratio over operating hours ({m.warnings_low} low, {m.warnings_high} high warnings, "
             f"{m.faults} faults)"
         )
+        band = None
+        if m.learning_low_pct is not None and m.learning_high_pct is not None:
+            band = (learning, m.learning_low_pct, m.learning_high_pct)
         parts.append(f"<h3 id='m-{html.escape(m.machine)}'>{html.escape(m.machine)} {_tag(m.state)}</h3>")
         if m.misfit:
             parts.append(_misfit_note(m))
-        parts.append(
-            _img(
-                plot_machine(
-                    h, raw, filt, m.low_pct, m.high_pct, evs.get(m.machine, []), starts.get(m.machine, []), title
-                ),
-                title,
-            )
+        png = plot_machine(
+            h,
+            raw,
+            filt,
+            m.low_pct,
+            m.high_pct,
+            evs.get(m.machine, []),
+            starts.get(m.machine, []),
+            title,
+            learning=band,
+            prognosis=traces.get(m.machine),
         )
+        parts.append(_img(png, title))
     if len(ms) > max_machines:
         parts.append(f"<p class='meta'>{len(ms) - max_machines} more machines in the table above (not drawn).</p>")
     parts.append(f"<h2 id='quarantine'>Quarantine ({len(quarantine)})</h2>")

@@ -560,6 +560,8 @@ def _replay_and_commit(
         "oil_nu100_cst": float(inp.cfg.oil.nu100_cst),
         "threshold_low_pct": float(inp.cfg.thresholds.low_pct),
         "threshold_high_pct": float(inp.cfg.thresholds.high_pct),
+        # the band that judges while the on-board baseline learns (the report draws it where it did)
+        **_learning_band(inp.cfg),
         # what the prognosis counts to, where it is on (``cmcan fleet plan`` says it per machine)
         **_end_of_life(inp.cfg),
         "timeline_rate_hz": float(opt.rate_hz),
@@ -594,6 +596,14 @@ def _replay_and_commit(
         log_hash=job.log_hash,
         cut_line=cut_line,
     )
+
+
+def _learning_band(cfg: Any) -> dict[str, Any]:
+    """The logs table's learning thresholds: NULL where no baseline is learned on board."""
+    if not cfg.baseline.enabled:
+        return {"learning_low_pct": None, "learning_high_pct": None}
+    b = cfg.baseline.settings
+    return {"learning_low_pct": float(b.learning_low_pct), "learning_high_pct": float(b.learning_high_pct)}
 
 
 def _end_of_life(cfg: Any) -> dict[str, Any]:
