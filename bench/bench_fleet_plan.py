@@ -18,7 +18,9 @@ For each seed and unit-spread scale, through the real command line only:
 - a machine that failed before the cut warns now;
 - a healthy machine (no failure ahead, no arriving leak) shows no trend and no warning;
 - a machine arriving with a leak is flagged (``baseline_suspect``, or a warning now);
-- ``fleet train`` names both arriving leaks as outliers.
+- ``fleet train`` names both arriving leaks as outliers;
+- every healthy machine's baseline, on the default learning settings, leaves learning (monitors on
+  its own baseline) within 50 operating hours.
 
 The end of life is the configuration's default (the ratio at 90 %, 110 % on the high side), not the
 simulated loss of function, which a machine in the field does not know: it comes first, so the
@@ -44,8 +46,11 @@ from typing import Any
 
 import yaml
 
+from cmcan.monitor.baseline import Mode
+
 CAUGHT = ("warning_now", "imminent", "trend")
 LATE_FACTOR, LATE_SLACK_H = 1.2, 5.0
+LEARNED_WITHIN_H = 50.0
 
 
 def cli(*args: str, ok: tuple[int, ...] = (0,)) -> subprocess.CompletedProcess:
@@ -108,13 +113,23 @@ def plan_at_cut(work: Path, sim: Path, trained: dict[str, dict[str, Any]], cut_h
     ds = work / "ds-plan"
     shutil.rmtree(ds, ignore_errors=True)
     cli("fleet", "replay", str(manifest), "--out", str(ds), "--manifest-root", "/", "-q", "--json", ok=(0, 65))
-    return json.loads(cli("fleet", "plan", str(ds), "--json").stdout)["machines"]
+    rows = json.loads(cli("fleet", "plan", str(ds), "--json").stdout)["machines"]
+    # the operating hour each machine's baseline first monitored (left learning on its own baseline)
+    sql = (
+        "SELECT t.machine, min(ml.offset_h + t.log_time_h) AS h FROM timeline t JOIN machine_logs ml "
+        f"USING (machine, log_hash) WHERE t.baseline_state = {int(Mode.MONITORING)} GROUP BY 1"
+    )
+    got = json.loads(cli("fleet", "query", str(ds), sql, "--format", "json").stdout)
+    monitoring = {r["machine"]: r["h"] for r in got}
+    for r in rows:
+        r["monitoring_from_h"] = monitoring.get(r["machine"])
+    return rows
 
 
 def judge(truth: dict[str, Any], rows: list[dict[str, Any]], trained: dict[str, Any], cut_h: float, within_h: float):
     by = {r["machine"]: r for r in rows}
     lines, tally = [], {"caught": [0, 0], "not_late": [0, 0], "failed_warns": [0, 0], "healthy_quiet": [0, 0],
-                        "leaks_flagged": [0, 0]}  # fmt: skip
+                        "leaks_flagged": [0, 0], "healthy_learned_50h": [0, 0]}  # fmt: skip
     for m in truth["machines"]:
         name = m["machine"]
         r = by.get(name)
@@ -147,6 +162,12 @@ def judge(truth: dict[str, Any], rows: list[dict[str, Any]], trained: dict[str, 
             tally["healthy_quiet"][0] += quiet
             tally["healthy_quiet"][1] += 1
             verdict.append("healthy: " + ("quiet" if quiet else "TREND OR WARNING"))
+        if not leak and not fails:
+            h = r.get("monitoring_from_h")
+            learned = h is not None and h <= LEARNED_WITHIN_H
+            tally["healthy_learned_50h"][0] += learned
+            tally["healthy_learned_50h"][1] += 1
+            verdict.append(f"monitoring from {'-' if h is None else f'{h:.0f}'} h" + ("" if learned else " (LATE)"))
         if leak:
             flagged = "baseline_suspect" in r["flags"] or r["warning_level"] == "low"
             tally["leaks_flagged"][0] += flagged

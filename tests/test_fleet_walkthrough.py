@@ -1,10 +1,12 @@
 """docs/fleet.md's walk from the type model to the service plan runs as written: its shell block, in
 an empty folder, with ``cmcan`` the command line of this checkout; then what it left is what the page
-says: the leaking unit left out of the type model, every machine in the plan, the report written."""
+says: the leaking unit left out of the type model, every healthy machine out of learning within 50
+operating hours on the default learning settings, every machine in the plan, the report written."""
 
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import subprocess
@@ -44,6 +46,24 @@ def test_the_docs_walk_from_the_type_model_to_the_plan_runs_as_written(tmp_path)
         env=env,
         check=True,
     )
+    # the default learning settings end on a time-lapse logger's logs: every healthy machine monitors
+    # on its own baseline within 50 operating hours (the hour of its first monitoring row)
+    sql = (
+        "SELECT t.machine, min(ml.offset_h + t.log_time_h) FROM timeline t JOIN machine_logs ml "
+        "USING (machine, log_hash) WHERE t.baseline_state = 2 GROUP BY 1 ORDER BY 1"
+    )
+    q = subprocess.run(
+        [sys.executable, "-m", "cmcan", "fleet", "query", "fleet-plan-ds", sql, "--format", "csv"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        env=env,
+        check=True,
+    )
+    monitoring_from_h = {m: float(h) for m, h in (line.split(",") for line in q.stdout.splitlines()[1:])}
+    print("monitoring from (operating h):", monitoring_from_h)
+    healthy = [m["machine"] for m in truth["machines"] if not m["degrading"] and m["machine"] not in leaking]
+    assert healthy and all(monitoring_from_h.get(m, math.inf) <= 50.0 for m in healthy), monitoring_from_h
     rows = {m["machine"]: m for m in json.loads(plan.stdout)["machines"]}
     assert set(rows) == {m["machine"] for m in truth["machines"]}
     leak = rows[leaking[0]]
