@@ -7,6 +7,8 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from cmcan.frame import Frame, FrameColumns
 
 if TYPE_CHECKING:
@@ -24,10 +26,11 @@ def column_chunks(
     on_cut: Callable[[Cut], None] | None = None,
 ) -> Iterator[FrameColumns]:
     """A log as chunks of columns: candump logs by the array reader (chunks of about
-    ``CHUNK_LINES`` lines, or ``chunk_bytes`` bytes when given), other formats through python-can's
-    readers ``chunk_frames`` at a time. ``progress(bytes_read, frames)`` after each chunk. A log cut
-    short is refused, or with ``keep_truncated`` read up to its last whole frame with the
-    :class:`cmcan.io.candump.Cut` handed to ``on_cut``, as :func:`cmcan.io.candump.iter_frames` does."""
+    ``CHUNK_LINES`` lines, or ``chunk_bytes`` bytes when given), MF4 files by asammdf's array access
+    (:mod:`cmcan.io.mf4columns`), other formats through python-can's readers ``chunk_frames`` at a
+    time. ``progress(bytes_read, frames)`` after each chunk. A log cut short is refused, or with
+    ``keep_truncated`` read up to its last whole frame with the :class:`cmcan.io.candump.Cut` handed
+    to ``on_cut``, as :func:`cmcan.io.candump.iter_frames` does."""
     from cmcan.io.candump import iter_frames
     from cmcan.io.candump_columns import CHUNK_BYTES, CHUNK_LINES, iter_candump_columns
     from cmcan.io.readahead import read_ahead
@@ -51,6 +54,13 @@ def column_chunks(
             if progress is not None:
                 progress(done[0], frames)
         return
+    if p.suffix.lower() == ".mf4":
+        for cols in read_ahead(mf4_chunks(p, chunk_frames)):  # the next chunk read while this one replays
+            frames += len(cols)
+            yield cols
+            if progress is not None:
+                progress(-1, frames)
+        return
     batch: list[Frame] = []
     for f in iter_frames(p, keep_truncated, on_cut):
         batch.append(f)
@@ -63,3 +73,44 @@ def column_chunks(
     if batch:
         frames += len(batch)
         yield FrameColumns.from_frames(batch)
+
+
+def mf4_chunks(p: Path, chunk_frames: int = CHUNK_FRAMES) -> Iterator[FrameColumns]:
+    """An MF4 log as chunks of columns, checked as every reader's frames are (a time that is not
+    finite, a payload beyond 64 bytes, too many channels: :class:`cmcan.io.candump.LogError` naming
+    the frame; asammdf missing: the extra to install; a file asammdf cannot read: said in one line)."""
+    from cmcan.errors import CmcanError, Kind
+    from cmcan.io.candump import MAX_CHANNELS, MAX_DATA_BYTES, LogError
+    from cmcan.io.mf4columns import iter_mf4_columns, open_mdf
+
+    try:
+        mdf = open_mdf(p)
+    except ImportError as exc:
+        raise CmcanError(f"{p}: reading .mf4 logs needs the 'mf4' extra: pip install 'cmcan[mf4]' ({exc})",
+                         Kind.UNAVAILABLE) from None  # fmt: skip
+    except Exception as exc:  # asammdf's own exceptions for a file that is not an MDF
+        raise LogError(f"{p}: cannot read as a .mf4 log: {type(exc).__name__}: {exc}") from None
+    n, names = 0, set()
+    try:
+        chunks = iter_mf4_columns(mdf, chunk_frames)
+        while True:
+            try:
+                cols = next(chunks)
+            except StopIteration:
+                break
+            except Exception as exc:  # a damaged block, a record asammdf cannot convert
+                raise LogError(f"{p}: cannot read as a .mf4 log after frame {n}: {type(exc).__name__}: {exc}") from None
+            bad = np.flatnonzero(~np.isfinite(cols.timestamp_s) | (cols.dlc > MAX_DATA_BYTES))
+            if len(bad):
+                i = int(bad[0])
+                what = f"not a CAN frame ({cols.dlc[i]} data bytes; CAN FD carries at most {MAX_DATA_BYTES})"
+                if not np.isfinite(cols.timestamp_s[i]):
+                    what = f"timestamp {cols.timestamp_s[i]!r} is not a time"
+                raise LogError(f"{p}: frame {n + i + 1}: {what}")
+            names.update(cols.channel_names)
+            if len(names) > MAX_CHANNELS:
+                raise LogError(f"{p}: after frame {n}: more than {MAX_CHANNELS} channel names: not a CAN log")
+            n += len(cols)
+            yield cols
+    finally:
+        mdf.close()
