@@ -194,12 +194,6 @@ def events(con: Any) -> dict[str, list[tuple[float, str]]]:
     return out
 
 
-def has_prognosis_columns(con: Any) -> bool:
-    """Data sets written before the prognosis have no such column in any timeline file."""
-    names = {d[0] for d in con.execute("SELECT * FROM timeline LIMIT 0").description}
-    return {"prognosis_state", P10_H, P50_H, P90_H} <= names
-
-
 _PROGNOSIS_TIMELINE = f"""
     SELECT t.machine, ml.offset_h + t.log_time_h AS op_h, coalesce(t.prognosis_state, 0) AS state,
            t.{P10_H} AS p10, t.{P50_H} AS p50, t.{P90_H} AS p90
@@ -272,13 +266,6 @@ def _num(x: float | None, fmt: str = "{:.2f}") -> str:
 
 def _img(png: bytes, alt: str) -> str:
     return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{base64.b64encode(png).decode()}">'
-
-
-def _hours(x_h: float) -> str:
-    """Hours for the table: inf is an estimate that never gets there, NaN none."""
-    if math.isnan(x_h):
-        return "&ndash;"
-    return "never" if math.isinf(x_h) else f"{x_h:.1f}"
 
 
 # a row's colour: the plan's groups that need someone now, then those that need a look
@@ -402,7 +389,7 @@ def _build(con: Any, root: str | Path, trend_h: float, max_machines: int) -> str
     ):
         parts.append(f"<div class='card'><b>{value}</b><span>{label}</span></div>")
     parts.append("</div>")
-    traces = service_series(con) if has_prognosis_columns(con) else {}
+    traces = service_series(con)  # the query layer gives older data sets these columns, null
     spark = {r.machine: plot_service_spark(*traces[r.machine]) for r in plan_rows if r.machine in traces}
     parts += plan_section(plan_rows, spark)
     if not ms:
