@@ -840,11 +840,15 @@ class Daemon:
         time but never sooner than ``bam_packet_gap_ms`` after the one before: when a tick was late, the
         rest of its session moves with it, so the packets keep J1939-21's spacing on the wire."""
         now = self.clock()
+        claim = self.monitor.node.claim if self.monitor.node is not None else None
+        claiming = claim is not None and claim.claiming
         for f in frames:
             if _is_transport(f):
                 self._tp_waiting.append(f)
-            else:
-                self._send_one(f)
+                continue
+            self._send_one(f)
+            if claiming and claim is not None:  # J1939-81's 250 ms run from when the claim was on the bus
+                claim.on_air(self.frame_now(now), f)
         while self._tp_waiting and now >= self._tp_last_sent + self._tp_gap_s:
             self._send_one(self._tp_waiting.popleft())
             self._tp_last_sent = now = self.clock()

@@ -134,6 +134,22 @@ def test_arbitrary_address_capable_moves_to_a_free_address_and_goes_on():
     assert ids.source_address(out[0].arbitration_id) == ids.NULL_ADDRESS and m.state == ac.LOST
 
 
+def test_the_250_ms_run_from_when_the_claim_was_on_the_bus():
+    """A daemon behind its bus sends the claim it made for frame time 2.0 at 2.08: nothing else
+    before 2.33 (J1939-81 counts from the claim on the wire). Other frames, another address's claim
+    or a claim that already stands move nothing."""
+    m = machine(True, (0x8D, 0x8E))
+    m.start(1.0)
+    (moved,) = m.on_claim(2.0, SA, OURS.value - 1)
+    m.on_air(2.01, claim_frame(2.01, 0x8E, OURS))  # not the address claimed
+    m.on_air(2.02, Frame(2.02, "can0", moved.arbitration_id, True, False, False, False, bytes(8)))  # not our NAME
+    assert m.settle_at == 2.25
+    m.on_air(2.08, moved)
+    assert not m.may_send(2.3) and m.may_send(2.33)
+    m.on_air(3.0, moved)  # it stands: a repeat of the claim (an answer to a request) moves nothing
+    assert m.may_send(3.0)
+
+
 @given(
     st.lists(
         st.tuples(st.floats(0, 0.5), st.integers(0x8A, 0x90), st.integers(0, 1 << 64 - 1), st.booleans()), max_size=30

@@ -100,6 +100,20 @@ class AddressClaim:
             self._event(self.settle_at, "no contention within 250 ms")
         return self.state == CLAIMED and t >= self.settle_at
 
+    @property
+    def claiming(self) -> bool:
+        """Within the 250 ms after the claim (nothing else may go out)."""
+        return self.state == CLAIMING
+
+    def on_air(self, t: float, frame: Frame) -> None:
+        """``frame`` left at frame time ``t``: where it is this node's claim and left later than the
+        time it was made for (a loop behind its bus), the 250 ms count from when the bus saw it."""
+        if self.state != CLAIMING or self.address is None:
+            return
+        mine = self._frame(t, self.address)
+        if frame.arbitration_id == mine.arbitration_id and frame.data == mine.data:
+            self.settle_at = max(self.settle_at, t + self.p.settle_s)
+
     def start(self, t: float, detail: str = "start") -> list[Frame]:
         """Claim at ``t`` (at start, after a bus-off, when the link comes back): the address held
         before, else the preferred one (an address taken by a lower NAME is skipped where the node may

@@ -315,7 +315,9 @@ def test_j1939_arbitrary_address_capable_moves_to_a_free_address_and_goes_on(arb
     moved = [f for f in _mine(bus, 0x8D) if ids.pgn(f.arbitration_id) == RATIO_PGN]
     claim = [f for f in _mine(bus, 0x8D) if ids.pgn(f.arbitration_id) == rq.PGN_ADDRESS_CLAIMED]
     assert before and before[0].timestamp_s < t_acd and claim
-    assert moved and moved[0].timestamp_s >= claim[0].timestamp_s + 0.25 and len(moved) > 20
+    # J1939-81: nothing but the claim in the 250 ms after it was on the bus (the candump's time)
+    assert moved and len(moved) > 20, (len(moved), claim[0].timestamp_s)
+    assert moved[0].timestamp_s >= claim[0].timestamp_s + 0.25, moved[0].timestamp_s - claim[0].timestamp_s
     late = [f for f in _mine(bus, SA) if f.timestamp_s > t_acd + 1.5]
     assert all(f.data == ACD_NAME.to_bytes(8, "little") for f in late)
     assert run["probe"]["state"] == "claimed" and run["probe"]["address"] == 0x8D, run["probe"]
