@@ -25,6 +25,7 @@ import zlib
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -95,6 +96,28 @@ CUT_LINE = "the last line has no line end (cut mid-line)"
 
 def too_many_channels(path: Path | str, line: int) -> LogError:
     return LogError(f"{path}: line {line}: more than {MAX_CHANNELS} channel names in one log: not a CAN log")
+
+
+def not_frames(timestamp_s: Any, arbitration_id: Any, n_bytes: Any) -> Any:
+    """Where a reader's record is no CAN frame (scalars or arrays alike): a time that is not finite,
+    an identifier beyond 29 bits, more data bytes than CAN FD's 64."""
+    return ~np.isfinite(timestamp_s) | (arbitration_id < 0) | (arbitration_id > 0x1FFFFFFF) | (n_bytes > MAX_DATA_BYTES)
+
+
+def not_a_frame(p: Path, where: str, timestamp_s: float, arbitration_id: int, n_bytes: int) -> LogError:
+    """The error for a record :func:`not_frames` refuses, naming the file and where in it."""
+    if not math.isfinite(timestamp_s):
+        return LogError(f"{p}: {where}: timestamp {timestamp_s!r} is not a time")
+    return LogError(
+        f"{p}: {where}: not a CAN frame (identifier {arbitration_id}, {n_bytes} data bytes; CAN FD carries at "
+        f"most {MAX_DATA_BYTES})"
+    )
+
+
+def more_channels(names: set[str], new: Iterable[str]) -> bool:
+    """Add a chunk's (or a frame's) channel names to those of the log so far: more than a CAN log has?"""
+    names.update(new)
+    return len(names) > MAX_CHANNELS
 
 
 def write_candump(
@@ -573,18 +596,11 @@ def _checked(messages: Iterable, p: Path, fmt: str) -> Iterator[tuple[Frame, obj
     """Frames of python-can's messages, each a CAN frame with a time (LogError otherwise)."""
     names: set[str] = set()
     for n, m in enumerate(messages):
-        if not math.isfinite(m.timestamp):
-            raise LogError(f"{p}: {_where(fmt, n)}: timestamp {m.timestamp!r} is not a time")
-        if not 0 <= m.arbitration_id <= 0x1FFFFFFF or len(m.data) > MAX_DATA_BYTES:
-            raise LogError(
-                f"{p}: {_where(fmt, n)}: not a CAN frame (identifier {m.arbitration_id}, {len(m.data)} data "
-                f"bytes; CAN FD carries at most {MAX_DATA_BYTES})"
-            )
+        if not_frames(m.timestamp, m.arbitration_id, len(m.data)):
+            raise not_a_frame(p, _where(fmt, n), m.timestamp, m.arbitration_id, len(m.data))
         f = from_message(m)
-        if f.channel not in names:
-            names.add(f.channel)
-            if len(names) > MAX_CHANNELS:
-                raise LogError(f"{p}: {_where(fmt, n)}: more than {MAX_CHANNELS} channel names: not a CAN log")
+        if f.channel not in names and more_channels(names, (f.channel,)):
+            raise LogError(f"{p}: {_where(fmt, n)}: more than {MAX_CHANNELS} channel names: not a CAN log")
         yield f, m
 
 

@@ -80,7 +80,7 @@ def mf4_chunks(p: Path, chunk_frames: int = CHUNK_FRAMES) -> Iterator[FrameColum
     finite, a payload beyond 64 bytes, too many channels: :class:`cmcan.io.candump.LogError` naming
     the frame; asammdf missing: the extra to install; a file asammdf cannot read: said in one line)."""
     from cmcan.errors import CmcanError, Kind
-    from cmcan.io.candump import MAX_CHANNELS, MAX_DATA_BYTES, LogError
+    from cmcan.io.candump import MAX_CHANNELS, LogError, more_channels, not_a_frame, not_frames
     from cmcan.io.mf4columns import iter_mf4_columns, open_mdf
 
     try:
@@ -100,15 +100,12 @@ def mf4_chunks(p: Path, chunk_frames: int = CHUNK_FRAMES) -> Iterator[FrameColum
                 break
             except Exception as exc:  # a damaged block, a record asammdf cannot convert
                 raise LogError(f"{p}: cannot read as a .mf4 log after frame {n}: {type(exc).__name__}: {exc}") from None
-            bad = np.flatnonzero(~np.isfinite(cols.timestamp_s) | (cols.dlc > MAX_DATA_BYTES))
+            bad = np.flatnonzero(not_frames(cols.timestamp_s, cols.arbitration_id, cols.dlc))
             if len(bad):
                 i = int(bad[0])
-                what = f"not a CAN frame ({cols.dlc[i]} data bytes; CAN FD carries at most {MAX_DATA_BYTES})"
-                if not np.isfinite(cols.timestamp_s[i]):
-                    what = f"timestamp {cols.timestamp_s[i]!r} is not a time"
-                raise LogError(f"{p}: frame {n + i + 1}: {what}")
-            names.update(cols.channel_names)
-            if len(names) > MAX_CHANNELS:
+                t, ident, nb = float(cols.timestamp_s[i]), int(cols.arbitration_id[i]), int(cols.dlc[i])
+                raise not_a_frame(p, f"frame {n + i + 1}", t, ident, nb)
+            if more_channels(names, cols.channel_names):
                 raise LogError(f"{p}: after frame {n}: more than {MAX_CHANNELS} channel names: not a CAN log")
             n += len(cols)
             yield cols

@@ -14,9 +14,10 @@ python-can's reader gives, and in its order (a test holds the two equal):
   per-group iterators with ``heapq.merge``, which is stable so), each group read a chunk at a time, so
   memory is bounded by a chunk per group however large the file.
 
-Compressed data blocks are asammdf's to inflate. The file's checks are those of the other readers
-(:func:`cmcan.io.candump._checked`): a time that is not finite, a payload longer than CAN FD's 64 bytes
-or too many channels is a :class:`cmcan.io.candump.LogError` naming the frame.
+Compressed data blocks are asammdf's to inflate. The file's checks are those of python-can's
+readers, the same functions (:func:`cmcan.io.candump.not_frames`, applied in
+:func:`cmcan.io.columns.mf4_chunks`): a time that is not finite, a payload longer than CAN FD's 64
+bytes or too many channels is a :class:`cmcan.io.candump.LogError` naming the frame.
 """
 
 from __future__ import annotations
