@@ -132,3 +132,59 @@ def test_drive_files_state_the_machine(tmp_path):
     f.write_text("drive: {pump_disp_max_cc: 4.6}\nduty: {kind: constant}\n")
     with pytest.raises(SchemaError, match=r"rig\.yaml: duty: unknown field"):
         scenario.load_drive(f)
+
+
+# -- degradation laws beyond the laminar power law (issue 40) -------------------------------------------
+
+
+def _wear(**over):
+    ev = {"type": "wear", "component": "motor", "start_h": 10.0, "fail_h": 60.0, "fail_extra_lpm": 30.0}
+    return scenario.from_dict(small_scenario(duration_h=70.0, events=[{**ev, **over}])).events[0]
+
+
+def test_an_orifice_wear_leaks_with_sqrt_dp_and_not_with_the_oil():
+    from cmcan.sim.degradation import evaluate
+
+    t = np.array([50.0])
+    thin, thick = oil_from_grade("VG32"), oil_from_grade("VG68")
+    lam, ori = _wear(), _wear(law="orifice")
+    d_ori = evaluate([ori], t, thin)
+    assert d_ori.wear_g_motor[0] == 0.0 and d_ori.bypass_h[0] > 0.0  # an orifice, not a gap
+    assert evaluate([ori], t, thick).bypass_h[0] == d_ori.bypass_h[0]  # whatever the oil
+    d_lam = evaluate([lam], t, thin)
+    assert d_lam.bypass_h[0] == 0.0 and 0.0 < d_lam.wear_g_motor[0] != evaluate([lam], t, thick).wear_g_motor[0]
+    # at the reference point both leak the curve's value: F (40/50)^3
+    from cmcan.sim.physics import BAR, LPM
+
+    q_ori = d_ori.bypass_h[0] * np.sqrt(480.0 * BAR) / LPM
+    assert q_ori == pytest.approx(30.0 * 0.8**3, rel=1e-12)
+
+
+def test_staged_damage_and_a_change_of_pace_keep_the_failure_hour():
+    from cmcan.sim.degradation import wear_lpm, wear_progress
+
+    t = np.linspace(0.0, 70.0, 701)
+    steps = _wear(growth="steps", steps=3, shape=1.0)
+    x = wear_lpm(steps, t)
+    assert sorted(set(np.round(x[t < 60.0], 9))) == pytest.approx([0.0, 10.0, 20.0])  # two jumps before failure
+    faster = _wear(rate_change_h=30.0, rate_factor=3.0)
+    s = wear_progress(faster, t)
+    assert s[t == 30.0][0] == pytest.approx(20.0 / (20.0 + 3.0 * 30.0))  # slow until the change
+    assert np.all(np.diff(s) >= 0) and s[t == 60.0][0] == pytest.approx(1.0)  # then 3x, failing on time
+    with pytest.raises(SchemaError, match="rate_change_h"):
+        _wear(rate_change_h=70.0)
+
+
+def test_a_duty_change_moves_the_operating_point_at_its_hour():
+    doc = small_scenario(
+        duration_h=0.2,
+        duty={
+            "kind": "change",
+            "at_h": 0.1,
+            "before": {"kind": "constant", "pump_speed_rpm": 1800, "pump_disp_pct": 60, "dp_bar": 150},
+            "after": {"kind": "constant", "pump_speed_rpm": 2400, "pump_disp_pct": 90, "dp_bar": 400},
+        },
+    )
+    r = run.simulate(scenario.from_dict(doc))
+    h, dp = r["operating_h"], r["true_dp_bar"]
+    assert np.median(dp[(h > 0.05) & (h < 0.095)]) < 200 < 350 < np.median(dp[h > 0.15])

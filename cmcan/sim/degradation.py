@@ -6,7 +6,9 @@ a component and is not reset by a replacement.
 
 Leakage amounts are stated as l/min at a reference operating point, the way a test rig reports them:
 - wear grows the laminar gap flow: Q = x(t) * (dp / dp_ref) * (mu_ref / mu), x(t) = F * s^k with
-  s the fraction of the way from wear onset to failure (slow, then accelerating);
+  s the fraction of the way from wear onset to failure (slow, then accelerating); or (``law:
+  orifice``, a crack or a torn seal) an orifice, Q = x(t) * sqrt(dp / dp_ref); x(t) may come in
+  ``steps`` (staged damage), and its pace change at ``rate_change_h`` (other work from then on);
 - an artificial leakage is an orifice: Q = x * sqrt(dp / dp_ref).
 """
 
@@ -76,12 +78,13 @@ def evaluate(events: list[dict[str, Any]], t_h: NDArray[np.float64], oil: Oil) -
         if kind == "leakage":
             bypass[act] += ev["extra_lpm"] * LPM / np.sqrt(ev["ref_dp_bar"] * BAR) * _ramp(th, start, ev["ramp_h"])
         elif kind == "wear":
-            span = ev["fail_h"] - start
-            s = np.clip((th - start) / span, 0.0, 1.0)
-            x_lpm = ev["fail_extra_lpm"] * s ** ev["shape"]
+            x_lpm = wear_lpm(ev, th)
             broken = th >= ev["fail_h"]
             x_lpm = np.where(broken, ev["fail_extra_lpm"] * LOSS_OF_FUNCTION_FACTOR, x_lpm)
-            g[ev["component"]][act] += _laminar_g(x_lpm, ev["ref_dp_bar"], ev["ref_temp_c"], oil)
+            if ev.get("law", "laminar") == "orifice":  # a crack, a torn seal: sqrt(dp), hardly any viscosity
+                bypass[act] += x_lpm * LPM / np.sqrt(ev["ref_dp_bar"] * BAR)
+            else:
+                g[ev["component"]][act] += _laminar_g(x_lpm, ev["ref_dp_bar"], ev["ref_temp_c"], oil)
             failed[np.flatnonzero(act)[broken]] = True
         elif kind == "failure":
             g[ev["component"]][act] += _laminar_g(ev["extra_lpm"], ev["ref_dp_bar"], ev["ref_temp_c"], oil)
@@ -97,6 +100,28 @@ def evaluate(events: list[dict[str, Any]], t_h: NDArray[np.float64], oil: Oil) -
             raise ValueError(f"unknown event type {kind!r}")
     # A leak on the loop itself (not inside a unit) acts like pump-side leakage on the flow balance.
     return Degradation(g["pump"] + g["loop"], g["motor"], bypass, mis, failed)
+
+
+def wear_progress(ev: dict[str, Any], th: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The share of the way from a wear's onset to its failure at operating hours ``th`` (0 to 1):
+    even in time, or from ``rate_change_h`` on ``rate_factor`` times faster (failure stays at fail_h)."""
+    start, fail = float(ev["start_h"]), float(ev["fail_h"])
+    c, f = ev.get("rate_change_h"), float(ev.get("rate_factor", 1.0))
+    if c is None or f == 1.0:
+        return np.clip((th - start) / (fail - start), 0.0, 1.0)
+    pace = 1.0 / ((c - start) + f * (fail - c))
+    done = np.where(th < c, (th - start) * pace, (c - start) * pace + f * (th - c) * pace)
+    return np.clip(done, 0.0, 1.0)
+
+
+def wear_lpm(ev: dict[str, Any], th: NDArray[np.float64]) -> NDArray[np.float64]:
+    """A wear's extra leakage at its reference point (l/min) before failure: F s^k, or that curve in
+    ``steps`` jumps (each stage of damage reached at once)."""
+    level = wear_progress(ev, th) ** ev["shape"]
+    if ev.get("growth", "power") == "steps":
+        n = int(ev.get("steps", 4))
+        level = np.floor(level * n) / n
+    return ev["fail_extra_lpm"] * level
 
 
 def _ramp(th: NDArray[np.float64], start: float, ramp_h: float) -> NDArray[np.float64]:

@@ -50,6 +50,14 @@ CYCLES = {"wheel_loader": WHEEL_LOADER, "excavator": EXCAVATOR}
 def setpoints(duty: dict[str, Any], t_s: NDArray[np.float64], rng: np.random.Generator) -> SetPoints:
     """Set points at the operating times ``t_s`` (seconds, ascending, gaps allowed for bursts)."""
     kind = duty["kind"]
+    if kind == "change":  # one duty until at_h, another after, on the same operating clock
+        i = int(np.searchsorted(t_s, duty["at_h"] * 3600.0))
+        a, b = setpoints(duty["before"], t_s[:i], rng), setpoints(duty["after"], t_s[i:], rng)
+        return SetPoints(
+            np.concatenate([a.pump_speed_rpm, b.pump_speed_rpm]),
+            np.concatenate([a.pump_disp_pct, b.pump_disp_pct]),
+            np.concatenate([a.dp_bar, b.dp_bar]),
+        )
     if kind == "constant":
         n = len(t_s)
         return SetPoints(

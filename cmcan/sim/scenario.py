@@ -143,7 +143,7 @@ _MIXED = Obj(
         "load_scale": Num(0.2, 1.2, default=1.0),
     }
 )
-_DUTY = OneOf(
+_PLAIN_DUTIES = OneOf(
     "kind",
     {
         "constant": Obj(
@@ -174,6 +174,15 @@ _DUTY = OneOf(
             },
             rule=_table_rule,
         ),
+    },
+)
+# A machine moved to other work in mid-life (light to heavy, one site to another): one duty until
+# ``at_h`` operating hours, another after.
+_DUTY = OneOf(
+    "kind",
+    {
+        **_PLAIN_DUTIES.variants,
+        "change": Obj({"at_h": Num(0, INF, "h"), "before": _PLAIN_DUTIES, "after": _PLAIN_DUTIES}),
     },
 )
 
@@ -208,6 +217,9 @@ _COMPONENT = Str(choices=("pump", "motor"))
 def _wear_rule(e: dict[str, Any]) -> tuple[str, str] | None:
     if e["fail_h"] <= e["start_h"]:
         return "fail_h", f"must be later than start_h ({e['start_h']} h), got {e['fail_h']}"
+    c = e["rate_change_h"]
+    if c is not None and not e["start_h"] < c < e["fail_h"]:
+        return "rate_change_h", f"must lie between start_h ({e['start_h']} h) and fail_h ({e['fail_h']} h), got {c}"
     return None
 
 
@@ -238,6 +250,15 @@ _EVENT = OneOf(
                 "fail_h": Num(0, INF, "h"),
                 "fail_extra_lpm": Num(0.1, 200, "l/min", default=40.0),
                 "shape": Num(1, 8, default=3.0),
+                # laminar: a worn gap, Q ~ dp / viscosity; orifice: a crack or a torn seal, Q ~ sqrt(dp)
+                "law": Str(default="laminar", choices=("laminar", "orifice")),
+                # power: x = F s^k; steps: the same curve reached in ``steps`` jumps (damage in stages)
+                "growth": Str(default="power", choices=("power", "steps")),
+                "steps": Num(2, 20, integer=True, default=4),
+                # the wear's pace times ``rate_factor`` from ``rate_change_h`` on (heavier or lighter
+                # work); fail_h stays the hour of failure
+                "rate_change_h": Num(0, INF, "h", default=None),
+                "rate_factor": Num(0.1, 10, default=1.0),
                 **_REF,
             },
             rule=_wear_rule,
