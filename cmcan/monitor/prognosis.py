@@ -36,6 +36,13 @@ faster; onset ``t0`` and shape ``k`` come from a grid, ``b`` and ``c`` (``c >= 0
   0: off) the draws of the estimates of the last ``pool_h`` hours (at most a quarter of the hours
   left), less the hours since, are pooled with the current one's; referred to reference conditions,
   the oil's cycle that made this worth its lag is gone. Reported: p10, p50, p90.
+- The law's own error (the hindcast): the fits of the history as it stood some hours ago (an
+  eighth, a quarter and half of the worn stretch back, at least ``hindcast_min_h``) are asked how
+  long they take to today's level; the one furthest from the hours it really took gives the factor
+  ``q``. Every drawn curve's hours are spread by a lognormal of ``|ln q|`` and, where ``q > 1`` (the
+  law ran slow: a crack's orifice law, a step of damage, heavier work), divided by ``q``; a law that
+  ran fast moves nothing. Late is what a workshop booking cannot take: the interval carries the
+  error of the law's form, and its lower end is set to hold the truth from below.
 - State: ``none`` without a trend, ``imminent`` when p10 to end of life is within ``imminent_h``,
   ``trend`` otherwise.
 
@@ -136,6 +143,14 @@ class PrognosisParams:
     # The referred wear leakage may still scatter by a share of itself (a gap not quite laminar, the
     # sensors' lag behind the oil): the fit weighs its points by the share its residuals show, at most this.
     level_rel: float = 0.1
+    # The law's own error, read off the history (the hindcast): the fit of the history as it stood
+    # hindcast_share of the worn stretch ago (at least hindcast_min_h) is asked how long it would take
+    # to reach today's level. Slower than it took (the law too slow: a crack, a step of damage, heavier
+    # work) moves every curve's hours earlier by that factor; either way the factor's log widens the
+    # spread. Late is what a workshop booking cannot take: a hindcast that was too fast moves nothing.
+    # 0: off.
+    hindcast_share: float = 0.25
+    hindcast_min_h: float = 4.0
     # Pool the estimates of the last pool_h hours (at most a quarter of the hours left), taken every
     # pool_every_h: off, as its lag costs more near the end than the referred leakage's scatter
     pool_h: float = 0.0
@@ -540,6 +555,12 @@ def _track_hours(
     quarter of the hours left): older estimates lag an accelerating wear."""
     T = float(h[-1])
     tw, te = _draw_hours(p, d, h, y, ys, track, p.seed)
+    late = _hindcast(p, h, y, d, track)
+    if late != 1.0:
+        rng = np.random.default_rng(p.seed - 1)
+        scale = np.exp(rng.normal(0.0, abs(math.log(late)), len(tw))) / max(late, 1.0)
+        tw = np.where(tw < _NEVER_H, tw * scale, tw)
+        te = np.where(te < _NEVER_H, te * scale, te)
     warns, eols = [tw], [te]
     pool_h = min(p.pool_h, 0.25 * float(np.median(te)))
     for i, lag in enumerate(np.arange(p.pool_every_h, pool_h + 1e-9, p.pool_every_h).tolist(), start=1):
@@ -554,6 +575,38 @@ def _track_hours(
         warns.append(np.where(tw < _NEVER_H, np.maximum(tw - since, 0.0), tw))
         eols.append(np.where(te < _NEVER_H, np.maximum(te - since, 0.0), te))
     return _quantiles(np.concatenate(warns)), _quantiles(np.concatenate(eols))
+
+
+def _level_now(d: _Detected, y: NDArray[np.float64]) -> tuple[float, float]:
+    """The best cell's level before the onset and its value at the history's last point."""
+    b = float(np.mean(y - d.c * d.basis[d.g] - d.resid))
+    return b, b + d.c
+
+
+def _hindcast(p: PrognosisParams, h: NDArray[np.float64], y: NDArray[np.float64], d: _Detected, track: _Track) -> float:
+    """How much slower than the truth the law ran over the last stretch: the hours the fit of the
+    history as it stood then takes to today's level, over the hours it took (1: no hindcast, no
+    earlier fit with a trend, or none that reaches today's level)."""
+    if p.hindcast_share <= 0:
+        return 1.0
+    T = float(h[-1])
+    _, y_now = _level_now(d, y)
+    out = []
+    for share in (0.5 * p.hindcast_share, p.hindcast_share, 2.0 * p.hindcast_share):
+        lag = max(p.hindcast_min_h, share * (T - d.onset_h))
+        m = int(np.searchsorted(h, T - lag, side="right"))
+        if m < p.min_points + 2 or not h[m - 1] - h[0] >= p.min_history_h:
+            continue
+        old = _detect(p, h[:m], y[:m], track)
+        if not old.trend:
+            continue
+        b_old, _ = _level_now(old, y[:m])
+        took = T - float(h[m - 1])
+        t = _hours_to(y_now, np.array([b_old]), np.array([old.c]), np.array([old.onset_h]), np.array([old.shape_k]),
+                      float(h[m - 1]))[0]  # fmt: skip
+        if 0.0 < t < _NEVER_H and took > 0:
+            out.append(min(max(t / took, 0.1), 10.0))
+    return float(max(out, key=lambda q: abs(math.log(q)))) if out else 1.0  # the one most wrong
 
 
 @dataclass(frozen=True)
