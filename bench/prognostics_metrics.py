@@ -94,3 +94,35 @@ def lateness(est: Sequence[Estimate], eol_h: float, before_h: float, share: floa
     if e is None:
         return "none"
     return "late" if e.p50 > (1.0 + share) * (eol_h - e.at_h) else "ok"
+
+
+def main() -> None:
+    """Score the estimates ``bench_prognosis.py --dump FILE`` wrote, run by run."""
+    import argparse
+    import json
+
+    ap = argparse.ArgumentParser(description="Score a prognosis dump (bench_prognosis.py --dump FILE) run by run.")
+    ap.add_argument("dump", help="the JSON file bench_prognosis.py --dump wrote")
+    ap.add_argument("--alpha", type=float, default=0.2, help="alpha bounds (share of the true hours left)")
+    args = ap.parse_args()
+    with open(args.dump, encoding="utf-8") as f:
+        runs = json.load(f)
+    print(
+        f"{'case':10} {'al@0.5':>6} {'al@0.75':>7} {'PH_first':>8} {'PH_stays':>8} {'cover':>7} {'@20h':>5} {'@10h':>5}"
+    )
+    for run in runs:
+        eol = run["fail_h"]
+        if eol is None:
+            continue
+        est = [Estimate(h, p10, p50, p90) for h, _state, p10, p50, p90 in run["estimates"]]
+        c, n = coverage(est, eol)
+        al5, al75 = (alpha_lambda(est, eol, lam, args.alpha) for lam in (0.5, 0.75))
+        print(
+            f"{run['case']:10} {al5!s:>6} {al75!s:>7}"
+            f" {horizon_first(est, eol, args.alpha):8.1f} {horizon_stays(est, eol, args.alpha):8.1f} {c:3d}/{n:<3d}"
+            f" {lateness(est, eol, 20.0):>5} {lateness(est, eol, 10.0):>5}"
+        )
+
+
+if __name__ == "__main__":
+    main()

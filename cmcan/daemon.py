@@ -60,6 +60,9 @@ if TYPE_CHECKING:  # only for the type hint: the uplink's feed is an application
     from cmcan.uplink.feed import UplinkFeed
 
 log = logging.getLogger("cmcan.daemon")
+# A claim sent later than its frame time by less than this was sent by a loop behind its bus: its
+# 250 ms count from when it left. More is no lag but a time base the loop cannot compare (a replayed log).
+CLAIM_LATE_MAX_S = 1.0
 
 SO_RCVBUFFORCE = 33
 SOL_CAN_RAW = 101
@@ -848,7 +851,9 @@ class Daemon:
                 continue
             self._send_one(f)
             if claiming and claim is not None:  # J1939-81's 250 ms run from when the claim was on the bus
-                claim.on_air(self.frame_now(now), f)
+                late = self.frame_now(now) - f.timestamp_s
+                if 0.0 < late < CLAIM_LATE_MAX_S:  # a loop behind its bus; not a frame time of another base
+                    claim.on_air(f.timestamp_s + late, f)
         while self._tp_waiting and now >= self._tp_last_sent + self._tp_gap_s:
             self._send_one(self._tp_waiting.popleft())
             self._tp_last_sent = now = self.clock()
