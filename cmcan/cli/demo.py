@@ -47,9 +47,9 @@ def out_dir(arg: str | None, force: bool) -> Path:
 def add_subparser(sub: Subparsers) -> None:
     p = sub.add_parser(
         "demo",
-        help="run-to-failure demo through the real daemon on a virtual bus",
+        help="run-to-failure demo through the real daemon on an in-process CAN bus",
         description="Simulate the 550 h run-to-failure scenario, stream its frames through the "
-        "daemon on python-can's virtual bus, and report each warning against the scheduled "
+        "daemon (on an in-process python-can bus), and report each warning against the scheduled "
         "failures with its lead time. Exit 0 when every check passes.",
     )
     p.add_argument(
