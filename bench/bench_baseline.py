@@ -108,8 +108,8 @@ def fleet(cache: Path, spec: Any) -> Path:
     """The fleet of ``spec`` under ``cache`` (written once: a folder per spec and per shipped DBC and
     configuration, which the fleet copies, renamed into place)."""
     from cmcan import __version__
+    from cmcan.can.dbc import default_dbc_path
     from cmcan.config import default_config_path
-    from cmcan.dbc import default_dbc_path
     from cmcan.fleet.simfleet import write_fleet
     from cmcan.sim.fleet import spec_record
 

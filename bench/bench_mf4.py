@@ -37,7 +37,7 @@ def write_logs(work: Path, frames: int) -> tuple[Path, Path]:
         return log, mf4
     import can
 
-    from cmcan.frame import to_message_kwargs
+    from cmcan.can.frame import to_message_kwargs
     from cmcan.io import mf4support
     from cmcan.io.candump import iter_frames, write_candump
     from tests.helpers import sim_frames

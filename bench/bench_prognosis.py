@@ -266,7 +266,7 @@ def simulate_ticks(case: Case, cfg: Any) -> dict[str, Any]:
     and oil temperature (the tick's window means), and, for the oracle end of life, the simulated
     truth's extra leakage at those hours."""
     from cmcan.assemble import assemble, dbc_for
-    from cmcan.frame import FrameColumns
+    from cmcan.can.frame import FrameColumns
     from cmcan.replay import replay_columns
     from cmcan.sim import scenario as scn
     from cmcan.sim.frames import frames_from_run

@@ -59,8 +59,8 @@ import can
 
 from cmcan import config as cfgmod
 from cmcan.assemble import assemble, bus_plan, dbc_for
-from cmcan.daemon import Daemon, DaemonOptions
-from cmcan.frame import FrameColumns
+from cmcan.can.frame import FrameColumns
+from cmcan.daemon.loop import Daemon, DaemonOptions
 from cmcan.io import native
 from cmcan.io.candump import write_candump
 from cmcan.io.columns import column_chunks

@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from cmcan.dbc import load_dbc
+from cmcan.can.dbc import load_dbc
 from cmcan.sim import scenario as scn
 from cmcan.sim.frames import frames_from_run
 from cmcan.sim.run import simulate

@@ -28,7 +28,7 @@ from paho.mqtt.enums import CallbackAPIVersion
 
 from cmcan import config as cfgmod
 from cmcan.assemble import assemble
-from cmcan.daemon import Daemon, DaemonOptions
+from cmcan.daemon.loop import Daemon, DaemonOptions
 from cmcan.uplink.config import UplinkSettings
 from cmcan.uplink.feed import UplinkFeed
 from cmcan.uplink.outbox import Outbox

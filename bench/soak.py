@@ -2,7 +2,7 @@
 
 The drive's own frames (the simulated excavator-like run, about 310 frames/s) with a flood of
 unrelated identifiers filling the bus to about 9,000 frames/s (a 1 Mbit/s bus of 8-byte frames),
-served to the daemon's own receive loop (:class:`cmcan.daemon.Daemon`: recv, core, send, state
+served to the daemon's own receive loop (:class:`cmcan.daemon.loop.Daemon`: recv, core, send, state
 saves) by an in-memory bus: python-can's virtual bus and the kernel's vcan cost more per frame than
 the daemon itself, so hours of bus time would take days. No receive filter: every flood frame reaches
 the core and is counted there (on a real bus the kernel filter drops them before). The daemon's clock
@@ -157,11 +157,11 @@ class FloodBus(can.BusABC):
 def soak(bus_s: float, flood_fps: float | None = None, warmup_s: float | None = None) -> Result:
     from cmcan import config as cfgmod
     from cmcan.assemble import assemble, dbc_for
-    from cmcan.daemon import Daemon, DaemonOptions
+    from cmcan.daemon.loop import Daemon, DaemonOptions
+    from cmcan.service.statefile import StateStore
     from cmcan.sim import scenario as scn
     from cmcan.sim.frames import frames_from_run
     from cmcan.sim.run import simulate
-    from cmcan.statefile import StateStore
 
     cfg = cfgmod.load()
     db = dbc_for(cfg)

@@ -16,14 +16,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from cmcan import checksums, codec, units
+from cmcan.can import checksums, codec, units
+from cmcan.can.dbc import DbcError, covers, describe_signal, load_dbc, message_problems, physical_range
+from cmcan.can.frame import Frame
+from cmcan.can.j1939 import dm1 as j1939_dm1
+from cmcan.can.j1939 import ids
+from cmcan.can.j1939.claim import ClaimParams
 from cmcan.config import Config
-from cmcan.dbc import DbcError, covers, describe_signal, load_dbc, message_problems, physical_range
 from cmcan.errors import Kind
-from cmcan.frame import Frame
-from cmcan.j1939 import dm1 as j1939_dm1
-from cmcan.j1939 import ids
-from cmcan.j1939.claim import ClaimParams
 from cmcan.model import GrayBoxModel, ModelError, default_model_path, load_model
 from cmcan.monitor.baseline import BIN_ROLES, BaselineParams
 from cmcan.monitor.core import Monitor, MonitorParams
@@ -52,7 +52,7 @@ from cmcan.roles import (
 )
 from cmcan.schema import SchemaError, carried
 
-if TYPE_CHECKING:  # hints only; cmcan.dbc imports cantools where a DBC is read
+if TYPE_CHECKING:  # hints only; cmcan.can.dbc imports cantools where a DBC is read
     from cantools.database.can import Database, Message
 
     from cmcan.sim.frames import BusPlan
@@ -123,7 +123,7 @@ def _message(cfg: Config, db: Database, name: str, field: str) -> Message:
 
 def check_against_dbc(cfg: Config, db: Database) -> None:
     """Every mapped message and signal exists, can be decoded and is in a unit its scale turns into
-    the role's (:mod:`cmcan.units`); outputs exist, have the signals cmcan sends and are not inputs;
+    the role's (:mod:`cmcan.can.units`); outputs exist, have the signals cmcan sends and are not inputs;
     high and low pressure can be subtracted exactly."""
     for role, ref in cfg.signals.items():
         msg = _message(cfg, db, ref.message, f"signals.{role}.message")

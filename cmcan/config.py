@@ -13,11 +13,11 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from cmcan.checksums import ALGORITHMS
+from cmcan.can.checksums import ALGORITHMS
+from cmcan.can.j1939.dm1 import PROPRIETARY_SPNS
+from cmcan.can.j1939.name import Name
+from cmcan.can.j1939.requests import AnswerLimits
 from cmcan.io.points import Condition, PointsError, PointSpec
-from cmcan.j1939.dm1 import PROPRIETARY_SPNS
-from cmcan.j1939.name import Name
-from cmcan.j1939.requests import AnswerLimits
 from cmcan.monitor.baseline import BaselineSettings
 from cmcan.monitor.gating import REFERENCE_PUMP_DISP_CC, REFERENCE_PUMP_SPEED_RPM, GateLimits, scaled
 from cmcan.monitor.node import ClearTrust

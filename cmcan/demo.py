@@ -26,17 +26,17 @@ from numpy.typing import NDArray
 
 from cmcan import config as cfgmod
 from cmcan.assemble import bus_plan, dbc_for
-from cmcan.daemon import Daemon, DaemonOptions, bus_kwargs
+from cmcan.can.frame import Frame, from_message, to_message_kwargs
+from cmcan.can.j1939 import dm1 as j1939_dm1
+from cmcan.can.j1939 import ids as j1939_ids
+from cmcan.can.j1939.transport import BamReceiver
+from cmcan.daemon.loop import Daemon, DaemonOptions, bus_kwargs
+from cmcan.daemon.preflight import prepare
 from cmcan.errors import CmcanError, Kind
-from cmcan.frame import Frame, from_message, to_message_kwargs
-from cmcan.j1939 import dm1 as j1939_dm1
-from cmcan.j1939 import ids as j1939_ids
-from cmcan.j1939.transport import BamReceiver
 from cmcan.monitor.baseline import MODE_NAMES
 from cmcan.monitor.payloads import Outputs
 from cmcan.monitor.tick import LEVEL_NAMES
 from cmcan.monitor.warnings import Reason
-from cmcan.preflight import prepare
 from cmcan.roles import MOTOR_SPEED
 from cmcan.sim import scenario as scn
 from cmcan.sim.frames import Frames, frames_from_run

@@ -20,8 +20,8 @@ from typing import Any, Protocol, TypeVar
 
 import numpy as np
 
+from cmcan.can.frame import Frame, FrameColumns
 from cmcan.errors import CmcanError, Kind
-from cmcan.frame import Frame, FrameColumns
 from cmcan.io import native
 from cmcan.io import textcols as tc
 from cmcan.io.candump import Cut, candump_lines, iter_frames

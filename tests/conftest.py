@@ -57,7 +57,7 @@ def run_cli(
 
 @pytest.fixture(scope="session")
 def db():
-    from cmcan.dbc import load_dbc
+    from cmcan.can.dbc import load_dbc
 
     return load_dbc()
 

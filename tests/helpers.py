@@ -12,7 +12,7 @@ import pytest
 
 from cmcan import config as cfgmod
 from cmcan.assemble import assemble, dbc_for
-from cmcan.frame import Frame
+from cmcan.can.frame import Frame
 from cmcan.io.candump import write_candump
 from cmcan.monitor.core import Monitor
 from cmcan.monitor.tick import Tick, TickColumns

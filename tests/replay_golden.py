@@ -37,7 +37,7 @@ def digest(path: Path) -> str:
 def simulated_log(name: str, hours: float | None, log: Path) -> Path:
     """The candump log ``cmcan simulate NAME --candump LOG [--duration-h HOURS]`` writes, made in this
     process (the command's steps without its run CSV, which the replay does not read)."""
-    from cmcan.dbc import load_dbc
+    from cmcan.can.dbc import load_dbc
     from cmcan.io.candump import write_candump
     from cmcan.sim import scenario as scn
     from cmcan.sim.frames import frames_from_run

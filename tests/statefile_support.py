@@ -16,7 +16,7 @@ import numpy as np
 
 from cmcan import config as cfgmod
 from cmcan.assemble import Assembled, assemble, build_monitor
-from cmcan.frame import Frame
+from cmcan.can.frame import Frame
 from cmcan.monitor.core import Monitor
 from cmcan.monitor.totals import Totals
 from cmcan.replay import replay_file
@@ -103,7 +103,7 @@ def still_up(mon: Monitor, frames: tuple[Frame, ...] = ()) -> int:
 
 def part_of(totals: Totals, part: str) -> dict[str, Any]:
     """The fields of one part (statefile.PARTS) as saved."""
-    from cmcan.statefile import PARTS
+    from cmcan.service.statefile import PARTS
 
     doc = totals.to_dict()
     return {f: doc[f] for f in PARTS[part][0]}

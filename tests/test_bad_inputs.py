@@ -13,8 +13,8 @@ import onnx
 import pytest
 from onnx import numpy_helper
 
+from cmcan.can.frame import to_message_kwargs
 from cmcan.cli.errors import EX_CANTCREAT, EX_CONFIG, EX_DATAERR, EX_UNAVAILABLE
-from cmcan.frame import to_message_kwargs
 from cmcan.model import digest
 from tests.conftest import ROOT, run_cli
 from tests.helpers import as_frames, sim_frames, write_log

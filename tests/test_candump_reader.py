@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cmcan.frame import from_message
+from cmcan.can.frame import from_message
 from cmcan.io.candump import iter_candump, iter_frames
 from tests.helpers import IMPLS, helpers_impl
 

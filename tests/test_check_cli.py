@@ -96,7 +96,7 @@ def other_cm_ids(tmp_path: Path) -> Path:
 
 
 def parts_of(*files: Path):
-    from cmcan.preflight import load_config, prepare
+    from cmcan.daemon.preflight import load_config, prepare
 
     return [prepare(load_config(str(f)), need_state=False, read_only=True).parts for f in files]
 

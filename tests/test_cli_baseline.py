@@ -117,7 +117,7 @@ def test_a_request_that_is_no_file_neither_hangs_nor_stops_the_daemon(tmp_path, 
 # does, carries out the request and removes it.
 HOLDER = """
 import os, signal, sys, time
-from cmcan.statefile import BASELINE_REQUEST_FILE, StateLock
+from cmcan.service.statefile import BASELINE_REQUEST_FILE, StateLock
 
 d, bare_s = sys.argv[1], float(sys.argv[2])
 lock = StateLock(d).acquire()

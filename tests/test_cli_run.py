@@ -219,8 +219,8 @@ def test_an_extra_channel_absent_at_the_start_is_a_warning_for_run_and_an_error_
 
     from cmcan import config as cfgmod
     from cmcan.cli.errors import exit_code
+    from cmcan.daemon.preflight import check_channel
     from cmcan.errors import CmcanError
-    from cmcan.preflight import check_channel
 
     base = cfgmod.load(str(config_copy(tmp_path)))
     cfg = replace(
@@ -234,9 +234,9 @@ def test_an_extra_channel_absent_at_the_start_is_a_warning_for_run_and_an_error_
     assert exit_code(err.value) == EX_UNAVAILABLE and "channels.extra[0].channel: no network interface 'can1'" in str(
         err.value
     )
-    caplog.set_level(logging.WARNING, logger="cmcan.preflight")
+    caplog.set_level(logging.WARNING, logger="cmcan.daemon.preflight")
     assert check_channel(cfg, net, extras_may_be_absent=True) == ["can1"]
-    (warning,) = [r for r in caplog.records if r.name == "cmcan.preflight"]
+    (warning,) = [r for r in caplog.records if r.name == "cmcan.daemon.preflight"]
     assert warning.levelno == logging.WARNING
     msg = warning.getMessage()
     assert str(cfg.source) in msg and "channels.extra[0].channel: no network interface 'can1' yet" in msg
@@ -269,7 +269,7 @@ def held_by(lock: Path) -> int | None:
 # The daemon with a pause right after it takes the state lock: the window a reset can land in held open.
 SLOW_LOCK = """\
 import runpy, sys, time
-from cmcan import statefile
+from cmcan.service import statefile
 acquire = statefile.StateLock.acquire
 def slow(self):
     held = acquire(self)

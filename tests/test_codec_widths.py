@@ -14,8 +14,8 @@ from cantools.database.conversion import BaseConversion
 from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
-from cmcan import codec
-from cmcan.dbc import raw_range
+from cmcan.can import codec
+from cmcan.can.dbc import raw_range
 from tests.conftest import ROOT, run_cli
 
 

@@ -18,7 +18,7 @@ from hypothesis import strategies as st
 
 from cmcan import config as cfgmod
 from cmcan.assemble import assemble
-from cmcan.frame import Frame, FrameColumns
+from cmcan.can.frame import Frame, FrameColumns
 from cmcan.io.candump import write_candump
 from cmcan.replay import (
     EmitWriter,
@@ -249,7 +249,7 @@ def test_the_cli_engines_write_identical_files(tmp_path):
 def test_other_formats_through_the_columnar_engine(tmp_path, base, fmt):
     import can
 
-    from cmcan.frame import to_message_kwargs
+    from cmcan.can.frame import to_message_kwargs
 
     log = tmp_path / f"b.{fmt}"
     with can.Logger(str(log)) as w:

@@ -15,11 +15,11 @@ from hypothesis import strategies as st
 
 from cmcan import config as cfgmod
 from cmcan.assemble import assemble, bus_plan, dbc_for
-from cmcan.checksums import byte_sums
-from cmcan.frame import Frame, FrameColumns
+from cmcan.can.checksums import byte_sums
+from cmcan.can.frame import Frame, FrameColumns
+from cmcan.can.j1939 import ids
 from cmcan.io.candump import iter_frames, write_frames
 from cmcan.io.candump_columns import iter_candump_columns
-from cmcan.j1939 import ids
 from cmcan.monitor.core import Monitor
 from cmcan.monitor.diagnostics import Dm1Producer
 from cmcan.monitor.health import Stream

@@ -18,12 +18,12 @@ import numpy as np
 import pytest
 
 from cmcan import config as cfgmod
-from cmcan.daemon import Daemon, DaemonOptions
+from cmcan.daemon.loop import Daemon, DaemonOptions
 from cmcan.demo import stream
 from cmcan.monitor.totals import Totals
 from cmcan.replay import FrameCollector, replay
-from cmcan.sdnotify import Notifier
-from cmcan.statefile import StateStore
+from cmcan.service.sdnotify import Notifier
+from cmcan.service.statefile import StateStore
 from tests.conftest import ROOT
 from tests.helpers import as_frames, feed_all, messages, monitor, sim_frames
 
@@ -309,7 +309,7 @@ def test_transport_packets_keep_their_spacing_on_the_wire_when_frames_come_fast(
     emits, and its transport packets at least the configured gap apart in wall time."""
     from collections import Counter
 
-    from cmcan.j1939 import ids
+    from cmcan.can.j1939 import ids
     from tests.test_monitor_j1939 import freeze_counter, j1939_cfg, machine_frames
 
     cfg = j1939_cfg()
@@ -342,7 +342,7 @@ def test_can_fd_frames_count_the_same_in_the_daemon_and_the_replay():
     inputs; the daemon asks python-can for an FD bus exactly when the configuration says FD."""
     from dataclasses import replace
 
-    from cmcan.daemon import bus_kwargs
+    from cmcan.daemon.loop import bus_kwargs
 
     frames = sim_frames("two_set_validation", duration_h=0.01)[1]
     fd_msgs = [
@@ -458,7 +458,7 @@ def test_one_bus_hands_its_backlog_over_in_batches_and_keeps_what_it_read_before
     """What has arrived behind the first frame is read in one go (the loop's other steps then run once
     per batch, not per frame), at most DRAIN frames; a bus failing in the middle of a batch loses none
     of the frames read before it."""
-    from cmcan.daemon import DRAIN
+    from cmcan.daemon.loop import DRAIN
 
     ft = FakeTime()
     bus = can.Bus(interface="virtual", channel="backlog", receive_own_messages=False)
@@ -539,7 +539,7 @@ def test_an_extra_channel_absent_at_the_start_is_a_link_down_until_it_appears(fr
     notifier = RecordingNotifier(time.monotonic)
     opens = {"can0": lambda: ScriptedBus(source), "can1": open_can1}
     d = Daemon(cfg, mon, None, opens, notifier, DaemonOptions(backoff_min_s=0.01, backoff_max_s=0.05))
-    caplog.set_level(logging.INFO, logger="cmcan.daemon")
+    caplog.set_level(logging.INFO, logger="cmcan.daemon.loop")
     seen_down: list[list[str]] = []
 
     def progress():
@@ -636,7 +636,7 @@ def test_a_failed_reload_still_carries_out_the_reset_it_was_asked_for(tmp_path, 
     """``cmcan baseline reset`` asks for a reload; a configuration that no longer loads keeps the running
     one, and the reset (which needs no new configuration) is carried out all the same."""
     from cmcan.errors import CmcanError, Kind
-    from cmcan.statefile import write_baseline_request
+    from cmcan.service.statefile import write_baseline_request
 
     d, store = _baseline_daemon(tmp_path)
 
@@ -644,7 +644,7 @@ def test_a_failed_reload_still_carries_out_the_reset_it_was_asked_for(tmp_path, 
         raise CmcanError("cmcan.yaml: thresholds.low_pct: expected a number", Kind.CONFIG)
 
     d.reloader = broken
-    caplog.set_level(logging.INFO, "cmcan.daemon")
+    caplog.set_level(logging.INFO, "cmcan.daemon.loop")
     d._start()
     write_baseline_request(store.dir, "pump replaced", "2026-01-01T00:00:00Z")
     d.request_reload()

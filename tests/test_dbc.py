@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cmcan import codec
+from cmcan.can import codec
 from cmcan.roles import DEFAULT_INPUTS
 
 INPUT_IDS = {0x100, 0x101, 0x102, 0x103}
@@ -256,7 +256,7 @@ def test_raw_bounds_are_the_range_check_in_floating_point(n, signed, scale, offs
 @settings(max_examples=100, deadline=None)
 @given(payload=st.binary(min_size=8, max_size=8))
 def test_checked_decoder_on_the_j1939_example_equals_cantools(name, payload):
-    from cmcan.dbc import load_dbc
+    from cmcan.can.dbc import load_dbc
     from tests.conftest import ROOT
 
     m = load_dbc(ROOT / "dbc" / "j1939-example.dbc").get_message_by_name(name)
@@ -279,12 +279,12 @@ def test_checked_decoder_on_the_j1939_example_equals_cantools(name, payload):
     st.data(),
 )
 def test_physical_range_is_what_the_encoder_sends_back(n, signed, scale, offset, a, b, data):
-    """Every value of :func:`cmcan.dbc.physical_range` survives cmcan's encoder and decoder within half
+    """Every value of :func:`cmcan.can.dbc.physical_range` survives cmcan's encoder and decoder within half
     a step; three steps beyond it, a value comes back saturated or wrapped."""
     from cantools.database.can import Signal
     from cantools.database.conversion import BaseConversion
 
-    from cmcan.dbc import physical_range
+    from cmcan.can.dbc import physical_range
 
     if a is not None and b is not None and a > b:  # (min and max of -0.0 and 0.0 would both be -0.0)
         a, b = b, a

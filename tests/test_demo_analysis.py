@@ -8,8 +8,8 @@ import re
 import cantools
 
 from cmcan import config as cfgmod
+from cmcan.can.frame import Frame
 from cmcan.demo import analyse
-from cmcan.frame import Frame
 from cmcan.monitor.warnings import Level, Reason
 from tests.conftest import ROOT
 

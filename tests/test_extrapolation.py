@@ -18,7 +18,7 @@ import pytest
 
 from cmcan import config as cfgmod
 from cmcan.assemble import assemble
-from cmcan.frame import Frame
+from cmcan.can.frame import Frame
 from cmcan.monitor.gating import Gate
 from tests.conftest import ROOT, run_cli
 from tests.helpers import timeline

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from cmcan import config as cfgmod
-from cmcan.daemon import Daemon, DaemonOptions, bus_kwargs
-from cmcan.preflight import prepare
+from cmcan.daemon.loop import Daemon, DaemonOptions, bus_kwargs
+from cmcan.daemon.preflight import prepare
 
 pytestmark = pytest.mark.slow
 

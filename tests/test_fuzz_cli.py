@@ -80,7 +80,7 @@ def test_hostile_mutations_make_what_they_say(tmp_path):
     import yaml
 
     from cmcan import yamlsafe
-    from cmcan.statefile import examine, read_baseline_request
+    from cmcan.service.statefile import examine, read_baseline_request
     from tests.fuzz_cli import HOSTILE, hostile_for, make_hostile
 
     corpus = Corpus(tmp_path / "base")

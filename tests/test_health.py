@@ -9,8 +9,8 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cmcan import checksums
-from cmcan.codec import Layout
+from cmcan.can import checksums
+from cmcan.can.codec import Layout
 from cmcan.monitor import health
 from cmcan.monitor.health import HealthSpec, Stream
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 from hypothesis import given
 from hypothesis import strategies as st
 
-from cmcan.j1939 import ids
+from cmcan.can.j1939 import ids
 from cmcan.monitor.inputs import Channels, InputMessage, Matcher, overlap
 
 

@@ -14,11 +14,11 @@ from cantools import j1939 as cj
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cmcan import checksums
-from cmcan.codec import Layout
-from cmcan.frame import Frame
+from cmcan.can import checksums
+from cmcan.can.codec import Layout
+from cmcan.can.frame import Frame
+from cmcan.can.j1939 import dm1, ids, transport
 from cmcan.io.candump import write_frames
-from cmcan.j1939 import dm1, ids, transport
 
 can_ids = st.integers(0, ids.MAX_ID)
 

@@ -11,9 +11,9 @@ from hypothesis import event, find, given, settings
 from hypothesis import strategies as st
 
 from cmcan import config as cfgmod
-from cmcan.frame import Frame
-from cmcan.j1939 import dm1, ids, transport
-from cmcan.j1939 import requests as rq
+from cmcan.can.frame import Frame
+from cmcan.can.j1939 import dm1, ids, transport
+from cmcan.can.j1939 import requests as rq
 from cmcan.monitor.node import ClearTrust, Node, NodeParams
 from cmcan.monitor.totals import Totals
 from cmcan.monitor.warnings import Level, Thresholds, WarningMachine

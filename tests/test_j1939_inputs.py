@@ -13,9 +13,9 @@ import pytest
 from hypothesis import event, given
 from hypothesis import strategies as st
 
-from cmcan import checksums, codec
 from cmcan.assemble import dbc_for
-from cmcan.j1939 import ids, values
+from cmcan.can import checksums, codec
+from cmcan.can.j1939 import ids, values
 from cmcan.monitor.health import ERROR_CODE, NOT_AVAILABLE
 from cmcan.monitor.inputs import j1939_decoder
 from cmcan.sim.frames import Frames
@@ -276,7 +276,7 @@ def test_the_decoder_equals_reading_then_classifying(case):
 
 
 def test_the_kernel_filter_of_a_pdu1_input_lets_any_destination_through_unless_told():
-    from cmcan.daemon import can_filters
+    from cmcan.daemon.loop import can_filters
     from cmcan.monitor.inputs import InputMessage
 
     def passes(flt: dict, fid: int) -> bool:

@@ -18,11 +18,11 @@ from hypothesis import strategies as st
 
 from cmcan import config as cfgmod
 from cmcan.assemble import assemble
-from cmcan.frame import Frame, FrameColumns
-from cmcan.j1939 import claim as ac
-from cmcan.j1939 import dm1, ids, transport
-from cmcan.j1939 import requests as rq
-from cmcan.j1939.name import Name
+from cmcan.can.frame import Frame, FrameColumns
+from cmcan.can.j1939 import claim as ac
+from cmcan.can.j1939 import dm1, ids, transport
+from cmcan.can.j1939 import requests as rq
+from cmcan.can.j1939.name import Name
 from cmcan.monitor.node import ClearTrust
 from cmcan.monitor.totals import StateError, Totals
 from cmcan.replay import FrameCollector, TimelineCollector, replay, replay_columns
@@ -511,7 +511,7 @@ def test_check_refuses_two_drives_that_would_send_the_same_identifiers_or_claim_
 
 
 def test_the_channel_probe_says_who_holds_cmcans_address():
-    from cmcan.claimprobe import judge
+    from cmcan.daemon.claimprobe import judge
 
     mine = OURS.value
     assert judge(mine, SA, {SA: mine}, set())["state"] == "claimed"

@@ -22,24 +22,18 @@ LAYERS: list[tuple[str, ...]] = [
     (
         "cmcan",
         "cmcan.roles",
-        "cmcan.frame",
         "cmcan.errors",
         "cmcan.oil",
         "cmcan.schema",
         "cmcan.yamlsafe",
-        "cmcan.codec",
-        "cmcan.checksums",
-        "cmcan.j1939",
+        "cmcan.can",  # frames, bit layouts, checksums, DBC files, units, J1939
     ),
     ("cmcan.monitor",),  # the pure core
     (
         "cmcan.model",
         "cmcan.sim",
         "cmcan.io",
-        "cmcan.dbc",
-        "cmcan.statefile",
-        "cmcan.sdnotify",
-        "cmcan.ratelog",
+        "cmcan.service",  # the state file, systemd's notify socket, rate-limited logs
         "cmcan.plots",
         "cmcan.fitcheck",  # does the configuration fit the machine: a verdict from its first hour's ticks
         # the uplink's settings, records and outbox file, used by the configuration and the daemon
@@ -49,10 +43,9 @@ LAYERS: list[tuple[str, ...]] = [
         "cmcan.uplink.setup",
     ),
     ("cmcan.gap", "cmcan.config"),
-    ("cmcan.assemble", "cmcan.preflight", "cmcan.drives"),
+    ("cmcan.assemble", "cmcan.daemon.preflight", "cmcan.drives"),
     (
-        "cmcan.daemon",
-        "cmcan.claimprobe",  # check --channel-check asks the bus who holds cmcan's J1939 address
+        "cmcan.daemon",  # the loop; claimprobe: check --channel-check asks who holds cmcan's address
         "cmcan.replay",
         "cmcan.demo",
         "cmcan.rebuild_default",
@@ -234,7 +227,7 @@ def test_the_private_name_check_sees_them():
     assert _private_uses(src) == ["line 1: import _hidden from m", "line 2: other._state", "line 5: other._n"]
 
 
-SHORT = [p for p in MODULES if p.parent == PKG / "monitor" or p in (PKG / "replay.py", PKG / "daemon.py")]
+SHORT = [p for p in MODULES if p.parent == PKG / "monitor" or p in (PKG / "replay.py", PKG / "daemon" / "loop.py")]
 MAX_LINES = 60
 
 

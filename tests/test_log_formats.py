@@ -13,8 +13,8 @@ import time
 import can
 import pytest
 
+from cmcan.can.frame import Frame
 from cmcan.cli.errors import EX_DATAERR
-from cmcan.frame import Frame
 from cmcan.io.candump import MAX_CHANNELS, Cut, LogError, iter_frames
 from cmcan.io.columns import column_chunks
 from tests.conftest import run_cli

@@ -13,7 +13,7 @@ pytest.importorskip("asammdf")
 
 import can
 
-from cmcan.frame import Frame, FrameColumns, to_message_kwargs
+from cmcan.can.frame import Frame, FrameColumns, to_message_kwargs
 from cmcan.io import mf4support
 from cmcan.io.candump import iter_frames, write_candump
 from cmcan.io.columns import column_chunks

@@ -11,7 +11,7 @@ import pytest
 
 from cmcan import config as cfgmod
 from cmcan.assemble import assemble
-from cmcan.frame import FrameColumns
+from cmcan.can.frame import FrameColumns
 from cmcan.monitor.baseline import Mode
 from cmcan.monitor.warnings import Level
 from cmcan.replay import FrameCollector, TimelineCollector, replay, replay_columns

@@ -12,12 +12,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cmcan import checksums, codec
 from cmcan import config as cfgmod
 from cmcan.assemble import assemble, bus_plan, dbc_for
-from cmcan.frame import Frame
+from cmcan.can import checksums, codec
+from cmcan.can.frame import Frame
+from cmcan.can.j1939 import dm1, ids, transport
 from cmcan.io.candump import iter_frames, write_candump, write_frames
-from cmcan.j1939 import dm1, ids, transport
 from cmcan.monitor.diagnostics import Dm1Params, Dm1Producer
 from cmcan.monitor.gating import Gate
 from cmcan.monitor.totals import Totals

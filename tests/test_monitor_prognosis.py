@@ -12,8 +12,8 @@ import pytest
 
 from cmcan import config as cfgmod
 from cmcan.assemble import assemble
+from cmcan.can.frame import FrameColumns
 from cmcan.demo import scale_windows
-from cmcan.frame import FrameColumns
 from cmcan.monitor.totals import Totals
 from cmcan.replay import FrameCollector, TimelineCollector, replay, replay_columns
 from tests.helpers import as_frames, sim_frames

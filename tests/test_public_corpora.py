@@ -22,9 +22,9 @@ import numpy as np
 import pytest
 import yaml
 
-from cmcan import codec
+from cmcan.can import codec
+from cmcan.can.dbc import DbcError, load_dbc
 from cmcan.cli.errors import EX_SOFTWARE
-from cmcan.dbc import DbcError, load_dbc
 from tests.conftest import ROOT
 
 THIRD_PARTY = Path(os.environ.get("CMCAN_THIRD_PARTY", ROOT / "tests" / "third_party"))

@@ -23,7 +23,7 @@ def test_the_readme_says_where_the_installed_dbc_is_and_how_a_copy_points_at_it(
     assert res.returncode == 0, res.stderr
     printed = res.stdout.strip()
     assert printed.endswith("cmcan.dbc") and Path(printed).read_text() == (ROOT / "dbc" / "cmcan.dbc").read_text()
-    # copy both to /etc/cmcan as the README says (here a temporary folder) and set dbc: cmcan.dbc
+    # copy both to /etc/cmcan as the README says (here a temporary folder) and set dbc: cmcan.can.dbc
     assert "set `dbc: cmcan.dbc`" in step and "a relative path is read from the configuration file's folder" in step
     etc = tmp_path / "etc" / "cmcan"
     etc.mkdir(parents=True)

@@ -152,7 +152,7 @@ def test_a_signal_of_a_multiplexed_message_that_is_in_every_frame_is_read(tmp_pa
     import cantools
     import numpy as np
 
-    from cmcan import codec
+    from cmcan.can import codec
 
     msg = cantools.database.load_file(str(dbc)).get_message_by_name("EMS12")
     frames = [bytes([mux << 6 | 5, t, 0, 0, 0, 0, 0, 0]) for mux in (0, 1, 3) for t in (0, 100, 255)]

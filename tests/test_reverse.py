@@ -17,7 +17,7 @@ import pytest
 
 from cmcan import config as cfgmod
 from cmcan.assemble import assemble, dbc_for
-from cmcan.frame import FrameColumns
+from cmcan.can.frame import FrameColumns
 from cmcan.io.candump import write_candump
 from cmcan.monitor.gating import EVALUATED, Gate
 from cmcan.monitor.warnings import Level

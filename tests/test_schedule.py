@@ -14,9 +14,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cmcan.daemon import Daemon, DaemonOptions
-from cmcan.j1939 import dm1, ids, transport
-from cmcan.j1939 import requests as rq
+from cmcan.can.j1939 import dm1, ids, transport
+from cmcan.can.j1939 import requests as rq
+from cmcan.daemon.loop import Daemon, DaemonOptions
 from cmcan.monitor.diagnostics import Dm1Params, Dm1Producer
 from cmcan.monitor.totals import Totals
 from cmcan.monitor.warnings import Level, Reason

@@ -15,7 +15,7 @@ import yaml
 from cmcan import config as cfgmod
 from cmcan.assemble import assemble
 from cmcan.cli import signals as sigmod
-from cmcan.daemon import Daemon, DaemonOptions, Reloaded
+from cmcan.daemon.loop import Daemon, DaemonOptions, Reloaded
 from cmcan.monitor.warnings import Level
 from tests.daemon_proc import DaemonProc, virtual_config
 from tests.helpers import as_frames, messages, monitor, sim_frames
@@ -93,7 +93,7 @@ def test_the_daemon_reloads_between_frames_and_keeps_running_on_a_bad_reload(lea
         return Reloaded(new_cfg, assemble(new_cfg).monitor, lambda: bus)
 
     d.reloader = reloader
-    caplog.set_level(logging.INFO, logger="cmcan.daemon")
+    caplog.set_level(logging.INFO, logger="cmcan.daemon.loop")
 
     def progress():
         n = d.monitor.counters["frames_total"]

@@ -6,7 +6,7 @@ import can
 import numpy as np
 import pytest
 
-from cmcan import codec
+from cmcan.can import codec
 from cmcan.io.candump import write_candump
 from cmcan.io.runcsv import read_run_csv, write_run_csv
 from cmcan.roles import DEFAULT_INPUTS

@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 from cmcan.cli.errors import EX_DATAERR, EX_IOERR, EX_TEMPFAIL
 from cmcan.errors import CmcanError, Kind
 from cmcan.monitor.totals import StateError, Totals
-from cmcan.statefile import LOCK_FILE, StateAccessError, StateLock, StateStore
+from cmcan.service.statefile import LOCK_FILE, StateAccessError, StateLock, StateStore
 from tests.conftest import ROOT, run_cli
 from tests.daemon_proc import DaemonProc, virtual_config
 

@@ -20,7 +20,7 @@ import pytest
 
 from cmcan.errors import CmcanError, Kind
 from cmcan.monitor.totals import StateError, Totals
-from cmcan.statefile import (
+from cmcan.service.statefile import (
     BASELINE_REQUEST_FILE,
     LOCK_FILE,
     MAX_STATE_BYTES,
@@ -278,7 +278,7 @@ def test_a_file_that_cannot_be_kept_aside_stops_the_start_and_is_left_as_it_was(
 
 
 def test_what_was_kept_stays_in_memory_when_it_cannot_be_saved_at_once(tmp_path, monkeypatch, caplog):
-    import cmcan.statefile as statefile
+    import cmcan.service.statefile as statefile
 
     store = StateStore(tmp_path)
     store.path.write_bytes(raw(doc_with(lambda d: d["baseline"]["sy"].pop())))

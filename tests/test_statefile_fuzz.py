@@ -27,7 +27,7 @@ from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
 from cmcan.monitor.totals import Totals
-from cmcan.statefile import BASELINE_REQUEST_FILE, PARTS, StateStore, examine, read_baseline_request
+from cmcan.service.statefile import BASELINE_REQUEST_FILE, PARTS, StateStore, examine, read_baseline_request
 from tests import statefile_support as sf
 
 SETTINGS = settings(

@@ -101,7 +101,7 @@ def test_fixed_next_to_a_rounding_boundary(k, d, ulps):
 )
 @pytest.mark.parametrize("impl", IMPLS)
 def test_candump_lines_equal_candump_line(impl, frames, channel):
-    from cmcan.frame import Frame, FrameColumns
+    from cmcan.can.frame import Frame, FrameColumns
     from cmcan.io.candump import candump_line, candump_lines
 
     fs = [

@@ -1,4 +1,4 @@
-"""DBC units against the roles' units (cmcan/units.py), output signals wide enough for what cmcan
+"""DBC units against the roles' units (cmcan/can/units.py), output signals wide enough for what cmcan
 sends, and the uplink's files: each refused by ``cmcan check`` (and the daemon's startup) naming
 what is wrong, the shipped configurations accepted."""
 
@@ -16,10 +16,10 @@ from hypothesis import event, given
 from hypothesis import strategies as st
 
 from cmcan import config as cfgmod
-from cmcan import units
 from cmcan.assemble import check_against_dbc, check_output_ranges
+from cmcan.can import units
+from cmcan.can.dbc import load_dbc
 from cmcan.cli.errors import EX_CONFIG, EX_NOINPUT
-from cmcan.dbc import load_dbc
 from cmcan.roles import MAPPABLE, UNITS
 from cmcan.schema import SchemaError
 from tests.conftest import ROOT, run_cli

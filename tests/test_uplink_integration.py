@@ -20,9 +20,9 @@ import pytest
 
 from cmcan import config as cfgmod
 from cmcan.assemble import dbc_for
-from cmcan.daemon import Daemon, DaemonOptions, bus_kwargs
+from cmcan.daemon.loop import Daemon, DaemonOptions, bus_kwargs
+from cmcan.daemon.preflight import prepare
 from cmcan.demo import demo_scenario, scale_windows
-from cmcan.preflight import prepare
 from cmcan.sim.frames import frames_from_run
 from cmcan.sim.run import simulate
 from cmcan.uplink.feed import UplinkFeed

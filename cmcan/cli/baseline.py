@@ -48,7 +48,7 @@ def add_subparser(sub: Subparsers) -> None:
 
 
 def _doc(cfg: Any) -> dict[str, Any] | None:
-    from cmcan.statefile import StateStore
+    from cmcan.service.statefile import StateStore
 
     if not cfg.baseline.enabled:
         raise CmcanError(f"{cfg.source}: baseline.enabled is false: this machine learns no baseline", Kind.CONFIG)
@@ -106,14 +106,14 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _monitor(cfg: Any, assemble: Any) -> Any:
-    from cmcan.statefile import StateStore
+    from cmcan.service.statefile import StateStore
 
     return assemble(cfg, totals=StateStore(cfg.state.directory).read()).monitor
 
 
 def _reset(cfg: Any, args: argparse.Namespace) -> int:
     from cmcan.errors import kind_of_oserror
-    from cmcan.statefile import StateLock, StateStore
+    from cmcan.service.statefile import StateLock, StateStore
 
     _doc(cfg)  # enabled, and the state readable
     reason = args.reason.strip()
@@ -145,7 +145,7 @@ def _lock_or_daemon(lock: Any, wait_s: float) -> int | None:
     handlers (starting) would be killed by the reload asked for, and systemd takes that death for a
     clean stop. The pid must be the same twice in a row (the lock's file is written just after it is
     taken: an old pid there must not get the signal)."""
-    from cmcan.statefile import LockHeld, takes_reload
+    from cmcan.service.statefile import LockHeld, takes_reload
 
     deadline = time.monotonic() + wait_s
     seen = None
@@ -173,7 +173,7 @@ def _lock_or_daemon(lock: Any, wait_s: float) -> int | None:
 def _reset_by_daemon(store: Any, pid: int, reason: str, at: str, wait_s: float) -> int:
     """The request left in the state directory, the daemon asked to reload, and waited for: it removes
     the request once it has carried it out and saved."""
-    from cmcan.statefile import BASELINE_REQUEST_FILE, write_baseline_request
+    from cmcan.service.statefile import BASELINE_REQUEST_FILE, write_baseline_request
 
     request = write_baseline_request(store.dir, reason, at)
     try:

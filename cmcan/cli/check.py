@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from cmcan import units
+from cmcan.can import units
 from cmcan.cli.common import Subparsers
 from cmcan.cli.errors import exit_code
 from cmcan.cli.jsonout import print_json
@@ -54,8 +54,8 @@ def run(args: argparse.Namespace) -> int:
 
 def run_drives(args: argparse.Namespace, files: list[str]) -> int:
     """Several drives of one gateway: each as ``cmcan check`` checks one, then what they would share."""
+    from cmcan.daemon.preflight import load_config, prepare
     from cmcan.drives import conflicts
-    from cmcan.preflight import load_config, prepare
 
     parts = []
     for f in files:
@@ -112,9 +112,9 @@ def _drive_summary(parts: Any) -> dict[str, Any]:
 
 def run_one(args: argparse.Namespace) -> int:
     from cmcan.assemble import check_against_dbc, check_output_ranges, dbc_for, dbc_warnings
+    from cmcan.daemon.preflight import check_channel, load_config, prepare
     from cmcan.monitor.totals import StateError
-    from cmcan.preflight import check_channel, load_config, prepare
-    from cmcan.statefile import StateLock, read_node_status
+    from cmcan.service.statefile import StateLock, read_node_status
 
     passed: list[str] = []  # what was checked before a failure, said with it
     try:
@@ -322,7 +322,7 @@ def state_notes(monitor: Any, directory: Path) -> list[str]:
     envelope learns the baseline afresh, other reference conditions begin a new prognosis history),
     and a baseline reset left for the daemon (or a file in its place it will refuse): ``cmcan run``
     says the same in the journal."""
-    from cmcan.statefile import read_baseline_request
+    from cmcan.service.statefile import read_baseline_request
 
     pg = monitor.prognosis
     notes = [n for n in (monitor.baseline_note, pg.note if pg is not None else None) if n]
@@ -338,7 +338,7 @@ def probe_node(cfg: Config) -> dict[str, Any] | None:
     """On a J1939 machine with a NAME and a SocketCAN bus: who holds cmcan's address now."""
     if not cfg.j1939.enabled or cfg.j1939.name is None or cfg.bus.interface != "socketcan":
         return None
-    from cmcan.claimprobe import probe
+    from cmcan.daemon.claimprobe import probe
 
     try:
         return probe(cfg)
@@ -361,7 +361,7 @@ def check_uplink(cfg: Config) -> None:
 
 
 def unchecked_units(cfg: Config, db: Any) -> dict[str, str]:
-    """Mapped roles whose DBC unit :mod:`cmcan.units` does not recognize (so their scale is taken as
+    """Mapped roles whose DBC unit :mod:`cmcan.can.units` does not recognize (so their scale is taken as
     given), with that unit; roles without a unit (motor direction) are left out."""
     out = {}
     for role, ref in cfg.signals.items():
@@ -406,7 +406,7 @@ def _timing(cfg: Config, db: Any) -> dict[str, dict[str, Any]]:
 
 def _describe(m: Any) -> dict[str, Any]:
     """How an input message is matched and checked, for people."""
-    from cmcan.j1939 import ids
+    from cmcan.can.j1939 import ids
 
     if m.pgn is not None:
         src = "any address" if m.sources is None else ", ".join(f"0x{a:02X}" for a in sorted(m.sources))

@@ -23,7 +23,7 @@ class Subparsers(Protocol):
 def load_config(path: str | None, check_dbc: bool = True) -> cfgmod.Config:
     """The configuration, with its DBC loaded and the mapping checked (errors carry their kind)."""
     from cmcan.assemble import check_against_dbc, dbc_for
-    from cmcan.preflight import load_config as read_config
+    from cmcan.daemon.preflight import load_config as read_config
 
     cfg = read_config(path)
     if check_dbc:

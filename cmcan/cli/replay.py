@@ -207,7 +207,7 @@ def _state_in(path: str | None) -> Any:
     is damaged: offline, the user's file is meant whole."""
     if path is None:
         return None
-    from cmcan.statefile import MAX_STATE_BYTES, NotAFile, TooLarge, examine, read_limited
+    from cmcan.service.statefile import MAX_STATE_BYTES, NotAFile, TooLarge, examine, read_limited
 
     try:
         raw = read_limited(Path(path), MAX_STATE_BYTES)
@@ -225,7 +225,7 @@ def _state_in(path: str | None) -> Any:
 def _state_out(path: Path, totals: Any) -> None:
     import json
 
-    from cmcan.statefile import write_atomic
+    from cmcan.service.statefile import write_atomic
 
     write_atomic(path.parent, path.name, json.dumps(totals.to_dict(), indent=1).encode("utf-8"))
 

@@ -17,7 +17,7 @@ if TYPE_CHECKING:  # the daemon's modules are imported when it runs: the parser 
     import can
 
     from cmcan import config as cfgmod
-    from cmcan.daemon import Daemon, Reloaded
+    from cmcan.daemon.loop import Daemon, Reloaded
     from cmcan.monitor.inputs import InputMessage
 
 log = logging.getLogger("cmcan")
@@ -41,9 +41,9 @@ def add_subparser(sub: Subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from cmcan.daemon import Daemon, DaemonOptions
-    from cmcan.preflight import check_channel, load_config, prepare, with_state
-    from cmcan.sdnotify import Notifier
+    from cmcan.daemon.loop import Daemon, DaemonOptions
+    from cmcan.daemon.preflight import check_channel, load_config, prepare, with_state
+    from cmcan.service.sdnotify import Notifier
     from cmcan.uplink.feed import UplinkFeed
 
     if args.verbose == 0:
@@ -102,7 +102,7 @@ def bus_openers(cfg: cfgmod.Config, inputs: Sequence[InputMessage]) -> dict[str,
     """An opener per configured channel: its bus with kernel filters for the inputs it carries."""
     import can
 
-    from cmcan.daemon import bus_kwargs, tune_socketcan
+    from cmcan.daemon.loop import bus_kwargs, tune_socketcan
 
     def opener(ch: cfgmod.ChannelConfig) -> Callable[[], can.BusABC]:
         def open_bus() -> can.BusABC:
@@ -120,8 +120,8 @@ def reloader(args: argparse.Namespace) -> Callable[[], Reloaded]:
     """SIGHUP's work: the configuration file (with this command line's overrides), its DBC and model
     read and checked as at a start; any problem raises before anything of the running daemon changes."""
     from cmcan.assemble import assemble
-    from cmcan.daemon import Reloaded
-    from cmcan.preflight import check_channel, load_config
+    from cmcan.daemon.loop import Reloaded
+    from cmcan.daemon.preflight import check_channel, load_config
 
     def reload() -> Reloaded:
         cfg = load_config(args.config, args.interface, args.channel, args.state_dir)

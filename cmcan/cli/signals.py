@@ -21,7 +21,7 @@ from types import FrameType
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # a hint only: cmcan run's parser imports this module
-    from cmcan.daemon import Daemon
+    from cmcan.daemon.loop import Daemon
 
 log = logging.getLogger("cmcan")
 

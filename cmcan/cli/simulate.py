@@ -100,7 +100,7 @@ FLEET_ONLY = (
 def run(args: argparse.Namespace) -> int:
     if args.scenario == "fleet":
         return run_fleet(args)
-    from cmcan.dbc import load_dbc
+    from cmcan.can.dbc import load_dbc
     from cmcan.io.candump import write_candump
     from cmcan.io.runcsv import write_run_csv
     from cmcan.schema import SchemaError
@@ -134,7 +134,7 @@ def run(args: argparse.Namespace) -> int:
     channel = args.channel or "can0"
     if args.config:
         from cmcan.assemble import bus_plan, check_against_dbc, dbc_for
-        from cmcan.preflight import load_config
+        from cmcan.daemon.preflight import load_config
 
         cfg = load_config(args.config)
         if cfg.quantity != MOTOR_SPEED:

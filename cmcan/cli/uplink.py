@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 from cmcan.cli.common import Subparsers
 from cmcan.cli.jsonout import print_json
 from cmcan.errors import CmcanError, Kind
-from cmcan.sdnotify import Notifier
+from cmcan.service.sdnotify import Notifier
 
 if TYPE_CHECKING:  # imported when run: the command line starts without the uplink's modules
     import ssl
@@ -46,7 +46,7 @@ def add_subparser(sub: Subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from cmcan.preflight import load_config
+    from cmcan.daemon.preflight import load_config
     from cmcan.uplink.outbox import Usage, describe
     from cmcan.uplink.setup import OutboxLock, open_for_uplink, read_password, require_folder, tls_context
 

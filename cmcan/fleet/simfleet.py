@@ -34,7 +34,7 @@ import yaml
 
 from cmcan import __version__
 from cmcan import config as cfgmod
-from cmcan.dbc import default_dbc_path, load_dbc
+from cmcan.can.dbc import default_dbc_path, load_dbc
 from cmcan.io.candump import write_candump
 from cmcan.model.features import operating_points, series_from_columns
 from cmcan.model.train import train_on_points

@@ -34,12 +34,12 @@ import numpy as np
 
 from cmcan import config as cfgmod
 from cmcan.assemble import build_monitor, dbc_for, load_model_for, model_file
+from cmcan.can.frame import Frame
 from cmcan.errors import CmcanError
 from cmcan.fitcheck import FitWindow
 from cmcan.fleet import dataset as ds
 from cmcan.fleet.aggregate import RUN_SHIFT, Downsampler, LogStats
 from cmcan.fleet.chain import Carry, without_history
-from cmcan.frame import Frame
 from cmcan.io.candump import Cut
 from cmcan.monitor.gating import Gate
 from cmcan.monitor.tick import LEVEL_NAMES, TickColumns

@@ -295,7 +295,7 @@ def load(
         if quantity == FLOW:
             raise DataError(f"{p}: flow_lpm needs a CSV with a measured flow_lpm column")
         if db is None:
-            from cmcan.dbc import load_dbc
+            from cmcan.can.dbc import load_dbc
 
             db = load_dbc()
         series = series_from_log(p, db, mapping, match=match)

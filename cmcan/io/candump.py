@@ -30,8 +30,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from cmcan.can.frame import Frame, FrameColumns, from_message
 from cmcan.errors import CmcanError, Kind
-from cmcan.frame import Frame, FrameColumns, from_message
 from cmcan.io import native
 from cmcan.io import textcols as tc
 

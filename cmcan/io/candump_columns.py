@@ -23,7 +23,7 @@ from typing import BinaryIO
 import numpy as np
 from numpy.typing import NDArray
 
-from cmcan.frame import FrameColumns
+from cmcan.can.frame import FrameColumns
 from cmcan.io import native
 from cmcan.io.candump import (
     CAN_ERR_FLAG,
@@ -294,7 +294,7 @@ class _Out:
         self.long: dict[int, bytes] = {}  # CAN FD payloads beyond 8 bytes, by line
 
     def set_one(self, i: int, f: object, channels: dict[bytes, int]) -> None:
-        from cmcan.frame import Frame
+        from cmcan.can.frame import Frame
 
         assert isinstance(f, Frame)
         self.present[i] = True

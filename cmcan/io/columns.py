@@ -1,4 +1,4 @@
-"""Any CAN log as chunks of columns (:class:`cmcan.frame.FrameColumns`): the columnar replay's and
+"""Any CAN log as chunks of columns (:class:`cmcan.can.frame.FrameColumns`): the columnar replay's and
 training's reader."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from cmcan.frame import Frame, FrameColumns
+from cmcan.can.frame import Frame, FrameColumns
 
 if TYPE_CHECKING:
     from cmcan.io.candump import Cut

@@ -2,7 +2,7 @@
 
 python-can's ``MF4Reader`` hands over one ``Message`` at a time (about 15 us a frame). This reads the
 same records in chunks of ``chunk_frames`` with ``MDF.get(..., record_offset, record_count)`` and turns
-each chunk into :class:`cmcan.frame.FrameColumns` with array operations. It gives exactly the frames
+each chunk into :class:`cmcan.can.frame.FrameColumns` with array operations. It gives exactly the frames
 python-can's reader gives, and in its order (a test holds the two equal):
 
 - every channel group flagged as a bus event with a CAN source and records: ``CAN_DataFrame`` groups
@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from cmcan.frame import FrameColumns
+from cmcan.can.frame import FrameColumns
 
 KINDS = ("CAN_DataFrame", "CAN_ErrorFrame", "CAN_RemoteFrame")
 ID_MASK = 0x1FFFFFFF

@@ -18,9 +18,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from cmcan import codec
+from cmcan.can import codec
+from cmcan.can.frame import Frame, FrameColumns
 from cmcan.errors import CmcanError, Kind
-from cmcan.frame import Frame, FrameColumns
 from cmcan.io.candump import Cut
 from cmcan.io.points import Condition, Points, cell_value
 from cmcan.io.runcsv import read_run_csv
@@ -392,7 +392,7 @@ def load_operating_points(
     q = limits.output_role
     if is_log(p):
         if db is None:
-            from cmcan.dbc import load_dbc
+            from cmcan.can.dbc import load_dbc
 
             db = load_dbc()
         series = series_from_log(p, db, mapping, q, constants, match, keep_truncated, on_cut)

@@ -57,8 +57,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from cmcan.frame import Frame, FrameColumns
-from cmcan.j1939 import ids as j1939_ids
+from cmcan.can.frame import Frame, FrameColumns
+from cmcan.can.j1939 import ids as j1939_ids
 from cmcan.monitor.baseline import Baseline, BaselineParams, BaselineStateError, Mode
 from cmcan.monitor.clock import TickClock
 from cmcan.monitor.diagnostics import Dm1Params, Dm1Producer

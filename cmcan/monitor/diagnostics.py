@@ -15,7 +15,7 @@ DTCs active at the last save are not counted again when they are still active af
 
 DM1 goes out every ``every_ticks`` ticks (1 s) and at once when the lamp or the active DTCs change;
 with one DTC or none in one frame (the all-zero DTC when none is active), with more over BAM
-(:mod:`cmcan.j1939.transport`): TP.CM at the tick's time, each TP.DT ``bam_gap_s`` later.
+(:mod:`cmcan.can.j1939.transport`): TP.CM at the tick's time, each TP.DT ``bam_gap_s`` later.
 
 Answers to requests for DM1 and DM2 (:meth:`Dm1Producer.answer`) come after the node's own DM1: a
 node has one BAM at a time (J1939-21), and cmcan's periodic DM1 is not to wait for anybody's
@@ -40,9 +40,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from cmcan.frame import Frame, FrameColumns
-from cmcan.j1939 import dm1, ids, transport
-from cmcan.j1939.dm1 import Dtc, Fmi, Lamp, Lamps
+from cmcan.can.frame import Frame, FrameColumns
+from cmcan.can.j1939 import dm1, ids, transport
+from cmcan.can.j1939.dm1 import Dtc, Fmi, Lamp, Lamps
 from cmcan.monitor.totals import Totals
 from cmcan.monitor.warnings import Level, Reason
 

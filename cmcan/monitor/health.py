@@ -36,7 +36,7 @@ message are rule 1b's). For each frame of the stream that has the message's leng
    On a raw CAN message all ones is a value like any other (a 4-bit counter wraps through 15).
 3. Values: on a J1939 message, a value carrying J1939-71's error indicator rejects the frame
    (``error_code``); a value outside its DBC range rejects it (``out_of_range``)
-   (:mod:`cmcan.j1939.values`).
+   (:mod:`cmcan.can.j1939.values`).
 A frame that passes all of them is *accepted*: its values go into the role windows. Rejections and
 frames not available are counted per stream and, on a J1939 message, per source address
 (``by_source``); the counters and checksums not available (2a) per stream.
@@ -68,8 +68,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from cmcan.checksums import TSC1_FOLD, byte_sums, crc8_ok, id_sum
-from cmcan.codec import Layout, extract, extract_all
+from cmcan.can.checksums import TSC1_FOLD, byte_sums, crc8_ok, id_sum
+from cmcan.can.codec import Layout, extract, extract_all
 
 OK, CHECKSUM, COUNTER_FROZEN, COUNTER_JUMP, OUT_OF_RANGE, OTHER_SENDER, ERROR_CODE, NOT_AVAILABLE = range(8)
 REASONS = (

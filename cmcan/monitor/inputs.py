@@ -27,9 +27,9 @@ from typing import Any, Generic, Protocol, TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
-from cmcan.codec import Layout, checked_decoder, extract_all, raw_bounds
-from cmcan.frame import Frame, FrameColumns
-from cmcan.j1939 import ids, values
+from cmcan.can.codec import Layout, checked_decoder, extract_all, raw_bounds
+from cmcan.can.frame import Frame, FrameColumns
+from cmcan.can.j1939 import ids, values
 from cmcan.monitor.health import ERROR_CODE, NOT_AVAILABLE, OK, OUT_OF_RANGE, HealthSpec
 
 MEMO_MAX = 1 << 16  # identifiers remembered per channel (a flood of random ones is looked up anew)
@@ -75,7 +75,7 @@ class InputMessage:
     health: HealthSpec = field(default_factory=HealthSpec)
     decode: Callable[[bytes], tuple[int, ...] | int | None] = field(init=False, repr=False, compare=False)
     bounds: tuple[tuple[int, int], ...] = field(init=False, repr=False, compare=False)
-    # J1939: each value's reserved codes (:mod:`cmcan.j1939.values`), None where it has none
+    # J1939: each value's reserved codes (:mod:`cmcan.can.j1939.values`), None where it has none
     reserved: tuple[tuple[int, int, int] | None, ...] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:

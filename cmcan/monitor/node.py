@@ -7,9 +7,9 @@ per-frame path, and gates its output with :meth:`Node.outgoing_columns` beside :
 What reaches it (the router hands it every J1939 Request, PGN 59904, Address Claimed, PGN 60928, and
 transport connection management, TP.CM, PGN 60416, on the output channel, whatever their destination):
 
-- Address Claimed from other nodes: the contention rules of :mod:`cmcan.j1939.claim`;
+- Address Claimed from other nodes: the contention rules of :mod:`cmcan.can.j1939.claim`;
 - a Request (J1939-21) to cmcan's address or to all, each (requester, PGN) answered at most once per
-  ``request_interval_s`` (:class:`cmcan.j1939.requests.RequestLimit`):
+  ``request_interval_s`` (:class:`cmcan.can.j1939.requests.RequestLimit`):
 
   | requested | answer |
   |---|---|
@@ -24,7 +24,7 @@ transport connection management, TP.CM, PGN 60416, on the output channel, whatev
   RTS/CTS to it (from the null address 254, which can hold no connection, by BAM to all). Until the
   claim stands (and after it is lost) only requests for Address Claimed are answered.
 - the transport protocol's connection management (TP.CM, PGN 60416) addressed to cmcan: the CTS,
-  EndOfMsgAck and Conn_Abort of its RTS/CTS connections (:class:`cmcan.j1939.transport.Sender`, at most
+  EndOfMsgAck and Conn_Abort of its RTS/CTS connections (:class:`cmcan.can.j1939.transport.Sender`, at most
   one per requester and ``MAX_CONNECTIONS`` at a time; a request while the requester's connection is
   open gets "cannot respond"); a connection's timeout is noticed at the next node frame or
   :meth:`Node.expire`, and cmcan aborts it then.
@@ -47,11 +47,11 @@ from typing import Any
 
 import numpy as np
 
-from cmcan.frame import Frame, FrameColumns
-from cmcan.j1939 import claim as ac
-from cmcan.j1939 import dm1, ids, transport
-from cmcan.j1939 import requests as rq
-from cmcan.j1939.name import name_hex
+from cmcan.can.frame import Frame, FrameColumns
+from cmcan.can.j1939 import claim as ac
+from cmcan.can.j1939 import dm1, ids, transport
+from cmcan.can.j1939 import requests as rq
+from cmcan.can.j1939.name import name_hex
 from cmcan.monitor.diagnostics import Dm1Producer, dm_payload
 from cmcan.monitor.payloads import Payloads
 from cmcan.schema import Num, Seq, setting

@@ -15,8 +15,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from cmcan.codec import Layout, encode_all, frame_encoder, insert
-from cmcan.frame import Frame, FrameColumns
+from cmcan.can.codec import Layout, encode_all, frame_encoder, insert
+from cmcan.can.frame import Frame, FrameColumns
 from cmcan.monitor.baseline import Mode
 from cmcan.monitor.gating import Gate, is_evaluated
 from cmcan.monitor.tick import PROGNOSIS_HOURS, Tick, TickColumns

@@ -1,7 +1,7 @@
 """The order output frames leave the monitor in.
 
 Every output frame carries its time: a tick's time, or later for the packets of a J1939 transport
-session (:mod:`cmcan.j1939.transport`), which wait in the queue. Frames go out in order of time,
+session (:mod:`cmcan.can.j1939.transport`), which wait in the queue. Frames go out in order of time,
 equal times in the order they were made: the frames of the ticks evaluated and the waiting packets
 that fell due by a given time (:meth:`OutputQueue.release`); a stretch of ticks' frames merged with
 the packets due meanwhile the same way (:meth:`OutputQueue.merge_columns`).
@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from cmcan.frame import Frame, FrameColumns
+from cmcan.can.frame import Frame, FrameColumns
 
 
 class OutputQueue:

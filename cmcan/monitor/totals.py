@@ -9,8 +9,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from cmcan.can.j1939.dm1 import OC_MAX
 from cmcan.errors import CmcanError, Kind
-from cmcan.j1939.dm1 import OC_MAX
 from cmcan.monitor.tick import LEVEL_NAMES
 from cmcan.monitor.warnings import Level, Reason, Transition, add_repeat
 

@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from cmcan.codec import layout
+from cmcan.can.codec import layout
 from cmcan.roles import DP, HIGH_PRESSURE, LOW_PRESSURE
 
 # Timestamps come from logs with microsecond resolution and from floats near 1.7e9 s (one ulp is

@@ -14,9 +14,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from cmcan import checksums, codec
-from cmcan.frame import Frame, FrameColumns
-from cmcan.j1939 import ids
+from cmcan.can import checksums, codec
+from cmcan.can.frame import Frame, FrameColumns
+from cmcan.can.j1939 import ids
 from cmcan.roles import DEFAULT_INPUTS
 from cmcan.sim.run import Run, motor_direction, role_conversion, send_every, send_mask
 
@@ -77,7 +77,7 @@ class Frames:
         )
 
     def to_columns(self, default_channel: str = "can0", chunk: int = 1 << 18) -> list[FrameColumns]:
-        """As the columnar replay's chunks of :class:`cmcan.frame.FrameColumns` (what a log's reader hands it)."""
+        """As the columnar replay's chunks of :class:`cmcan.can.frame.FrameColumns` (what a log's reader hands it)."""
         n = len(self)
         names = tuple(c or default_channel for c in self.channel_names)
         code = self.channel_index if self.channel_index is not None else np.zeros(n, dtype=np.int64)
@@ -97,7 +97,7 @@ class Frames:
         return [cols.take(np.arange(i, min(i + chunk, n))) for i in range(0, n, chunk)]
 
     def to_frames(self, default_channel: str = "can0") -> list[Frame]:
-        """As :class:`cmcan.frame.Frame` objects (what a bus or a log hands the monitor)."""
+        """As :class:`cmcan.can.frame.Frame` objects (what a bus or a log hands the monitor)."""
         ext = self.is_extended().tolist()
         return [
             Frame(t, ch, i, e, False, False, False, bytes(d[:n]))

@@ -8,8 +8,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from cmcan.codec import quantize
-from cmcan.dbc import load_dbc
+from cmcan.can.codec import quantize
+from cmcan.can.dbc import load_dbc
 from cmcan.roles import DEFAULT_INPUTS, MOTOR_FORWARD, MOTOR_STOPPED
 from cmcan.sim import degradation, duty
 from cmcan.sim.drive import DriveInputs, integrate, load_torque_for_dp, steady_state

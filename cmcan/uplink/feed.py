@@ -17,7 +17,7 @@ from typing import Any
 from cmcan.monitor.baseline import MODE_NAMES, Mode
 from cmcan.monitor.prognosis import DIRECTION_CODES, STATE_CODES
 from cmcan.monitor.tick import Tick, TickColumns
-from cmcan.ratelog import RateLimitedLog
+from cmcan.service.ratelog import RateLimitedLog
 from cmcan.uplink.config import UplinkSettings
 from cmcan.uplink.records import (
     Cumulative,

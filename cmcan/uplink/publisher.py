@@ -31,9 +31,9 @@ import paho.mqtt.client as mqtt
 from paho.mqtt.enums import CallbackAPIVersion
 
 from cmcan import __version__
-from cmcan.ratelog import RateLimitedLog
-from cmcan.sdnotify import Notifier
-from cmcan.statefile import read_node_status
+from cmcan.service.ratelog import RateLimitedLog
+from cmcan.service.sdnotify import Notifier
+from cmcan.service.statefile import read_node_status
 from cmcan.uplink.config import UplinkSettings
 from cmcan.uplink.outbox import Outbox, OutboxError, describe, is_corruption, open_outbox, record_corrupt, set_aside
 from cmcan.uplink.records import SCHEMA_VERSION, dumps, envelope, iso_utc

@@ -127,7 +127,7 @@ def clear_entry(c: dict[str, Any]) -> Entry:
 
 
 def claim_entry(e: Any, name: int) -> Entry:
-    """A change of the J1939 address claim (:class:`cmcan.j1939.claim.Event`): claiming, claimed, lost."""
+    """A change of the J1939 address claim (:class:`cmcan.can.j1939.claim.Event`): claiming, claimed, lost."""
     return Entry(
         EVENT,
         float(e.t_s),

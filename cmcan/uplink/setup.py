@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 
 from cmcan.errors import CmcanError, Kind
-from cmcan.statefile import LockFileError, LockHeld, StateLock
+from cmcan.service.statefile import LockFileError, LockHeld, StateLock
 from cmcan.uplink.config import MqttSettings, TlsSettings
 from cmcan.uplink.outbox import Outbox, OutboxError, open_outbox, problem_kind, record_corrupt, set_aside
 

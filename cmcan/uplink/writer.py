@@ -19,7 +19,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from cmcan.ratelog import RateLimitedLog
+from cmcan.service.ratelog import RateLimitedLog
 from cmcan.uplink.outbox import Outbox, OutboxError, boot_clock, is_corruption, open_outbox, set_aside
 from cmcan.uplink.records import DROPPED, Dropped, Entry
 

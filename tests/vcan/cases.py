@@ -528,14 +528,14 @@ def j1939_run(work):
 
 
 def _outputs(frames):
-    from cmcan.j1939 import ids
+    from cmcan.can.j1939 import ids
 
     return [f for f in frames if f.extended and ids.source_address(f.arbitration_id) == J1939_SA]
 
 
 @pytest.mark.vcan
 def test_j1939_machine_decodes_a_sender_that_changes_its_address(j1939_run):
-    from cmcan.j1939 import ids
+    from cmcan.can.j1939 import ids
 
     run = j1939_run
     log = list(iter_frames(run["log"]))
@@ -593,7 +593,7 @@ def test_j1939_machine_decodes_a_sender_that_changes_its_address(j1939_run):
 
 @pytest.mark.vcan
 def test_dm1_reaches_the_kernel_j1939_stack_single_frame_and_bam(j1939_run):
-    from cmcan.j1939 import dm1, ids
+    from cmcan.can.j1939 import dm1, ids
 
     run = j1939_run
     got = [(t, *dm1.decode(data), len(data)) for t, data in run["dm1"]]
@@ -631,7 +631,7 @@ def test_dm1_reaches_the_kernel_j1939_stack_single_frame_and_bam(j1939_run):
 
 @pytest.mark.vcan
 def test_two_vcan_channels_with_inputs_split(j1939_run):
-    from cmcan.j1939 import ids
+    from cmcan.can.j1939 import ids
 
     run = j1939_run
     inputs = [f for f in run["bus"] if ids.source_address(f.arbitration_id) != J1939_SA]

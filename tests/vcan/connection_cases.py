@@ -15,11 +15,11 @@ import time
 import cantools
 import pytest
 
+from cmcan.can.j1939 import dm1, ids, transport
+from cmcan.can.j1939 import requests as rq
 from cmcan.io.candump import iter_frames
-from cmcan.j1939 import dm1, ids, transport
-from cmcan.j1939 import requests as rq
 from cmcan.monitor.totals import Totals
-from cmcan.statefile import StateStore
+from cmcan.service.statefile import StateStore
 from tests.vcan.node_cases import (
     IFACE,
     ROOT,

@@ -21,14 +21,14 @@ import yaml
 
 from cmcan import config as cfgmod
 from cmcan.assemble import assemble, bus_plan, dbc_for
+from cmcan.can.j1939 import dm1, ids
+from cmcan.can.j1939 import requests as rq
 from cmcan.io.candump import iter_frames, write_candump
-from cmcan.j1939 import dm1, ids
-from cmcan.j1939 import requests as rq
 from cmcan.monitor.totals import Totals
 from cmcan.replay import FrameCollector, replay
+from cmcan.service.statefile import StateStore
 from cmcan.sim.frames import frames_from_run, with_source_address
 from cmcan.sim.run import simulate
-from cmcan.statefile import StateStore
 from tests.vcan.support import SocketListener
 
 ROOT = Path(__file__).resolve().parents[2]

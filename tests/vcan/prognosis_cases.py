@@ -73,12 +73,12 @@ def _save_worn_history(cfg_path: Path, state_dir: Path) -> dict:
     saved as the daemon saves them; ending now. Returns the saved document."""
     from cmcan import config as cfgmod
     from cmcan.assemble import assemble, dbc_for
-    from cmcan.frame import FrameColumns
+    from cmcan.can.frame import FrameColumns
     from cmcan.io.candump import iter_frames, write_candump
     from cmcan.replay import replay_columns
+    from cmcan.service.statefile import StateStore
     from cmcan.sim.frames import frames_from_run
     from cmcan.sim.run import simulate
-    from cmcan.statefile import StateStore
 
     cfg = cfgmod.load(cfg_path)
     db = dbc_for(cfg)

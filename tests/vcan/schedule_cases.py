@@ -22,11 +22,11 @@ import numpy as np
 import pytest
 
 from cmcan import config as cfgmod
+from cmcan.can.j1939 import dm1, ids
+from cmcan.can.j1939 import requests as rq
 from cmcan.io.candump import iter_frames
-from cmcan.j1939 import dm1, ids
-from cmcan.j1939 import requests as rq
 from cmcan.monitor.totals import Totals
-from cmcan.statefile import StateStore
+from cmcan.service.statefile import StateStore
 from tests.vcan.node_cases import IFACE, RATIO_PGN, SA, Tool, _j1939_available, j1939acd, node_config
 from tests.vcan.support import in_vm
 

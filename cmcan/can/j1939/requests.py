@@ -7,7 +7,7 @@ diagnostics (J1939-73) a node answers: pure functions over integers and bytes.
   function value (0xFF: none), two bytes 0xFF, the address acknowledged (the requester), the PGN
   acknowledged in three bytes. J1939-21 sends it to the global address (255) even when the request was
   addressed to one node: byte 5 says whom it answers.
-- Address Claimed (PGN 60928): the sender's NAME in 8 bytes (:mod:`cmcan.j1939.name`), to the global
+- Address Claimed (PGN 60928): the sender's NAME in 8 bytes (:mod:`cmcan.can.j1939.name`), to the global
   address; from the null address (254) it is "Cannot Claim Address".
 
 J1939-21's rules for answering a request (section "Request"): a request to the global address is

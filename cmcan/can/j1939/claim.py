@@ -27,10 +27,10 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
-from cmcan.frame import Frame
-from cmcan.j1939 import ids
-from cmcan.j1939.name import Name
-from cmcan.j1939.requests import CLAIM_PRIORITY, PGN_ADDRESS_CLAIMED
+from cmcan.can.frame import Frame
+from cmcan.can.j1939 import ids
+from cmcan.can.j1939.name import Name
+from cmcan.can.j1939.requests import CLAIM_PRIORITY, PGN_ADDRESS_CLAIMED
 
 SETTLE_S = 0.25  # J1939-81: no normal traffic until 250 ms after the claim (contention window)
 CANNOT_CLAIM_STEP_S = 0.0006  # the pseudo-random delay's step: 0..255 x 0.6 ms = 0..153 ms

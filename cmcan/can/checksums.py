@@ -23,7 +23,7 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import NDArray
 
-from cmcan.codec import Layout
+from cmcan.can.codec import Layout
 
 ALGORITHMS = ("crc8_sae_j1850", "j1939_tsc1")
 

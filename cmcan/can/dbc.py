@@ -36,8 +36,8 @@ class DbcError(CmcanError, ValueError):
 
 def default_dbc_path() -> Path:
     """The shipped ``dbc/cmcan.dbc``: inside the installed package, or at the top of a checkout."""
-    here = Path(__file__).resolve().parent
-    for candidate in (here / "_data" / "dbc" / "cmcan.dbc", here.parent / "dbc" / "cmcan.dbc"):
+    package = Path(__file__).resolve().parents[1]  # cmcan/, beside which a checkout has dbc/
+    for candidate in (package / "_data" / "dbc" / "cmcan.dbc", package.parent / "dbc" / "cmcan.dbc"):
         if candidate.exists():
             return candidate
     raise DbcError("the shipped dbc/cmcan.dbc was not found next to the cmcan package")

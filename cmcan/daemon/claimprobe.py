@@ -11,10 +11,10 @@ from __future__ import annotations
 import time
 from typing import Any
 
+from cmcan.can.j1939 import ids
+from cmcan.can.j1939 import requests as rq
+from cmcan.can.j1939.name import name_hex
 from cmcan.config import Config
-from cmcan.j1939 import ids
-from cmcan.j1939 import requests as rq
-from cmcan.j1939.name import name_hex
 
 LISTEN_S = 1.25
 

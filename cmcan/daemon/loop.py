@@ -44,17 +44,17 @@ from typing import TYPE_CHECKING, Any
 
 import can
 
+from cmcan.can.frame import Frame, from_message, to_message_kwargs
+from cmcan.can.j1939 import ids, transport
 from cmcan.config import ChannelConfig, Config
 from cmcan.errors import CmcanError
-from cmcan.frame import Frame, from_message, to_message_kwargs
-from cmcan.j1939 import ids, transport
 from cmcan.monitor.baseline import MODE_NAMES, Mode
 from cmcan.monitor.clock import STEP_BACK_S
 from cmcan.monitor.core import Monitor
 from cmcan.monitor.inputs import NODE_PFS, InputMessage
-from cmcan.ratelog import RateLimitedLog
-from cmcan.sdnotify import Notifier
-from cmcan.statefile import StateStore, done_baseline_request, read_baseline_request, write_node_status
+from cmcan.service.ratelog import RateLimitedLog
+from cmcan.service.sdnotify import Notifier
+from cmcan.service.statefile import StateStore, done_baseline_request, read_baseline_request, write_node_status
 
 if TYPE_CHECKING:  # only for the type hint: the uplink's feed is an application beside this one
     from cmcan.uplink.feed import UplinkFeed

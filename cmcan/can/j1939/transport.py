@@ -27,8 +27,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from cmcan.frame import Frame
-from cmcan.j1939 import ids
+from cmcan.can.frame import Frame
+from cmcan.can.j1939 import ids
 
 PGN_TP_CM = 60416  # 0xEC00
 PGN_TP_DT = 60160  # 0xEB00

@@ -10,7 +10,7 @@ from pathlib import Path
 from cmcan import config as cfgmod
 from cmcan.assemble import Assembled, assemble, build_monitor
 from cmcan.errors import CmcanError, Kind
-from cmcan.statefile import StateLock, StateStore
+from cmcan.service.statefile import StateLock, StateStore
 
 log = logging.getLogger("cmcan.preflight")
 
