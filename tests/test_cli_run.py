@@ -234,9 +234,9 @@ def test_an_extra_channel_absent_at_the_start_is_a_warning_for_run_and_an_error_
     assert exit_code(err.value) == EX_UNAVAILABLE and "channels.extra[0].channel: no network interface 'can1'" in str(
         err.value
     )
-    caplog.set_level(logging.WARNING, logger="cmcan.daemon.preflight")
+    caplog.set_level(logging.WARNING, logger="cmcan.preflight")
     assert check_channel(cfg, net, extras_may_be_absent=True) == ["can1"]
-    (warning,) = [r for r in caplog.records if r.name == "cmcan.daemon.preflight"]
+    (warning,) = [r for r in caplog.records if r.name == "cmcan.preflight"]
     assert warning.levelno == logging.WARNING
     msg = warning.getMessage()
     assert str(cfg.source) in msg and "channels.extra[0].channel: no network interface 'can1' yet" in msg

@@ -539,7 +539,7 @@ def test_an_extra_channel_absent_at_the_start_is_a_link_down_until_it_appears(fr
     notifier = RecordingNotifier(time.monotonic)
     opens = {"can0": lambda: ScriptedBus(source), "can1": open_can1}
     d = Daemon(cfg, mon, None, opens, notifier, DaemonOptions(backoff_min_s=0.01, backoff_max_s=0.05))
-    caplog.set_level(logging.INFO, logger="cmcan.daemon.loop")
+    caplog.set_level(logging.INFO, logger="cmcan.daemon")
     seen_down: list[list[str]] = []
 
     def progress():
@@ -644,7 +644,7 @@ def test_a_failed_reload_still_carries_out_the_reset_it_was_asked_for(tmp_path, 
         raise CmcanError("cmcan.yaml: thresholds.low_pct: expected a number", Kind.CONFIG)
 
     d.reloader = broken
-    caplog.set_level(logging.INFO, "cmcan.daemon.loop")
+    caplog.set_level(logging.INFO, "cmcan.daemon")
     d._start()
     write_baseline_request(store.dir, "pump replaced", "2026-01-01T00:00:00Z")
     d.request_reload()

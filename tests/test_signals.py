@@ -93,7 +93,7 @@ def test_the_daemon_reloads_between_frames_and_keeps_running_on_a_bad_reload(lea
         return Reloaded(new_cfg, assemble(new_cfg).monitor, lambda: bus)
 
     d.reloader = reloader
-    caplog.set_level(logging.INFO, logger="cmcan.daemon.loop")
+    caplog.set_level(logging.INFO, logger="cmcan.daemon")
 
     def progress():
         n = d.monitor.counters["frames_total"]

@@ -156,7 +156,7 @@ def test_cmcan_run_with_the_uplink_enabled_creates_the_outbox(tmp_path):
 
 
 def test_the_baseline_goes_into_the_summaries_and_its_changes_are_events(frames, tmp_path, caplog):
-    caplog.set_level(logging.INFO, logger="cmcan.daemon.loop")
+    caplog.set_level(logging.INFO, logger="cmcan.daemon")
     cfg = cfgmod.load()
     cfg = replace(cfg, baseline=cfgmod.BaselineConfig.on(min_points=40, coverage_pct=15.0, min_hours=0.01))
     mon = monitor(cfg=cfg)
@@ -172,5 +172,5 @@ def test_the_baseline_goes_into_the_summaries_and_its_changes_are_events(frames,
     states = [b["baseline"]["state"] for k, b in got if k == "summary"]
     assert states[0] == "learning" and states[-1] == "monitoring"
     assert feed.errors == 0
-    said = [r.getMessage() for r in caplog.records if r.name == "cmcan.daemon.loop" and "baseline" in r.getMessage()]
+    said = [r.getMessage() for r in caplog.records if r.name == "cmcan.daemon" and "baseline" in r.getMessage()]
     assert said[0].startswith("baseline learning") and said[-1].startswith("baseline learned")
