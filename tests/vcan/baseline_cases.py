@@ -16,7 +16,6 @@ from __future__ import annotations
 import itertools
 import json
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -29,6 +28,7 @@ from cmcan.io.candump import write_candump
 from cmcan.sim import scenario as scn
 from cmcan.sim.frames import frames_from_run
 from cmcan.sim.run import simulate
+from tests.vcan import warm
 from tests.vcan.cases import Daemon, candump, make_config, play, stop
 
 # cases imports this module at its end: the names above are defined by then
@@ -160,9 +160,7 @@ def _coverage_pct(doc: dict) -> float:
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "cmcan", "baseline", *args], capture_output=True, text=True, timeout=300
-    )
+    return warm.run(["baseline", *args], timeout=300)
 
 
 def _learned_h(doc: dict) -> float:

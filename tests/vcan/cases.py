@@ -14,7 +14,6 @@ import re
 import signal
 import socket
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -29,6 +28,7 @@ from cmcan.replay import FrameCollector, replay
 from cmcan.sim import scenario as scn
 from cmcan.sim.frames import frames_from_run
 from cmcan.sim.run import simulate
+from tests.vcan import warm
 from tests.vcan.support import SocketListener, in_vm
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -127,12 +127,7 @@ class Daemon:
             "WATCHDOG_USEC": "1000000",
             "PYTHONUNBUFFERED": "1",
         }
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "cmcan", "run", "--config", str(cfg)],
-            env=env,
-            stdout=subprocess.DEVNULL,
-            stderr=self._err,
-        )
+        self.proc = warm.WarmProcess(["run", "--config", str(cfg)], env=env, stderr=self.log)
         ok = self.notify.wait_for(
             lambda: any("READY=1" in m for _, m in self.notify.got) or self.proc.poll() is not None, 180
         )
@@ -687,11 +682,8 @@ def test_the_daemon_keeps_sending_through_wall_clock_steps(tmp_path):
     payloads = _steady_payloads(tmp_path)
     assert sorted(payloads) == [0x100, 0x101, 0x102, 0x103]
     err = open(tmp_path / "steps.stderr", "w")  # noqa: SIM115 - the daemon writes it until it stops
-    daemon = subprocess.Popen(
-        [sys.executable, "-m", "cmcan", "run", "--config", str(cfg)],
-        stdout=subprocess.DEVNULL,
-        stderr=err,
-        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    daemon = warm.WarmProcess(
+        ["run", "--config", str(cfg)], env={**os.environ, "PYTHONUNBUFFERED": "1"}, stderr=tmp_path / "steps.stderr"
     )
     gens: list[subprocess.Popen] = []
     rec = None

@@ -9,7 +9,6 @@ from __future__ import annotations
 import json
 import socket
 import subprocess
-import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -29,6 +28,7 @@ from cmcan.replay import FrameCollector, replay
 from cmcan.service.statefile import StateStore
 from cmcan.sim.frames import frames_from_run, with_source_address
 from cmcan.sim.run import simulate
+from tests.vcan import warm
 from tests.vcan.support import SocketListener
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -127,12 +127,7 @@ def j1939acd(address: int = SA) -> Iterator[None]:
 
 
 def cm_check(cfg: Path) -> dict:
-    r = subprocess.run(
-        [sys.executable, "-m", "cmcan", "check", "--config", str(cfg), "--channel-check", "--json"],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    r = warm.run(["check", "--config", str(cfg), "--channel-check", "--json"], timeout=300)
     assert r.returncode == 0, r.stdout + r.stderr
     return json.loads(r.stdout)["j1939"]["bus"]
 

@@ -27,6 +27,7 @@ from cmcan.can.j1939 import requests as rq
 from cmcan.io.candump import iter_frames
 from cmcan.monitor.totals import Totals
 from cmcan.service.statefile import StateStore
+from tests.vcan import warm
 from tests.vcan.node_cases import IFACE, RATIO_PGN, SA, Tool, _j1939_available, j1939acd, node_config
 from tests.vcan.support import in_vm
 
@@ -69,7 +70,6 @@ def start_daemon(tmp, cfg, name: str):
     """``tests.vcan.cases.Daemon`` with more time for READY (a loaded host's emulated guest can take
     minutes to start Python), and what the process did when it is not ready."""
     import os
-    import sys
 
     from tests.vcan.cases import Daemon, Notifications
 
@@ -78,8 +78,7 @@ def start_daemon(tmp, cfg, name: str):
     d.log = tmp / f"{name}.stderr"
     d._err = open(d.log, "w")  # noqa: SIM115 - the daemon process writes it until it stops
     env = {**os.environ, "NOTIFY_SOCKET": str(d.notify.path), "WATCHDOG_USEC": "1000000", "PYTHONUNBUFFERED": "1"}
-    cmd = [sys.executable, "-m", "cmcan", "run", "--config", str(cfg)]
-    d.proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=d._err)
+    d.proc = warm.WarmProcess(["run", "--config", str(cfg)], env=env, stderr=d.log)
     t0 = time.monotonic()
     ok = d.notify.wait_for(lambda: any("READY=1" in m for _, m in d.notify.got) or d.proc.poll() is not None, 480)
     took = time.monotonic() - t0
