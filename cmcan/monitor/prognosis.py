@@ -632,8 +632,8 @@ class _Detected:
     shape_k: float
     sigma: float
     g: int
-    t0s: list[float]
-    ks: list[float]
+    t0s: tuple[float, ...]
+    ks: tuple[float, ...]
     basis: NDArray[np.float64]
     resid: NDArray[np.float64]
 
@@ -715,19 +715,34 @@ class _Fits:
 _NEWEST_ONSET_POINTS = 4  # the shortest rise on the grid (2 h at the default bin)
 
 
-def _grid(p: PrognosisParams, h: NDArray[np.float64]) -> tuple[list[float], list[float], NDArray[np.float64]]:
-    """Onsets x shapes, and each cell's basis ((h - t0) / (T - t0))^k, 0 before the onset."""
+_Grid = tuple[tuple[float, ...], tuple[float, ...], NDArray[np.float64]]  # onsets, shapes, basis
+
+
+def _grid(p: PrognosisParams, h: NDArray[np.float64]) -> _Grid:
+    """Onsets x shapes, and each cell's basis ((h - t0) / (T - t0))^k, 0 before the onset (read-only:
+    an estimate fits both sides over the same hours, and the grid is their larger share of the work)."""
+    h = np.ascontiguousarray(h, dtype=np.float64)
+    return _grid_of(h.tobytes(), p.min_points, p.onsets, p.onset_ratio)
+
+
+@functools.lru_cache(maxsize=4)
+def _grid_of(h_bytes: bytes, min_points: int, onsets: int, onset_ratio: float) -> _Grid:
+    h = np.frombuffer(h_bytes, dtype=np.float64)
     T = float(h[-1])
-    idx = _onsets(h, p.min_points, p.onsets, p.onset_ratio)
-    t0s, ks, rows = [], [], []
-    for i in idx:
+    idx = _onsets(h, min_points, onsets, onset_ratio)
+    t0s = tuple(float(h[i]) for i in idx for _ in _SHAPES)
+    ks = tuple(k for _ in idx for k in _SHAPES)
+    basis = np.zeros((len(t0s), len(h)))
+    for j, i in enumerate(idx):
         t0 = float(h[i])
         s = np.clip((h - t0) / max(T - t0, 1e-9), 0.0, 1.0)
-        for k in _SHAPES:
-            t0s.append(t0)
-            ks.append(k)
-            rows.append(s**k)
-    return t0s, ks, np.array(rows)
+        # powers from the first point past the onset only: 0 ** k is 0 before it, and most onsets
+        # are recent (the rows are the same numbers, found in less time)
+        lo = int(np.argmax(s > 0.0))
+        for m, k in enumerate(_SHAPES):
+            basis[j * len(_SHAPES) + m, lo:] = s[lo:] ** k
+    basis.flags.writeable = False
+    return t0s, ks, basis
 
 
 def _onsets(h: NDArray[np.float64], min_points: int, even: int, ratio: float) -> list[int]:
