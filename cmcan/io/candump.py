@@ -136,29 +136,43 @@ def write_candump(
     Written to a temporary file then renamed, so an existing log is never left half-written.
     """
     p = Path(path)
-    hexdata = _hex_rows(data, dlc)
-    ext = (np.asarray(arbitration_id) > 0x7FF) if extended is None else np.asarray(extended, dtype=bool)
-    per_frame = not isinstance(channel, str)
+    n = len(timestamp_s)
+    ids = np.asarray(arbitration_id)
+    ext = (ids > 0x7FF) if extended is None else np.asarray(extended, dtype=bool)
+    if isinstance(channel, str):
+        names, codes = (channel,), np.zeros(n, dtype=np.int16)
+    else:
+        uniq, inv = np.unique(np.asarray(channel, dtype=str), return_inverse=True)
+        names, codes = tuple(uniq.tolist()), inv.astype(np.int16)
+    lengths = np.asarray(dlc, dtype=np.int16)
+    data = np.asarray(data, dtype=np.uint8)
+    # the first 8 bytes in the columns, longer payloads (CAN FD) whole beside them
+    first8 = np.zeros((n, 8), dtype=np.uint8)
+    first8[:, : min(8, data.shape[1])] = data[:, :8]
     tmp = p.with_name(p.name + ".tmp")
+    no, fd = np.zeros(n, dtype=bool), lengths > 8
     with open(tmp, "w", encoding="ascii", newline="\n") as f:
-        chunk = 200_000
-        for a in range(0, len(timestamp_s), chunk):
-            b = min(a + chunk, len(timestamp_s))
-            chans = list(channel[a:b]) if per_frame else [channel] * (b - a)  # type: ignore[index]
-            lines = [
-                f"({ts:017.6f}) {ch} {cid:08X}#{hx}\n" if e else f"({ts:017.6f}) {ch} {cid:03X}#{hx}\n"
-                for ts, ch, cid, e, hx in zip(
-                    timestamp_s[a:b].tolist(),
-                    chans,
-                    arbitration_id[a:b].tolist(),
-                    ext[a:b].tolist(),
-                    hexdata[a:b],
-                    strict=True,
-                )
-            ]
-            f.writelines(lines)
+        for a in range(0, n, _WRITE_ROWS):
+            b = min(a + _WRITE_ROWS, n)
+            cols = FrameColumns(
+                timestamp_s=np.asarray(timestamp_s[a:b], dtype=np.float64),
+                channel=codes[a:b],
+                channel_names=names,
+                arbitration_id=ids[a:b].astype(np.uint32),
+                extended=ext[a:b],
+                remote=no[a:b],
+                error=no[a:b],
+                fd=fd[a:b],
+                dlc=lengths[a:b],
+                data=first8[a:b],
+                long_data={r - a: data[r, : lengths[r]].tobytes() for r in (np.flatnonzero(fd[a:b]) + a).tolist()},
+            )
+            f.write(candump_lines(cols))
     tmp.replace(p)
-    return len(timestamp_s)
+    return n
+
+
+_WRITE_ROWS = 200_000  # frames formatted at a time: a bounded buffer, whatever the log's length
 
 
 def candump_line(f: Frame, channel: str | None = None, default_channel: str = "can0") -> str:
@@ -205,20 +219,24 @@ def candump_lines(cols: FrameColumns, channel: str | None = None) -> str:
     fast = np.flatnonzero(~slow)
     text = ""
     if len(fast):
+        # the channel: the one asked for, the log's only one, or each frame's own (a name per row)
+        per_row = not channel and len(cols.channel_names) > 1
         one = cols.channel_names[0] if len(cols.channel_names) == 1 else ""
-        ch = (channel or one or "can0").encode("ascii")
-        if not channel and len(cols.channel_names) != 1:  # frames of several buses: per frame
-            slow[:] = True
-            fast = fast[:0]
-        elif (
+        ch = b"" if per_row else (channel or one or "can0").encode("ascii")
+        codes = cols.channel[fast].astype(np.int64)
+        names = [c.encode("ascii") for c in cols.channel_names]
+        id_prefix = b" " if per_row else b") " + ch + b" "
+        named = [native.TextColumn(native.NAME, codes, b") ", names=names)] if per_row else []
+        if (
             native.LIB is not None
             and (
                 got := native.format_rows(
                     len(fast),
                     [
                         native.TextColumn(native.FIXED, t[fast], b"(", 6),
+                        *named,
                         native.TextColumn(
-                            native.HEX_ID, cols.arbitration_id[fast], b") " + ch + b" ", widths=cols.extended[fast]
+                            native.HEX_ID, cols.arbitration_id[fast], id_prefix, widths=cols.extended[fast]
                         ),
                         native.TextColumn(native.HEX_DATA, cols.data[fast], b"#", widths=cols.dlc[fast]),
                     ],
@@ -246,7 +264,10 @@ def candump_lines(cols: FrameColumns, channel: str | None = None) -> str:
             take = src >= 0
             right[take] = nib[np.nonzero(take)[0], src[take]]
             data_col = tc.Column(right, width)
-            text = tc.rows([b"(", ts, b") " + ch + b" ", id_col, b"#", data_col], end=b"\n").decode("ascii")
+            chan: list[tc.Column | bytes] = (
+                [b") ", tc.Column.of_names(codes, dict(enumerate(cols.channel_names)))] if per_row else []
+            )
+            text = tc.rows([b"(", ts, *chan, id_prefix, id_col, b"#", data_col], end=b"\n").decode("ascii")
     if not slow.any():
         return text
     lines = text.splitlines(keepends=True)
@@ -255,13 +276,6 @@ def candump_lines(cols: FrameColumns, channel: str | None = None) -> str:
     for i in range(n):
         out.append(candump_line(cols.frame(i), channel) if slow[i] else next(it))
     return "".join(out)
-
-
-def _hex_rows(data: NDArray[np.uint8], dlc: NDArray[np.int64]) -> list[str]:
-    full = [bytes(r).hex().upper() for r in data]
-    if np.all(dlc == data.shape[1]):
-        return full
-    return [h[: 2 * int(n)] for h, n in zip(full, dlc.tolist(), strict=True)]
 
 
 CAN_ERR_FLAG = 0x20000000
