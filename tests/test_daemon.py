@@ -73,14 +73,17 @@ class ScriptedBus(can.BusABC):
 
 
 def run_daemon_until(daemon, done, timeout=60.0):
+    """Run the daemon in a thread until ``done()`` holds (which must come within ``timeout``: a
+    condition that is never met is the test's fault or the daemon's, not a way to stop it)."""
     th = threading.Thread(target=daemon.run, daemon=True)
     th.start()
     deadline = time.monotonic() + timeout
-    while not done() and time.monotonic() < deadline:
+    while not (reached := done()) and time.monotonic() < deadline:
         time.sleep(0.02)
     daemon.stop()
     th.join(5)
     assert not th.is_alive()
+    assert reached, f"not done within {timeout} s"
 
 
 def test_network_down_is_recovered_by_reopening_the_bus(frames, tmp_path):

@@ -163,8 +163,9 @@ def test_the_baseline_goes_into_the_summaries_and_its_changes_are_events(frames,
     writer = OutboxWriter(str(tmp_path / "outbox.sqlite"), 10**9, 1e9).start()
     feed = UplinkFeed(mon, writer, summary_every_s=30.0)
     source = messages(frames)
+    n = len(source)  # the bus takes them from the list
     d = Daemon(cfg, mon, None, lambda: ScriptedBus(source), uplink=feed)
-    run_daemon_until(d, lambda: mon.counters["frames_total"] == len(source))
+    run_daemon_until(d, lambda: mon.counters["frames_total"] == n)
     got = [(r.kind, json.loads(r.body)) for r in Outbox(tmp_path / "outbox.sqlite").fetch_after(0, 10**6)]
     changes = [b for k, b in got if k == "event" and b["type"] == "baseline_change"]
     assert [(c["from"], c["state"]) for c in changes] == [("learning", "monitoring")]
