@@ -1,4 +1,4 @@
-"""A million fuzzed frames through the daemon on a virtual bus: no crash, no warning, every frame
+"""A million fuzzed frames through the daemon on an in-process python-can bus: no crash, no warning, every frame
 accounted for in the counters."""
 
 import os
@@ -12,6 +12,7 @@ import pytest
 from cmcan import config as cfgmod
 from cmcan.daemon.loop import Daemon, DaemonOptions, bus_kwargs
 from cmcan.daemon.preflight import prepare
+from cmcan.demo import PlayerBus
 
 pytestmark = pytest.mark.slow
 
@@ -48,38 +49,25 @@ def test_a_million_fuzzed_frames(tmp_path):
     cfg = cfgmod.with_overrides(cfgmod.load(), interface="virtual", channel=channel, state_dir=str(tmp_path))
     prep = prepare(cfg)
     mon = prep.parts.monitor
-    # No kernel filter on a virtual bus: every fuzzed frame reaches the core and must be counted.
-    kw = {
-        **bus_kwargs(cfg, cfg.channel_list[0], mon.inputs),
-        "rx_queue_size": 20000,
-        "preserve_timestamps": True,
-        "can_filters": None,
-    }
-    daemon = Daemon(cfg, mon, prep.store, lambda: can.Bus(**kw), options=DaemonOptions())
+    # No kernel filter on an in-process bus: every fuzzed frame reaches the core and must be counted.
+    # The bus hands the frames over as the daemon reads them (python-can's virtual bus would spend
+    # three quarters of the time copying them through its queue)
+    kw = {**bus_kwargs(cfg, cfg.channel_list[0], mon.inputs), "can_filters": None}
+    bus = PlayerBus(messages=fuzz_frames(N), **kw)
+    daemon = Daemon(cfg, mon, prep.store, lambda: bus, options=DaemonOptions())
     th = threading.Thread(target=daemon.run, daemon=True)
-    th.start()
-    player = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
-    levels = set()
     warn_id = 0x3A2
     try:
-        while daemon.bus is None:
-            time.sleep(0.01)
-        for i, msg in enumerate(fuzz_frames(N)):
-            player.send(msg, timeout=30)
-            if i % 8192 == 0:
-                while (m := player.recv(0)) is not None:
-                    if m.arbitration_id == warn_id:
-                        levels.add(m.data[0])
+        th.start()
+        while not bus.played.wait(0.5) and th.is_alive():
+            pass
         deadline = time.monotonic() + 120
         while mon.counters["frames_total"] < N and time.monotonic() < deadline:
             time.sleep(0.05)
-        while (m := player.recv(0.2)) is not None:
-            if m.arbitration_id == warn_id:
-                levels.add(m.data[0])
     finally:
         daemon.stop()
         th.join(10)
-        player.shutdown()
+    levels = {m.data[0] for m in bus.sent if m.arbitration_id == warn_id}
     assert not th.is_alive()
     c = mon.counters
     print(c, daemon.stats)
@@ -99,5 +87,5 @@ def test_a_million_fuzzed_frames(tmp_path):
     assert sum(c[k] for k in parts) == N
     assert c["unknown_id"] > 0 and c["bad_length"] > 0 and c["out_of_range"] > 0 and c["accepted"] > 0
     assert mon.totals.warning_count == 0
-    assert levels <= {0, 3}  # ok, or fault for garbage inputs: never a low or high wear warning
+    assert levels and levels <= {0, 3}  # ok, or fault for garbage inputs: never a low or high wear warning
     assert daemon.stats["internal_errors"] == 0
