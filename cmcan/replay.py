@@ -31,7 +31,7 @@ from cmcan.monitor.gating import EVALUATED, Gate
 from cmcan.monitor.prognosis import DIRECTION_CODES as PROGNOSIS_DIRECTION_CODES
 from cmcan.monitor.prognosis import FIELDS as PROGNOSIS_FIELDS
 from cmcan.monitor.prognosis import STATE_CODES as PROGNOSIS_STATE_CODES
-from cmcan.monitor.tick import LEVEL_NAMES, PROGNOSIS_HOURS, TickBuffer, TickColumns
+from cmcan.monitor.tick import LEVEL_NAMES, PROGNOSIS_HOURS, Tick, TickColumns
 from cmcan.monitor.warnings import Level, Reason
 from cmcan.roles import MOTOR_SPEED, QUANTITY_SIGNALS
 
@@ -440,10 +440,9 @@ def _drive(
 ) -> ReplaySummary:
     """Feed every item, the ticks and output frames to the sinks; ``span(item)``: the times of an
     item's first and last frame."""
-    ticks = TickBuffer(_TickSinks(sinks), CHUNK_TICKS)
-    out = _FrameSinks(sinks)
+    out = _Fanout(sinks)
     first = last = None
-    monitor.listeners.append(ticks)
+    monitor.listeners.append(out)
     try:
         item = None
         for item in items:
@@ -451,61 +450,79 @@ def _drive(
                 first = span(item)[0]
                 for s in sinks:
                     s.start(first)
-            out.add(feed(item))
+            out.frames(feed(item))
         if first is None:
             raise NoFrames("no frames in the log")
         last = span(item)[1]  # type: ignore[arg-type]
-        out.add(monitor.flush())
-        ticks.flush()
+        out.frames(monitor.flush())
         out.flush()
     except BaseException:
         for s in sinks:
             s.abort()
         raise
     finally:
-        monitor.listeners.remove(ticks)
+        monitor.listeners.remove(out)
     for s in sinks:
         s.close()
     return summarize(monitor, first, last, out.n_out)
 
 
-class _TickSinks:
-    def __init__(self, sinks: Sequence[Sink]) -> None:
-        self.sinks = [s for s in sinks if s.wants_ticks]
+class _Fanout:
+    """What leaves the core in a replay, handed to the sinks that want it: the ticks (it is one of the
+    monitor's :class:`~cmcan.monitor.tick.TickListener`: single ticks from the per-frame path gathered
+    into columns of up to ``size``, columns from the array path passed on after the single ticks
+    before them) and the output frames (lists gathered into columns, columns passed on)."""
+
+    def __init__(self, sinks: Sequence[Sink], size: int = CHUNK_TICKS) -> None:
+        self.tick_sinks = [s for s in sinks if s.wants_ticks]
+        self.frame_sinks = [s for s in sinks if s.wants_frames]
+        self.size = size
+        self.pending_ticks: list[Tick] = []
+        self.pending_frames: list[Frame] = []
+        self.n_out = 0  # output frames handed on
+
+    def tick(self, tick: Tick) -> None:
+        if self.tick_sinks:
+            self.pending_ticks.append(tick)
+            if len(self.pending_ticks) >= self.size:
+                self._flush_ticks()
 
     def ticks(self, chunk: TickColumns) -> None:
-        for s in self.sinks:
+        self._flush_ticks()
+        for s in self.tick_sinks:
             s.ticks(chunk)
 
-
-class _FrameSinks:
-    """The output frames to the sinks that want them: frame lists gathered into chunks."""
-
-    def __init__(self, sinks: Sequence[Sink]) -> None:
-        self.sinks = [s for s in sinks if s.wants_frames]
-        self.pending: list[Frame] = []
-        self.n_out = 0
-
-    def add(self, frames: list[Frame] | FrameColumns | None) -> None:
-        if not frames or not self.sinks:
+    def frames(self, frames: list[Frame] | FrameColumns | None) -> None:
+        if not frames or not self.frame_sinks:
             return
         if isinstance(frames, FrameColumns):
-            self.flush()
+            self._flush_frames()
             self._send(frames)
             return
-        self.pending.extend(frames)
-        if len(self.pending) >= 3 * CHUNK_TICKS:
-            self.flush()
+        self.pending_frames.extend(frames)
+        if len(self.pending_frames) >= 3 * self.size:
+            self._flush_frames()
 
     def flush(self) -> None:
-        if self.pending:
-            cols = FrameColumns.from_frames(self.pending)
-            self.pending = []
+        self._flush_ticks()
+        self._flush_frames()
+
+    def _flush_ticks(self) -> None:
+        if self.pending_ticks:
+            chunk = TickColumns.from_ticks(self.pending_ticks)
+            self.pending_ticks = []
+            for s in self.tick_sinks:
+                s.ticks(chunk)
+
+    def _flush_frames(self) -> None:
+        if self.pending_frames:
+            cols = FrameColumns.from_frames(self.pending_frames)
+            self.pending_frames = []
             self._send(cols)
 
     def _send(self, cols: FrameColumns) -> None:
         self.n_out += len(cols)
-        for s in self.sinks:
+        for s in self.frame_sinks:
             s.frames(cols)
 
 

@@ -198,35 +198,3 @@ class TickListener(Protocol):
 
     def tick(self, tick: Tick) -> None: ...
     def ticks(self, chunk: TickColumns) -> None: ...
-
-
-class TickChunks(Protocol):
-    """What takes ticks as columns only (a replay's sinks)."""
-
-    def ticks(self, chunk: TickColumns) -> None: ...
-
-
-class TickBuffer:
-    """A listener that hands ticks on as columns: single ticks gathered into chunks of up to
-    ``size`` (a chunk per tick would cost more than the tick), columns passed through after the
-    single ticks before them. :meth:`flush` hands on what is gathered."""
-
-    def __init__(self, to: TickChunks, size: int = 8192) -> None:
-        self.to = to
-        self.size = size
-        self.pending: list[Tick] = []
-
-    def tick(self, tick: Tick) -> None:
-        self.pending.append(tick)
-        if len(self.pending) >= self.size:
-            self.flush()
-
-    def ticks(self, chunk: TickColumns) -> None:
-        self.flush()
-        self.to.ticks(chunk)
-
-    def flush(self) -> None:
-        if self.pending:
-            chunk = TickColumns.from_ticks(self.pending)
-            self.pending = []
-            self.to.ticks(chunk)
