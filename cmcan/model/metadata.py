@@ -8,13 +8,14 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 from cmcan.errors import CmcanError, Kind
+from cmcan.roles import QUANTITIES, UNITS
 
 FORMAT = "cmcan-graybox/2"
 INPUT_NAME = "x"
 OUTPUT_PRED = "predicted"
 OUTPUT_PHYSICS = "physics"
 OUTPUT_WHITEBOX = "whitebox"
-QUANTITY_UNITS = {"motor_speed_rpm": "rpm", "flow_lpm": "l/min"}
+QUANTITY_UNITS = {q: UNITS[q] for q in QUANTITIES}  # what a model file may predict, in its unit
 
 
 class ModelError(CmcanError, ValueError):
