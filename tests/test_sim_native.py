@@ -305,6 +305,13 @@ def test_inputs_that_are_not_float64_arrays_take_the_python_loop():
         integrate(DriveParams(), longer, 0.01, start), integrate_python(DriveParams(), longer, 0.01, start)
     )
     assert drive._loop_native(k, steady_inputs(0), 0.01, start) is None
+    f32 = DriveState(np.float32(100 * BAR), 100.0, 50.0)  # float32 arithmetic in the Python loop
+    assert drive._loop_native(k, steady_inputs(20), 0.01, f32) is None
+    assert drive._loop_native(k, steady_inputs(20), np.float32(0.01), start) is None
+    f64 = DriveState(np.float64(100 * BAR), np.float64(100.0), np.float64(50.0))
+    assert drive._loop_native(k, steady_inputs(20), np.float64(0.01), f64) is not None
+    both = [f(DriveParams(), steady_inputs(20), np.float64(0.01), f64) for f in (integrate, integrate_python)]
+    assert same_outputs(*both)
 
 
 # -- shipped scenarios ------------------------------------------------------------------------------

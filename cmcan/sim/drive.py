@@ -152,8 +152,10 @@ def _loop_native(
     k: tuple[float, ...], u: DriveInputs, dt_s: float, start: DriveState
 ) -> tuple[list[float] | NDArray[np.float64], ...] | None:
     """The C loop's raw outputs and final state; None where it is not built, where the inputs are not
-    plain float64 arrays (the Python loop's lists of Python ints or objects are its own), or where
-    the Python loop raises an exception at some step (it is left to raise it)."""
+    plain float64 arrays or the start, step and constants not Python floats or ints (float64 is a
+    float; the Python loop's arithmetic on Python ints or objects, or in float32 where a numpy float32
+    meets a Python float, is its own), or where the Python loop raises an exception at some step (it is
+    left to raise it)."""
     lib = native.LIB
     if lib is None or not hasattr(lib, "cmcan_drive_integrate"):
         return None
@@ -163,7 +165,8 @@ def _loop_native(
         isinstance(a, np.ndarray) and a.dtype == np.float64 and a.ndim == 1 and len(a) >= n for a in arrays
     ):
         return None
-    if int(lib.cmcan_drive_constants()) != len(k):
+    scalars = (*k, dt_s, start.dp_pa, start.motor_speed_rad_s, start.temp_c)
+    if int(lib.cmcan_drive_constants()) != len(k) or not all(isinstance(x, (float, int)) for x in scalars):
         return None
     try:
         consts = np.array(k, dtype=np.float64)
