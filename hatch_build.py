@@ -1,4 +1,5 @@
-"""Build hook: the replay's C helpers (``cmcan/io/_native.so``), when a C compiler is at hand.
+"""Build hook: the C helpers (``cmcan/io/_native.so``: the replay's parser and formatter, the
+simulator's integrator), when a C compiler is at hand.
 
 The library is plain C loaded with ctypes (no Python API), so one build serves every Python 3; it is
 built in place, where an editable install and the tests of a checkout find it, and put in the wheel,
@@ -21,7 +22,7 @@ try:
 except ImportError:  # imported outside a build (the tests use build_native)
     BuildHookInterface = object  # type: ignore[assignment,misc]
 
-SOURCES = ("cmcan/io/_candump_fast.c", "cmcan/io/_textcols_fast.c")
+SOURCES = ("cmcan/io/_candump_fast.c", "cmcan/io/_textcols_fast.c", "cmcan/sim/_drive_fast.c")
 LIBRARY = "cmcan/io/_native.so"
 
 
@@ -33,13 +34,19 @@ def build_native(root: Path) -> Path | None:
     out = root / LIBRARY
     tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
     cc = shlex.split(os.environ.get("CC") or sysconfig.get_config_var("CC") or "cc")
-    cmd = [*cc, "-O2", "-shared", "-fPIC", "-o", str(tmp), *(str(root / s) for s in SOURCES), "-lm"]
+    # -ffp-contract=off: no fused multiply-adds, so the integrator's numbers are the Python loop's to
+    # the bit (the same code for the parser and formatter on x86-64, which has none at -O2 anyway)
+    flags = ["-O2", "-ffp-contract=off", "-shared", "-fPIC"]
+    cmd = [*cc, *flags, "-o", str(tmp), *(str(root / s) for s in SOURCES), "-lm"]
     try:
         subprocess.run(cmd, check=True, capture_output=True, text=True, timeout=300)
         os.replace(tmp, out)
     except (OSError, subprocess.SubprocessError) as exc:
         detail = getattr(exc, "stderr", None) or exc
-        print(f"cmcan: the C helpers were not built ({detail}); replay uses numpy", file=sys.stderr)
+        print(
+            f"cmcan: the C helpers were not built ({detail}); replay uses numpy, simulate its Python loop",
+            file=sys.stderr,
+        )
         tmp.unlink(missing_ok=True)
         return None
     return out

@@ -10,6 +10,8 @@ import sys
 
 import pytest
 
+from cmcan.sim import drive
+from cmcan.sim.physics import DriveParams
 from tests.conftest import ROOT
 
 sys.path.insert(0, str(ROOT))
@@ -31,6 +33,7 @@ def test_the_hook_builds_a_library_that_parses_a_line(tmp_path):
     lib = ctypes.CDLL(str(lib_path))
     text = b"(1767225600.500000) can0 123#0102\n(1) can0 1#\n"
     assert lib.cmcan_count_lines(text, ctypes.c_int64(len(text))) == 2
+    assert lib.cmcan_drive_constants() == len(drive._hoisted(DriveParams()))  # and the integrator
 
 
 def test_without_a_compiler_the_build_says_so_and_leaves_nothing(tmp_path, monkeypatch, capsys):
@@ -73,3 +76,4 @@ def test_ci_built_and_loads_the_c_helpers():
     from cmcan.io import native
 
     assert native.LIB is not None
+    assert hasattr(native.LIB, "cmcan_drive_integrate")

@@ -1,6 +1,7 @@
-"""The replay's C helpers, when the install built them (``_native.so`` from ``_candump_fast.c``
-and ``_textcols_fast.c``): the parser of common ``candump -l`` lines and the row formatter of the
-timeline and the emitted log.
+"""The C helpers, when the install built them (``_native.so`` from ``_candump_fast.c``,
+``_textcols_fast.c`` and ``cmcan/sim/_drive_fast.c``): the parser of common ``candump -l`` lines and
+the row formatter of the timeline and the emitted log, and the simulator's time integration (called
+by :mod:`cmcan.sim.drive`, which has the Python loop it transcribes).
 
 Loaded with ctypes, which releases the GIL for each call: the read-ahead thread parses the next
 chunk and the writer thread formats the last one on the second core without taking the GIL from
@@ -43,6 +44,12 @@ def _load() -> ctypes.CDLL | None:
     lib.cmcan_parse_candump.restype = i64
     lib.cmcan_format_rows.argtypes = [i64, i32, p, p, p, p, p, p, p, ctypes.c_char_p, i32, p, i64]
     lib.cmcan_format_rows.restype = i64
+    if hasattr(lib, "cmcan_drive_integrate"):  # not in a library built before the integrator
+        d = ctypes.c_double
+        lib.cmcan_drive_constants.argtypes = []
+        lib.cmcan_drive_constants.restype = i32
+        lib.cmcan_drive_integrate.argtypes = [i64, p, d, p, p, p, p, p, p, p, p, p, p, p, p, p, p]
+        lib.cmcan_drive_integrate.restype = i64
     return lib
 
 

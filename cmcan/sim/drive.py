@@ -12,10 +12,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from cmcan.io import native
 from cmcan.oil import KELVIN
 from cmcan.sim.physics import BAR, CC, LPM, TWO_PI, DriveParams
 
@@ -57,7 +59,23 @@ class DriveOutputs:
 
 
 def integrate(p: DriveParams, u: DriveInputs, dt_s: float, start: DriveState) -> DriveOutputs:
-    n_steps = len(u.pump_speed_rpm)
+    """The run of ``u``'s steps from ``start``: the C loop of ``_drive_fast.c`` where the library is
+    built (the same numbers to the bit), else :func:`integrate_python`'s loop, the reference."""
+    k = _hoisted(p)
+    raw = _loop_native(k, u, dt_s, start)
+    if raw is None:
+        raw = _loop_python(k, u, dt_s, start)
+    return _outputs(*raw)
+
+
+def integrate_python(p: DriveParams, u: DriveInputs, dt_s: float, start: DriveState) -> DriveOutputs:
+    """:func:`integrate` by the Python loop, whether or not the C loop is there."""
+    return _outputs(*_loop_python(_hoisted(p), u, dt_s, start))
+
+
+def _hoisted(p: DriveParams) -> tuple[float, ...]:
+    """The loop's constants, in the order of ``_drive_fast.c``'s ``K_...`` (the module constants it
+    uses and the base and exponent of its ``**`` at the end)."""
     # Constants hoisted out of the loop.
     a_w, b_w = p.oil.walther_ab
     rho15, drho = p.oil.density15_kg_m3, p.oil.density_per_k
@@ -84,6 +102,121 @@ def integrate(p: DriveParams, u: DriveInputs, dt_s: float, start: DriveState) ->
     heat_cap = p.heat_capacity_kj_per_k * 1e3
     cooler = p.cooler_w_per_k
     hm_loss = p.hm_loss_fraction
+    return (
+        a_w,
+        b_w,
+        rho15,
+        drho,
+        k_line,
+        d_m_nom,
+        lam_p,
+        lam_m,
+        turb,
+        comp_p,
+        lam_x,
+        lin_x,
+        orf_x,
+        fill_x,
+        comp_m,
+        relief_dp,
+        relief_gain,
+        inertia,
+        friction,
+        viscous,
+        fade,
+        heat_cap,
+        cooler,
+        hm_loss,
+        KELVIN,
+        CC,
+        _MIN_DP_FOR_SQRT,
+        10.0,  # the base of 10.0 ** x
+        2.0,  # the exponent of cosh(x) ** 2 (an int there, a float to float_pow)
+    )
+
+
+_INPUTS = (
+    "pump_speed_rpm",
+    "pump_disp_cc",
+    "load_torque_nm",
+    "temp_c",
+    "ambient_c",
+    "wear_g_pump",
+    "wear_g_motor",
+    "bypass_h",
+    "motor_disp_factor",
+)
+
+
+def _loop_native(
+    k: tuple[float, ...], u: DriveInputs, dt_s: float, start: DriveState
+) -> tuple[list[float] | NDArray[np.float64], ...] | None:
+    """The C loop's raw outputs and final state; None where it is not built, where the inputs are not
+    plain float64 arrays or the start, step and constants not Python floats or ints (float64 is a
+    float; the Python loop's arithmetic on Python ints or objects, or in float32 where a numpy float32
+    meets a Python float, is its own), or where the Python loop raises an exception at some step (it is
+    left to raise it)."""
+    lib = native.LIB
+    if lib is None or not hasattr(lib, "cmcan_drive_integrate"):
+        return None
+    n = len(u.pump_speed_rpm)
+    arrays = [getattr(u, name) for name in _INPUTS]
+    if n == 0 or not all(
+        isinstance(a, np.ndarray) and a.dtype == np.float64 and a.ndim == 1 and len(a) >= n for a in arrays
+    ):
+        return None
+    scalars = (*k, dt_s, start.dp_pa, start.motor_speed_rad_s, start.temp_c)
+    if int(lib.cmcan_drive_constants()) != len(k) or not all(isinstance(x, (float, int)) for x in scalars):
+        return None
+    try:
+        consts = np.array(k, dtype=np.float64)
+        state = np.array([start.dp_pa, start.motor_speed_rad_s, start.temp_c], dtype=np.float64)
+        dt = float(dt_s)
+    except (TypeError, ValueError, OverflowError):
+        return None
+    ins = [np.ascontiguousarray(a[:n]) for a in arrays]
+    outs = [np.empty(n) for _ in range(4)]
+    done = lib.cmcan_drive_integrate(
+        n, consts.ctypes.data, dt, *(a.ctypes.data for a in ins), state.ctypes.data, *(o.ctypes.data for o in outs)
+    )
+    if done != n:
+        return None
+    dp, w, temp = (float(x) for x in state)
+    return (*outs, dp, w, temp)
+
+
+def _loop_python(
+    k: tuple[float, ...], u: DriveInputs, dt_s: float, start: DriveState
+) -> tuple[list[float] | NDArray[np.float64], ...]:
+    """The loop itself (the reference of ``_drive_fast.c``): raw outputs and final state."""
+    n_steps = len(u.pump_speed_rpm)
+    (
+        a_w,
+        b_w,
+        rho15,
+        drho,
+        k_line,
+        d_m_nom,
+        lam_p,
+        lam_m,
+        turb,
+        comp_p,
+        lam_x,
+        lin_x,
+        orf_x,
+        fill_x,
+        comp_m,
+        relief_dp,
+        relief_gain,
+        inertia,
+        friction,
+        viscous,
+        fade,
+        heat_cap,
+        cooler,
+        hm_loss,
+        *_,
+    ) = k
 
     n_p_l = u.pump_speed_rpm.tolist()
     v_p_l = u.pump_disp_cc.tolist()
@@ -172,6 +305,10 @@ def integrate(p: DriveParams, u: DriveInputs, dt_s: float, start: DriveState) ->
         out_t[i] = temp
         out_x[i] = extra
 
+    return out_dp, out_w, out_t, out_x, dp, w, temp
+
+
+def _outputs(out_dp: Any, out_w: Any, out_t: Any, out_x: Any, dp: float, w: float, temp: float) -> DriveOutputs:
     return DriveOutputs(
         dp_bar=np.asarray(out_dp) / BAR,
         motor_speed_rpm=np.asarray(out_w) * 60.0 / TWO_PI,
