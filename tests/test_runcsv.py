@@ -248,3 +248,37 @@ def test_a_blank_line_does_not_shift_the_line_named(tmp_path):
         series_from_csv(tmp_path / "b.csv", "flow_lpm", {"pump_speed_rpm": 1450.0, "pump_disp_cc": 4.6})
     plain = read_run_csv(write(tmp_path / "p.csv", small()), REQUIRED)
     assert list(plain.lines) == [2, 3, 4, 5, 6]
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    values=st.lists(
+        st.one_of(
+            st.floats(allow_nan=True, allow_infinity=True),
+            st.floats(-1e6, 1e6),
+            st.integers(-(10**9), 10**9).map(lambda i: i / 10**4 + 0.00005),  # halfway at the 4th decimal
+            st.sampled_from([0.0, -0.0, 5e-5, -5e-5, 1e-300, 2.0**52, -(2.0**53) + 1]),
+        ),
+        min_size=0,
+        max_size=120,
+    ),
+    native=st.booleans(),
+)
+def test_run_csv_rows_are_numpys_savetxt_to_the_byte(tmp_path_factory, values, native):
+    """The run CSV's rows (by the C formatter where built) are what ``np.savetxt`` with ``%.<d>f``
+    writes, whatever the values: ties at the last decimal, -0, NaN, infinities, beyond 2^52."""
+    import io
+    from unittest import mock
+
+    from cmcan.io import native as native_mod
+    from cmcan.io import runcsv
+
+    x = np.array(values, dtype=np.float64)
+    cols = {"time_s": x, "operating_h": x[::-1].copy(), "true_failed": np.round(x), "dp_bar": x * 3}
+    path = tmp_path_factory.mktemp("rc") / "r.csv"
+    with mock.patch.object(native_mod, "LIB", native_mod.LIB if native else None):
+        write_run_csv(path, cols)
+    buf = io.StringIO()
+    fmt = [f"%.{runcsv._DECIMALS.get(k, runcsv._DEFAULT_DECIMALS)}f" for k in cols]
+    np.savetxt(buf, np.column_stack(list(cols.values())) if len(x) else np.empty((0, 4)), fmt=fmt, delimiter=",")
+    assert path.read_text() == ",".join(cols) + "\n" + buf.getvalue()

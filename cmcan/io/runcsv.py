@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cmcan.errors import CmcanError, Kind
+from cmcan.io import native
 from cmcan.io.points import CsvError, CsvTable, column_index, csv_header, read_csv_table
 
 # Decimals written per column: finer than any sensor resolution, coarse enough to keep files small.
@@ -35,14 +36,29 @@ def write_run_csv(path: str | Path, columns: dict[str, NDArray[np.float64]]) -> 
     p = Path(path)
     names = list(columns)
     data = np.column_stack([np.asarray(columns[k], dtype=float) for k in names]) if names else np.empty((0, 0))
-    fmt = [f"%.{_DECIMALS.get(k, _DEFAULT_DECIMALS)}f" for k in names]
+    decimals = [_DECIMALS.get(k, _DEFAULT_DECIMALS) for k in names]
     tmp = p.with_name(p.name + ".tmp")
     with open(tmp, "w", encoding="ascii", newline="\n") as f:
         f.write(",".join(names) + "\n")
-        buf = io.StringIO()
-        np.savetxt(buf, data, fmt=fmt, delimiter=",")
-        f.write(buf.getvalue())
+        for a in range(0, len(data), _WRITE_ROWS):
+            f.write(_rows(data[a : a + _WRITE_ROWS], decimals))
     tmp.replace(p)
+
+
+_WRITE_ROWS = 200_000  # rows formatted at a time: a bounded buffer, whatever the run's length
+
+
+def _rows(data: NDArray[np.float64], decimals: list[int]) -> str:
+    """The rows as ``np.savetxt`` with ``%.<d>f`` writes them: by the C formatter where it is built
+    and every value is finite (NaN and infinities are numpy's to spell), else by numpy."""
+    if len(data) and native.LIB is not None and np.isfinite(data).all():
+        cols = [native.TextColumn(native.FIXED, data[:, j], b"," if j else b"", d) for j, d in enumerate(decimals)]
+        got = native.format_rows(len(data), cols, b"\n")
+        if got is not None:
+            return got.decode("ascii")
+    buf = io.StringIO()
+    np.savetxt(buf, data, fmt=[f"%.{d}f" for d in decimals], delimiter=",")
+    return buf.getvalue()
 
 
 class RunColumns(dict[str, NDArray[np.float64]]):
