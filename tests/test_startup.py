@@ -109,5 +109,6 @@ def test_a_replay_of_a_candump_log_imports_no_mf4_support(tmp_path):
     log.write_text("(1.000000) can0 100#0102030405060708\n")
     code = f"import cmcan.cli\ntry:\n    cmcan.cli.main(['replay', {str(log)!r}])\nexcept SystemExit:\n    pass"
     mods = imported_by(code)
-    assert "cmcan.replay" in mods and "can" in mods
+    # python-can itself comes with cantools, on a cold compiled-DBC cache only (see below)
+    assert "cmcan.replay" in mods
     assert among(mods, ("asammdf", "pandas", "openpyxl")) == []
