@@ -478,3 +478,17 @@ def test_a_replay_and_a_check_on_a_warm_cache_do_not_import_cantools(tmp_path, e
     assert not {m for m in warm_mods if m in ("cantools", "can") or m.startswith(("cantools.", "can."))}
     check = _modules_after(["check"], empty_cache, tmp_path)
     assert "cmcan.assemble" in check and "cantools" not in check
+
+
+def test_where_the_cache_lives(monkeypatch, tmp_path):
+    monkeypatch.setenv("CMCAN_CACHE_DIR", str(tmp_path / "own"))
+    monkeypatch.setenv("CACHE_DIRECTORY", str(tmp_path / "service"))
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    assert dbccache.cache_dir() == tmp_path / "own"
+    monkeypatch.delenv("CMCAN_CACHE_DIR")
+    assert dbccache.cache_dir() == tmp_path / "service"  # systemd's CacheDirectory=
+    monkeypatch.delenv("CACHE_DIRECTORY")
+    assert dbccache.cache_dir() == tmp_path / "xdg" / "cmcan"
+    monkeypatch.setenv("XDG_CACHE_HOME", "relative")  # ignored, as the XDG spec says
+    assert dbccache.cache_dir() == tmp_path / "home" / ".cache" / "cmcan"

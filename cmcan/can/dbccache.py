@@ -7,8 +7,9 @@ the same problems and log lines), then written for the next start.
 
 An entry is keyed by the SHA-256 of the DBC file's bytes, this module's :data:`FORMAT` and the
 version of the cantools that parsed it: an edited DBC, a new cache layout or another cantools is a
-miss, never a stale answer. Entries live in ``$CMCAN_CACHE_DIR``, else ``$XDG_CACHE_HOME/cmcan``,
-else ``~/.cache/cmcan`` (under ``dbc/``). They are written through a temporary file renamed into
+miss, never a stale answer. Entries live in ``$CMCAN_CACHE_DIR``, else the service's
+``$CACHE_DIRECTORY`` (systemd's ``CacheDirectory=``), else ``$XDG_CACHE_HOME/cmcan``, else
+``~/.cache/cmcan`` (under ``dbc/``). They are written through a temporary file renamed into
 place (processes racing to write one entry each write a whole file), and read defensively: a file
 that is not exactly what :func:`cmcan.can.dbcmodel.from_doc` accepts, or whose body does not match
 its own digest, is ignored and rewritten. A cache directory that cannot be created or written is
@@ -47,11 +48,15 @@ _memo: OrderedDict[tuple[str, str], CompiledDatabase | Database] = OrderedDict()
 
 
 def cache_dir() -> Path:
-    """Where compiled DBCs are kept: ``$CMCAN_CACHE_DIR``, else ``$XDG_CACHE_HOME/cmcan``, else
-    ``~/.cache/cmcan`` (entries under ``dbc/``)."""
+    """Where compiled DBCs are kept: ``$CMCAN_CACHE_DIR``, else systemd's ``$CACHE_DIRECTORY`` (a
+    service's ``CacheDirectory=``), else ``$XDG_CACHE_HOME/cmcan``, else ``~/.cache/cmcan``
+    (entries under ``dbc/``)."""
     own = os.environ.get(ENV_DIR)
     if own:
         return Path(own)
+    systemd = os.environ.get("CACHE_DIRECTORY", "").split(":")[0]  # a service's CacheDirectory=
+    if systemd and os.path.isabs(systemd):
+        return Path(systemd)
     xdg = os.environ.get("XDG_CACHE_HOME")
     if xdg and os.path.isabs(xdg):  # the XDG spec: a relative path is to be ignored
         return Path(xdg) / "cmcan"
