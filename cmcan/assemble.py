@@ -17,7 +17,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from cmcan.can import checksums, codec, units
-from cmcan.can.dbc import DbcError, covers, describe_signal, load_dbc, message_problems, physical_range
+from cmcan.can.dbc import DbcError, covers, describe_signal, message_problems, physical_range
+from cmcan.can.dbccache import load_compiled
 from cmcan.can.frame import Frame
 from cmcan.can.j1939 import dm1 as j1939_dm1
 from cmcan.can.j1939 import ids
@@ -53,7 +54,14 @@ from cmcan.roles import (
 from cmcan.schema import SchemaError, carried
 
 if TYPE_CHECKING:  # hints only; cmcan.can.dbc imports cantools where a DBC is read
-    from cantools.database.can import Database, Message
+    from cantools.database.can import Database as CantoolsDatabase
+    from cantools.database.can import Message as CantoolsMessage
+
+    from cmcan.can.dbcmodel import CompiledDatabase, CompiledMessage
+
+    # either: a compiled database has the fields of cantools' that cmcan reads (cmcan.can.dbcmodel)
+    Database = CompiledDatabase | CantoolsDatabase
+    Message = CompiledMessage | CantoolsMessage
 
     from cmcan.sim.frames import BusPlan
 
@@ -61,9 +69,10 @@ log = logging.getLogger("cmcan.assemble")
 
 
 def dbc_for(cfg: Config) -> Database:
-    """The configuration's DBC (DbcError names the file and that the configuration named it)."""
+    """The configuration's DBC (DbcError names the file and that the configuration named it), as cmcan
+    reads it: compiled, from the cache when its bytes were read before (:mod:`cmcan.can.dbccache`)."""
     try:
-        return load_dbc(cfg.dbc_path)
+        return load_compiled(cfg.dbc_path)
     except DbcError as exc:
         raise DbcError(f"{exc} (dbc: in {cfg.source})", exc.kind) from None
 

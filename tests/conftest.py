@@ -1,8 +1,11 @@
 from __future__ import annotations
 
+import atexit
 import os
+import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +28,13 @@ def _fresh_native_helpers() -> None:
 
 
 _fresh_native_helpers()
+
+# The compiled-DBC cache (cmcan.can.dbccache) of this test session: empty at its start, as on a fresh
+# CI machine, shared by the xdist workers (they inherit it and race to write its entries), and never
+# the user's own. Set by the first process to import this file; CMCAN_CACHE_DIR given outside wins.
+if not os.environ.get("CMCAN_CACHE_DIR"):
+    os.environ["CMCAN_CACHE_DIR"] = _session_cache = tempfile.mkdtemp(prefix="cmcan-test-cache-")
+    atexit.register(shutil.rmtree, _session_cache, True)
 
 
 def small_scenario(**over: Any) -> dict[str, Any]:

@@ -12,6 +12,7 @@ others.
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import re
 import weakref
@@ -44,8 +45,35 @@ def default_dbc_path() -> Path:
 
 
 def load_dbc(path: str | Path | None = None) -> Database:
+    return load_dbc_digest(path)[0]
+
+
+def dbc_name(path: str | Path | None = None) -> str:
+    """The name a DBC is loaded (and named in messages) by: resolved when the file exists."""
     p = Path(path) if path is not None else default_dbc_path()
-    return _load(str(p.resolve()) if p.exists() else str(p))
+    return str(p.resolve()) if p.exists() else str(p)
+
+
+def file_sha256(name: str) -> str | None:
+    """The SHA-256 of a file's bytes (hex); None when it cannot be read."""
+    try:
+        with open(name, "rb") as f:
+            return hashlib.sha256(f.read()).hexdigest()
+    except OSError:
+        return None
+
+
+def load_dbc_digest(path: str | Path | None = None) -> tuple[Database, str | None]:
+    """:func:`load_dbc`'s database and the SHA-256 of the bytes it was parsed from (None when the
+    file changed while it was parsed). Parsed once per process for each content of the file: an
+    edited file is parsed again."""
+    name = dbc_name(path)
+    for _ in range(3):  # a file rewritten while it was parsed is parsed again
+        before = file_sha256(name)
+        db = _load(name, before)
+        if before is not None and file_sha256(name) == before:
+            return db, before
+    return db, None
 
 
 # problems found in a leniently loaded database, by message name (absent: none)
@@ -54,12 +82,16 @@ _PROBLEMS: weakref.WeakKeyDictionary[Database, dict[str, str]] = weakref.WeakKey
 
 def message_problems(db: Database) -> Mapping[str, str]:
     """What cantools' strict checks found wrong with each message of a DBC loaded by
-    :func:`load_dbc`, by message name (empty for a file that loads strictly)."""
+    :func:`load_dbc`, by message name (empty for a file that loads strictly); a compiled database
+    (:mod:`cmcan.can.dbcmodel`) carries those of the file it was compiled from."""
+    own = getattr(db, "problems", None)  # a CompiledDatabase's (cantools' Database has no such field)
+    if isinstance(own, Mapping):
+        return own
     return _PROBLEMS.get(db, {})
 
 
 @lru_cache(maxsize=8)
-def _load(path: str) -> Database:
+def _load(path: str, sha256: str | None) -> Database:  # sha256: the cache's key (a new content is parsed)
     import cantools
     from cantools.database.can import Database
 

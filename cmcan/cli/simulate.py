@@ -100,7 +100,7 @@ FLEET_ONLY = (
 def run(args: argparse.Namespace) -> int:
     if args.scenario == "fleet":
         return run_fleet(args)
-    from cmcan.can.dbc import load_dbc
+    from cmcan.can.dbccache import load_compiled
     from cmcan.io.candump import write_candump
     from cmcan.io.runcsv import write_run_csv
     from cmcan.schema import SchemaError
@@ -157,7 +157,7 @@ def run(args: argparse.Namespace) -> int:
         plan = bus_plan(cfg, db)
         channel = args.channel or cfg.bus.channel
     else:
-        db = load_dbc(args.dbc)
+        db = load_compiled(args.dbc)
     r = simulate(s, db, plan.mapping if plan is not None else None)
     write_run_csv(out, r.columns)
     n_frames = 0

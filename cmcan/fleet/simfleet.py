@@ -34,7 +34,8 @@ import yaml
 
 from cmcan import __version__
 from cmcan import config as cfgmod
-from cmcan.can.dbc import default_dbc_path, load_dbc
+from cmcan.can.dbc import default_dbc_path
+from cmcan.can.dbccache import load_compiled
 from cmcan.io.candump import write_candump
 from cmcan.model.features import operating_points, series_from_columns
 from cmcan.model.train import train_on_points
@@ -76,7 +77,7 @@ def type_config(t: sf.MachineType) -> str:
 def train_type(t: sf.MachineType, seed: int, cfg: cfgmod.Config) -> tuple[bytes, dict[str, Any]]:
     """A model for the type: its healthy sweep, gated as the configuration gates, trained on the start."""
     s = sf.training_scenario(t, seed)
-    run = simulate(s, load_dbc(cfg.dbc_path))
+    run = simulate(s, load_compiled(cfg.dbc_path))
     series, truth = series_from_columns(run.columns, s.name)
     op = operating_points(series, cfg.gate_limits, cfg.rate_hz, truth=truth)
     blob, _model, stats = train_on_points(
@@ -111,7 +112,7 @@ def write_fleet(
     plans = sf.plan_fleet(spec)
     (out / "dbc").mkdir(parents=True, exist_ok=True)
     _write_bytes(out / "dbc" / "cmcan.dbc", default_dbc_path().read_bytes())
-    db = load_dbc(out / "dbc" / "cmcan.dbc")
+    db = load_compiled(out / "dbc" / "cmcan.dbc")
 
     used_types = sorted({p.type.name for p in plans}, key=list(sf.TYPES).index)
     model_stats = {}

@@ -295,9 +295,9 @@ def load(
         if quantity == FLOW:
             raise DataError(f"{p}: flow_lpm needs a CSV with a measured flow_lpm column")
         if db is None:
-            from cmcan.can.dbc import load_dbc
+            from cmcan.can.dbccache import load_compiled
 
-            db = load_dbc()
+            db = load_compiled()
         series = series_from_log(p, db, mapping, match=match)
         return from_series(series, quantity, limits, str(p), drive)
     from cmcan.io.runcsv import read_run_csv

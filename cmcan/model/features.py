@@ -392,9 +392,9 @@ def load_operating_points(
     q = limits.output_role
     if is_log(p):
         if db is None:
-            from cmcan.can.dbc import load_dbc
+            from cmcan.can.dbccache import load_compiled
 
-            db = load_dbc()
+            db = load_compiled()
         series = series_from_log(p, db, mapping, q, constants, match, keep_truncated, on_cut)
         return operating_points(series, limits, rate_hz, envelope, source=str(p))
     series, truth = series_from_csv(p, q, constants)

@@ -9,7 +9,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cmcan.can.codec import quantize
-from cmcan.can.dbc import load_dbc
+from cmcan.can.dbccache import load_compiled
 from cmcan.roles import DEFAULT_INPUTS, MOTOR_FORWARD, MOTOR_STOPPED
 from cmcan.sim import degradation, duty
 from cmcan.sim.drive import DriveInputs, integrate, load_torque_for_dp, steady_state
@@ -91,7 +91,7 @@ def oil_temperatures(s: Scenario, t_s: NDArray[np.float64]) -> tuple[NDArray[np.
 def simulate(s: Scenario, db: Database | None = None, mapping: dict[str, tuple[Any, ...]] | None = None) -> Run:
     """The scenario's run; ``mapping`` (role -> (message, signal[, scale, offset])) says which DBC
     signal carries each sensor, for its resolution and range (default: the shipped DBC's)."""
-    db = db if db is not None else load_dbc()
+    db = db if db is not None else load_compiled()
     mapping = mapping if mapping is not None else DEFAULT_INPUTS
     p: DriveParams = s.params
     rng_duty, rng_noise, rng_jitter = (np.random.default_rng(x) for x in np.random.SeedSequence(s.seed).spawn(3))
