@@ -492,3 +492,28 @@ def test_where_the_cache_lives(monkeypatch, tmp_path):
     assert dbccache.cache_dir() == tmp_path / "xdg" / "cmcan"
     monkeypatch.setenv("XDG_CACHE_HOME", "relative")  # ignored, as the XDG spec says
     assert dbccache.cache_dir() == tmp_path / "home" / ".cache" / "cmcan"
+
+
+def test_cantools_only_calls_parse_the_file_once_and_refuse_a_file_changed_since(tmp_path, monkeypatch):
+    """A compiled database hands value-table decoding to cantools' database of the same bytes, kept
+    once parsed: a decode per frame reads no file. A file rewritten after it was compiled is named."""
+    import shutil
+
+    from cmcan.can import dbc as dbc_mod
+
+    path = tmp_path / "m.dbc"
+    shutil.copy(SHIPPED[0], path)
+    db = warm(path)
+    m = db.messages[0]
+    reads = []
+    real = dbc_mod.file_sha256
+    monkeypatch.setattr(dbc_mod, "file_sha256", lambda name: reads.append(name) or real(name))
+    for _ in range(50):
+        db.decode_message(m.frame_id, bytes(m.length))
+        m.decode(bytes(m.length))
+    assert 0 < len(reads) <= 2  # the bytes hashed before and after the one parse, not per call
+
+    other = warm(path)
+    path.write_bytes(path.read_bytes() + b"\n")
+    with pytest.raises(DbcError, match="changed since it was read"):
+        other.decode_message(m.frame_id, bytes(m.length))

@@ -166,7 +166,7 @@ class CompiledDatabase:
     checks found in them by message name (:func:`cmcan.can.dbc.message_problems` reads them here).
     ``path`` is the file it was compiled from (for cantools' full database when one is asked for)."""
 
-    __slots__ = ("message_by_name", "messages", "path", "problems", "sha256")
+    __slots__ = ("_full", "message_by_name", "messages", "path", "problems", "sha256")
 
     def __init__(self, path: str, sha256: str, messages: list[CompiledMessage], problems: Mapping[str, str]) -> None:
         self.path = path
@@ -174,6 +174,7 @@ class CompiledDatabase:
         self.messages = messages
         self.problems = dict(problems)
         self.message_by_name = {m.name: m for m in messages}  # as cantools: the last of a name wins
+        self._full: Database | None = None
         for m in messages:
             m.database = self
 
@@ -181,10 +182,16 @@ class CompiledDatabase:
         return self.message_by_name[name]  # KeyError, as cantools
 
     def cantools_database(self) -> Database:
-        """The full cantools database of the same file (parsed on first use, then cached by path)."""
-        from cmcan.can.dbc import load_dbc
+        """The full cantools database of the same bytes, parsed on first use and kept here: a decode
+        per frame reads no file (DbcError when the file has changed since it was compiled)."""
+        if self._full is None:
+            from cmcan.can.dbc import DbcError, load_dbc_digest
 
-        return load_dbc(self.path)
+            db, sha256 = load_dbc_digest(self.path)
+            if sha256 != self.sha256:
+                raise DbcError(f"{self.path}: changed since it was read; run the command again")
+            self._full = db
+        return self._full
 
     def decode_message(self, *args: Any, **kwargs: Any) -> Any:
         """cantools' ``Database.decode_message`` (tests and analysis, not the monitor's path)."""
