@@ -13,7 +13,7 @@ bus time), CPU per frame flat, every frame counted once in the core's counters, 
 evaluation rate, state saves no more than one per ``state.save_every_s`` plus one per warning change.
 
     python bench/soak.py --hours 24              # the documented benchmark (about 1 h on one core)
-    python bench/soak.py --minutes 30 --json     # tests/test_soak.py (slow tier): about 16 M frames
+    python bench/soak.py --minutes 15 --json     # tests/test_soak.py (slow tier): about 8 M frames
 
 Prints the figures (and with --json one JSON document); exit 1 when a check fails.
 """
