@@ -9,7 +9,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from cmcan.cli import fleet_train
+from cmcan.cli import fleet_ingest, fleet_train
 from cmcan.cli.common import Subparsers
 from cmcan.cli.errors import EX_DATAERR, ensure_writable, require_extra
 from cmcan.cli.jsonout import print_json
@@ -108,6 +108,7 @@ def add_subparser(sub: Subparsers) -> None:
     q.set_defaults(func=run_query)
 
     fleet_train.add_parser(fsub)
+    fleet_ingest.add_parser(fsub)
 
     d = fsub.add_parser(
         "drop",

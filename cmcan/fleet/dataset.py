@@ -552,8 +552,18 @@ def _write_table(table: Any, path: Path) -> None:
     pq.write_table(table, path, compression="zstd", write_page_checksum=True)
 
 
-def write_parquet(path: Path, columns: dict[str, Any] | Any) -> None:
-    """One Parquet file, written under a hidden temporary name and renamed."""
+def fsync_path(path: Path) -> None:
+    """A file's or a folder's content (a folder: its entries, i.e. renames into it) on the disk."""
+    fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def write_parquet(path: Path, columns: dict[str, Any] | Any, durable: bool = False) -> None:
+    """One Parquet file, written under a hidden temporary name and renamed (``durable``: fsync'd
+    before the rename, and the rename after it)."""
     import pyarrow as pa
 
     table = columns if isinstance(columns, pa.Table) else _table(columns)
@@ -562,17 +572,21 @@ def write_parquet(path: Path, columns: dict[str, Any] | Any) -> None:
         tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
         try:
             _write_table(table, tmp)
+            if durable:
+                fsync_path(tmp)
             os.replace(tmp, path)
+            if durable:
+                fsync_path(path.parent)
         except BaseException:
             tmp.unlink(missing_ok=True)
             raise
 
 
-def write_record(path: Path, row: dict[str, Any]) -> None:
+def write_record(path: Path, row: dict[str, Any], durable: bool = False) -> None:
     """A one-row record with the hash of its own values (as they read back)."""
     t = _table({k: [v] for k, v in row.items()})
     values = t.to_pylist()[0]
-    write_parquet(path, {**{k: [v] for k, v in values.items()}, RECORD_HASH: [record_hash(values)]})
+    write_parquet(path, {**{k: [v] for k, v in values.items()}, RECORD_HASH: [record_hash(values)]}, durable)
 
 
 # Types of the summary's columns that can be NULL in a log's row (a NULL alone has no type).
