@@ -109,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
     password = read_password(m, SOURCE)
     root = ds.open_dataset(Path(args.out), create=True)
     with ingest_lock(root):
-        removed = remove_uplink_orphans(root)
+        removed = ds.remove_orphans(root) + remove_uplink_orphans(root)  # what a kill left behind
         seen, batches = load_seen(root)
         log.info(
             "%s: %d batches committed before%s; subscribing to %s/+/... at %s:%d",

@@ -147,6 +147,16 @@ def _move(src: Path, dest: Path) -> None:
     ds.fsync_path(dest.parent)
 
 
+def committed_files(root: Path) -> dict[str, list[tuple[str | None, Path]]]:
+    """The files of each uplink table (and its quarantine) that the commit records list, with their
+    machine (None for the quarantine), each record checked (:class:`cmcan.fleet.dataset.Damaged`)."""
+    out: dict[str, list[tuple[str | None, Path]]] = {t: [] for t in (*UPLINK_TABLES, UPLINK_QUARANTINE)}
+    for p in commit_records(root):
+        for f in json.loads(ds.read_record(p)[ds.FILES]):
+            out[f["table"]].append((f["machine"], place_of(root, f)))
+    return out
+
+
 def commit_records(root: Path) -> list[Path]:
     base = root / UPLINK_COMMITS
     return sorted(p for p in base.glob("day=*/*.parquet") if not p.name.startswith(".")) if base.is_dir() else []
@@ -289,6 +299,7 @@ class Ingest:
         c.on_connect = self._on_connect
         c.on_disconnect = self._on_disconnect
         c.on_message = self._on_message
+        c.on_subscribe = self._on_subscribe
         return c
 
     def _connect(self) -> None:
@@ -329,6 +340,15 @@ class Ingest:
         client.subscribe(subscriptions(self.m.topic_prefix))  # also when the session is there: harmless
         present = getattr(flags, "session_present", False)
         log.info("connected to %s:%d (session %s)", self.m.host, self.m.port, "resumed" if present else "new")
+
+    def _on_subscribe(self, client: Any, _ud: Any, _mid: int, reasons: Any, _props: Any) -> None:
+        if client is not self.client:
+            return
+        refused = [str(r) for r in reasons if getattr(r, "is_failure", False)]
+        if refused:
+            log.error("the broker refused the subscription to %s/+/...: %s", self.m.topic_prefix, ", ".join(refused))
+        else:
+            log.info("subscribed to %s", " ".join(t for t, _q in subscriptions(self.m.topic_prefix)))
 
     def _on_disconnect(self, client: Any, _ud: Any, _flags: Any, reason: Any, _props: Any) -> None:
         if client is self.client and not self.lost:
