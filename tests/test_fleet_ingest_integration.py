@@ -82,7 +82,7 @@ def rows(root: Path) -> dict[str, list[dict]]:
     import pyarrow.parquet as pq
 
     out: dict[str, list[dict]] = {}
-    for table, files in ig.committed_files(root).items():
+    for table, files in ig.committed_files(root)[0].items():
         for machine, p in files:
             out.setdefault(table, []).extend({**r, "machine": machine} for r in pq.read_table(p).to_pylist())
     return out
@@ -174,7 +174,7 @@ def test_nothing_lost_nothing_doubled_through_kills_and_a_broker_restart(tmp_pat
                  "schema 99 is newer"):  # fmt: skip
         assert sum(r.startswith(want) for r in reasons) == 1, (want, reasons)
     # no file outside a commit, no staging left behind
-    listed = {p for files in ig.committed_files(out).values() for _m, p in files} | set(ig.commit_records(out))
+    listed = {p for files in ig.committed_files(out)[0].values() for _m, p in files} | set(ig.commit_records(out))
     on_disk = {p for p in out.rglob("*.parquet")}
     assert on_disk == listed
     assert not list((out / ds.STAGING).glob("ingest-*"))

@@ -93,7 +93,8 @@ def add_subparser(sub: Subparsers) -> None:
     q = fsub.add_parser(
         "query",
         help="SQL over the data set with DuckDB",
-        description="Run SQL on the views timeline, events, logs, quarantine and machine_logs (docs/fleet.md).",
+        description="Run SQL on the views timeline, events, logs, quarantine, machine_logs, machines and the "
+        "uplink's uplink_summaries, uplink_events, uplink_dropped, uplink_status, uplink_quarantine (docs/fleet.md).",
     )
     q.add_argument("dataset", help="data set folder")
     q.add_argument("sql", help='the statement, e.g. "SELECT machine, sum(warnings_low) FROM logs GROUP BY 1"')

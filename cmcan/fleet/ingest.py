@@ -147,14 +147,31 @@ def _move(src: Path, dest: Path) -> None:
     ds.fsync_path(dest.parent)
 
 
-def committed_files(root: Path) -> dict[str, list[tuple[str | None, Path]]]:
+def committed_files(root: Path, verify: bool = False) -> tuple[dict[str, list[tuple[str | None, Path]]], list[str]]:
     """The files of each uplink table (and its quarantine) that the commit records list, with their
-    machine (None for the quarantine), each record checked (:class:`cmcan.fleet.dataset.Damaged`)."""
+    machine (None for the quarantine), and what is wrong with them: a damaged record, a listed file
+    missing or of another size, and (``verify``) of other content than its SHA-256 says."""
     out: dict[str, list[tuple[str | None, Path]]] = {t: [] for t in (*UPLINK_TABLES, UPLINK_QUARANTINE)}
+    problems: list[str] = []
     for p in commit_records(root):
-        for f in json.loads(ds.read_record(p)[ds.FILES]):
-            out[f["table"]].append((f["machine"], place_of(root, f)))
-    return out
+        try:
+            files = json.loads(ds.read_record(p)[ds.FILES])
+        except ds.Damaged as exc:
+            problems += exc.problems
+            continue
+        for f in files:
+            path = place_of(root, f)
+            out[f["table"]].append((f["machine"], path))
+            try:
+                size = path.stat().st_size
+            except OSError:
+                problems.append(f"{path}: missing")
+                continue
+            if size != f["bytes"]:
+                problems.append(f"{path}: {size} bytes, its commit record says {f['bytes']}")
+            elif verify and ds.sha256_file(path) != f["sha256"]:
+                problems.append(f"{path}: content differs from its commit record (SHA-256)")
+    return out, problems
 
 
 def commit_records(root: Path) -> list[Path]:

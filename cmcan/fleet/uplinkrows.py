@@ -153,6 +153,14 @@ def _hours(v: Any) -> float | None:
     return float(v) if isinstance(v, _NUM) and not isinstance(v, bool) and math.isfinite(v) else None
 
 
+def _total_h(levels: Any) -> float | None:
+    """Time in any level since commissioning (the summary's ``time_in_level_total_s``), in hours."""
+    if not isinstance(levels, dict):
+        return None
+    parts = [_opt_num(levels, lv) for lv in LEVELS]
+    return sum(x for x in parts if x is not None) / 3600.0 if any(x is not None for x in parts) else None
+
+
 def split_topic(topic: str, prefix: str) -> tuple[str, str]:
     """``<prefix>/<machine>/<kind>`` -> (machine, kind), both checked."""
     head = prefix + "/"
@@ -220,6 +228,7 @@ def _entry_row(p: dict[str, Any], kind: str) -> dict[str, Any]:
         "window_every_s": _opt_num(window, "every_s"),
         "evaluated_s": _opt_num(p, "evaluated_s"),
         "evaluated_total_h": _opt_num(p, "evaluated_total_h"),
+        "operating_total_h": _total_h(p.get("time_in_level_total_s")),
         "warning_count": _opt_num(p, "warning_count"),
         "fault_count": _opt_num(p, "fault_count"),
         "baseline_state": _opt_str(b, "state"),
@@ -472,6 +481,7 @@ COLUMNS: dict[str, dict[str, str]] = {
         "window_every_s": "double",
         "evaluated_s": "double",
         "evaluated_total_h": "double",
+        "operating_total_h": "double",
         "warning_count": "double",
         "fault_count": "double",
         "baseline_state": "string",
