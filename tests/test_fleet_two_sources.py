@@ -135,3 +135,135 @@ def test_the_report_ranks_the_uplinks_machines_with_the_others(dataset, tmp_path
     write_report(dataset, out, 50.0, 50)
     text = out.read_text()
     assert "m-gw" in text and text.count(", uplink)") == 2  # m-gw and m-ok: their latest state is their uplink's
+
+
+# -- the ISO 15143-3 (AEMP 2.0) fleet snapshot --------------------------------------------------------
+
+# The standard's elements as the open examples have them (docs/fleet-telematics.md names them): the
+# fleet snapshots OEM telematics services serve in the standard's namespace. Element -> its parent and
+# the type of its text (None: children only).
+ISO = "http://standards.iso.org/iso/15143/-3"
+STANDARD = {
+    "Fleet": (None, None),
+    "Links": ("Fleet", None),
+    "rel": ("Links", "string"),
+    "href": ("Links", "string"),
+    "Equipment": ("Fleet", None),
+    "EquipmentHeader": ("Equipment", None),
+    **{
+        k: ("EquipmentHeader", "string")
+        for k in ("UnitInstallDateTime", "OEMName", "Model", "Make", "EquipmentID", "SerialNumber", "PIN")
+    },
+    "Location": ("Equipment", None),
+    "Latitude": ("Location", "decimal"),
+    "Longitude": ("Location", "decimal"),
+    "CumulativeOperatingHours": ("Equipment", None),
+    "Hour": ("CumulativeOperatingHours", "decimal"),
+    "EngineStatus": ("Equipment", None),
+    "Running": ("EngineStatus", "boolean"),
+}
+DATETIME_ATTR = {"Location", "CumulativeOperatingHours", "EngineStatus"}
+
+
+def check_snapshot(text: str) -> list[str]:
+    """What in a snapshot is not the standard's element names and types (its own namespace), or an
+    extension that is not in a namespace of its own after the standard's elements."""
+    import datetime as dt
+    import xml.etree.ElementTree as ET
+
+    problems = []
+    root = ET.fromstring(text)
+
+    def walk(e: ET.Element, parent: str | None) -> None:
+        ns, _, name = e.tag[1:].partition("}")
+        if ns != ISO:
+            if not ns or parent != "Equipment":
+                problems.append(f"{e.tag}: an extension must be in its own namespace, in Equipment")
+            return
+        if STANDARD.get(name, (0,))[0] != parent:
+            problems.append(f"{name} under {parent}: not the standard's place")
+            return
+        kind = STANDARD[name][1]
+        value = (e.text or "").strip()
+        try:
+            if kind == "decimal":
+                float(value)
+            elif kind == "boolean" and value not in ("true", "false"):
+                raise ValueError(value)
+        except ValueError:
+            problems.append(f"{name}: {value!r} is not a {kind}")
+        if name in DATETIME_ATTR:
+            stamp = e.get("datetime", "")
+            if not (stamp.endswith("Z") and dt.datetime.fromisoformat(stamp[:-1] + "+00:00")):
+                problems.append(f"{name}/@datetime: {stamp!r} is not an xs:dateTime in UTC")
+        children = list(e)
+        if name == "Equipment":
+            if not children or children[0].tag != f"{{{ISO}}}EquipmentHeader":
+                problems.append("Equipment: EquipmentHeader must come first")
+            seen_ext = False
+            for c in children:
+                seen_ext |= not c.tag.startswith(f"{{{ISO}}}")
+                if seen_ext and c.tag.startswith(f"{{{ISO}}}"):
+                    problems.append(f"{c.tag}: a standard element after an extension")
+        for c in children:
+            walk(c, name)
+
+    walk(root, None)
+    if root.get("version") is None:
+        problems.append("Fleet/@version missing")
+    return problems
+
+
+REFERENCE = f"""<Fleet xmlns="{ISO}" version="0"><Links><rel>self</rel><href>https://x/Fleet/1</href></Links>
+<Equipment><EquipmentHeader><OEMName>O</OEMName><Model>5075</Model><EquipmentID>e1</EquipmentID>
+<SerialNumber>1</SerialNumber><PIN>P1</PIN></EquipmentHeader>
+<Location datetime="2021-05-05T13:58:31Z"><Latitude>50.95</Latitude><Longitude>12.46</Longitude></Location>
+<CumulativeOperatingHours datetime="2021-05-05T13:58:31Z"><Hour>1937.23</Hour></CumulativeOperatingHours>
+<EngineStatus datetime="2021-05-05T13:58:31Z"><Running>false</Running></EngineStatus></Equipment></Fleet>"""
+
+
+def test_the_check_accepts_the_standards_shape_and_names_what_is_not():
+    assert check_snapshot(REFERENCE) == []
+    bad = REFERENCE.replace("<Hour>1937.23</Hour>", "<Hour>many</Hour><Hours>1</Hours>")
+    bad = bad.replace('datetime="2021-05-05T13:58:31Z"><Lat', 'datetime="yesterday"><Lat')
+    assert (
+        check_snapshot(bad)
+        == [
+            "Location/@datetime: 'yesterday' is not an xs:dateTime in UTC",
+            "Hour: 'many' is not a decimal",
+            "Hours under CumulativeOperatingHours: not the standard's place",
+        ]
+        or len(check_snapshot(bad)) == 3
+    )
+
+
+def test_the_plan_as_an_aemp_fleet_snapshot(dataset, tmp_path, capsys):
+    import xml.etree.ElementTree as ET
+
+    from cmcan.cli import main
+    from cmcan.fleet.aemp import CONDITION_SPN, NS_CMCAN
+
+    out = tmp_path / "fleet.xml"
+    assert main(["fleet", "plan", str(dataset), "--at", "2026-01-08", "--aemp", str(out), "--json"]) == 0
+    plan = {r["machine"]: r for r in json.loads(capsys.readouterr().out)["machines"]}
+    text = out.read_text()
+    assert check_snapshot(text) == []
+    root = ET.fromstring(text)
+    c = {"i": ISO, "c": NS_CMCAN}
+    got = {}
+    for eq in root.findall("i:Equipment", c):
+        machine = eq.find("i:EquipmentHeader/i:EquipmentID", c).text
+        got[machine] = eq
+        cm = eq.find("c:ConditionMonitoring", c)
+        assert cm.find("c:WarningLevel", c).text == plan[machine]["warning_level"]
+        assert cm.find("c:Source", c).text == plan[machine]["source"]
+        hours = float(eq.find("i:CumulativeOperatingHours/i:Hour", c).text)
+        assert hours == pytest.approx(plan[machine]["operating_h"], abs=0.01)
+    assert list(got) == list(plan)  # in the plan's order
+    fault = got["m-gw"].find("c:FaultCode", c)  # warns low since its level change
+    assert (fault.find("c:SPN", c).text, fault.find("c:FMI", c).text) == (str(CONDITION_SPN), "17")
+    assert fault.find("c:ActiveSince", c).text == "2026-01-06T12:00:00Z"
+    assert got["m-wear"].find("c:FaultCode", c) is None
+    eol = got["m-ok"].find("c:ConditionMonitoring/c:HoursToEndOfLife", c)
+    assert [e.text for e in eol] == ["12.00", "20.00", "never"]
+    assert main(["fleet", "plan", str(dataset), "--aemp", str(out)]) == 73  # not overwritten without --force

@@ -88,6 +88,13 @@ def add_subparser(sub: Subparsers) -> None:
         "seconds): only rows up to it; ages counted to it (default: everything, ages to now)",
     )
     pl.add_argument("--json", action="store_true", help='print {"machines": [...]} as JSON')
+    pl.add_argument(
+        "--aemp",
+        metavar="FILE",
+        help="also write the plan as an ISO 15143-3 (AEMP 2.0) fleet snapshot (XML; cmcan's results as named "
+        "extension elements, docs/fleet-telematics.md)",
+    )
+    pl.add_argument("--force", action="store_true", help="overwrite an existing --aemp file")
     pl.set_defaults(func=run_plan)
 
     q = fsub.add_parser(
@@ -256,7 +263,18 @@ def run_plan(args: argparse.Namespace) -> int:
     from cmcan.fleet.plan import build, format_table
 
     at_s = None if args.at is None else parse_time(args.at, "--at")
-    rows = build(args.dataset, at_s, time.time() if at_s is None else at_s)
+    now_s = time.time() if at_s is None else at_s
+    if args.aemp:
+        from cmcan.fleet.aemp import export
+
+        out = ensure_writable(args.aemp, args.force)
+        text, rows = export(args.dataset, at_s, now_s)
+        tmp = out.with_name(f".{out.name}.tmp")
+        tmp.write_text(text, encoding="utf-8")
+        tmp.replace(out)
+        print(f"{out}: ISO 15143-3 fleet snapshot of {len(rows)} machines", file=sys.stderr)
+    else:
+        rows = build(args.dataset, at_s, now_s)
     if args.json:
         print_json({"at": at_s, "machines": [r.to_dict() for r in rows]})
     else:
