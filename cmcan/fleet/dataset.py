@@ -552,18 +552,28 @@ def _write_table(table: Any, path: Path) -> None:
     pq.write_table(table, path, compression="zstd", write_page_checksum=True)
 
 
-def fsync_path(path: Path) -> None:
-    """A file's or a folder's content (a folder: its entries, i.e. renames into it) on the disk."""
+def sync_filesystem(path: Path) -> None:
+    """Everything written to the file system holding ``path`` on the disk, renames included, in one
+    flush (``syncfs``: one commit of the file system's journal instead of an fsync per file and
+    folder); ``os.sync`` where the C library has no ``syncfs``."""
+    import ctypes
+
+    libc = ctypes.CDLL(None, use_errno=True)
+    fn = getattr(libc, "syncfs", None)
+    if fn is None:
+        os.sync()
+        return
     fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
     try:
-        os.fsync(fd)
+        if fn(fd) != 0:  # a write-back error of the file system (Linux 5.8+ reports it here)
+            err = ctypes.get_errno()
+            raise OSError(err, os.strerror(err), str(path))
     finally:
         os.close(fd)
 
 
-def write_parquet(path: Path, columns: dict[str, Any] | Any, durable: bool = False) -> None:
-    """One Parquet file, written under a hidden temporary name and renamed (``durable``: fsync'd
-    before the rename, and the rename after it)."""
+def write_parquet(path: Path, columns: dict[str, Any] | Any) -> None:
+    """One Parquet file, written under a hidden temporary name and renamed."""
     import pyarrow as pa
 
     table = columns if isinstance(columns, pa.Table) else _table(columns)
@@ -572,21 +582,17 @@ def write_parquet(path: Path, columns: dict[str, Any] | Any, durable: bool = Fal
         tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
         try:
             _write_table(table, tmp)
-            if durable:
-                fsync_path(tmp)
             os.replace(tmp, path)
-            if durable:
-                fsync_path(path.parent)
         except BaseException:
             tmp.unlink(missing_ok=True)
             raise
 
 
-def write_record(path: Path, row: dict[str, Any], durable: bool = False) -> None:
+def write_record(path: Path, row: dict[str, Any]) -> None:
     """A one-row record with the hash of its own values (as they read back)."""
     t = _table({k: [v] for k, v in row.items()})
     values = t.to_pylist()[0]
-    write_parquet(path, {**{k: [v] for k, v in values.items()}, RECORD_HASH: [record_hash(values)]}, durable)
+    write_parquet(path, {**{k: [v] for k, v in values.items()}, RECORD_HASH: [record_hash(values)]})
 
 
 # Types of the summary's columns that can be NULL in a log's row (a NULL alone has no type).

@@ -9,10 +9,11 @@ them again), and one after it leaves their ids in the commit record (the copies 
 again are duplicates): nothing lost, nothing doubled.
 
 **A batch's commit** (under the data set's commit lock, shared with ``fleet replay``): every file is
-written into the batch's own staging folder and fsync'd (one Parquet file per table, machine and day;
-the quarantine rows in one file), then the commit record, listing each file with its size and
-SHA-256 and the batch's ids (ranges of ``seq`` per stream), with its own ``record_sha256``; then the
-files are renamed into place, the record last, and each folder fsync'd. A batch is in the data set
+written into the batch's own staging folder (one Parquet file per table, machine and day; the
+quarantine rows in one file), then the commit record, listing each file with its size and SHA-256
+and the batch's ids (ranges of ``seq`` per stream), with its own ``record_sha256``; the file system
+is synced (``syncfs``: one flush for the whole batch, not an fsync per file); then the files are
+renamed into place and synced, the record last and synced. A batch is in the data set
 exactly when its record is; a file of an uplink table no record lists is a commit that was cut
 short and is removed when the ingest starts (one ingest per data set: ``_ingest.lock``).
 
@@ -106,45 +107,51 @@ def commit_batch(root: Path, batch: Batch, key: str, now_s: float) -> dict[str, 
         lock = ds.hold_stage(stage)
         stage.mkdir()
     try:
-        files = []
-        for (table, machine, day), rows in sorted(batch.rows.items()):
-            p = stage / table / f"machine={machine}" / f"day={day}" / f"{key}.parquet"
-            ds.write_parquet(p, _arrow(table, rows), durable=True)
-            files.append(_listed(p, table, machine, day))
-        if batch.quarantine:
-            p = stage / UPLINK_QUARANTINE / f"{key}.parquet"
-            ds.write_parquet(p, _arrow(UPLINK_QUARANTINE, batch.quarantine), durable=True)
-            files.append(_listed(p, UPLINK_QUARANTINE, None, None))
-        day = ds.day_of(now_s)
-        record = {
-            "batch": key,
-            "committed_s": now_s,
-            "messages": len(batch),
-            "rows": sum(len(r) for r in batch.rows.values()),
-            "quarantined": len(batch.quarantine),
-            "duplicates": batch.duplicates,
-            ds.FILES: json.dumps(files),
-            "ids": json.dumps(ids_record(batch.dedups)),
-        }
-        staged_record = stage / UPLINK_COMMITS / f"day={day}" / f"{key}.parquet"
-        ds.write_record(staged_record, record, durable=True)
-        with ds.writing("commit a batch", root / UPLINK_COMMITS), ds.commit_lock(root):
-            for f in files:  # the data files first, the record last
-                _move(stage / Path(*place_of(root, f).relative_to(root).parts), place_of(root, f))
-            _move(staged_record, root / UPLINK_COMMITS / f"day={day}" / f"{key}.parquet")
-        return record
+        with ds.writing("write a batch", stage):
+            return _commit(root, batch, key, now_s, stage)
     finally:
         shutil.rmtree(stage, ignore_errors=True)
         stage.with_name(stage.name + ".lock").unlink(missing_ok=True)
         os.close(lock)
 
 
+def _commit(root: Path, batch: Batch, key: str, now_s: float, stage: Path) -> dict[str, Any]:
+    """Staged and listed in the record, synced; then moved into place, the record last, each step synced."""
+    files, staged = [], []  # staged flat (numbered), so no folder per machine is made and removed
+    parts = [(t, m, d, rows) for (t, m, d), rows in sorted(batch.rows.items())]
+    if batch.quarantine:
+        parts.append((UPLINK_QUARANTINE, None, None, batch.quarantine))
+    for n, (table, machine, day, rows) in enumerate(parts):
+        p = stage / f"{n}.parquet"
+        ds.write_parquet(p, _arrow(table, rows))
+        files.append({**_listed(p, table, machine, day), "name": f"{key}.parquet"})
+        staged.append(p)
+    day = ds.day_of(now_s)
+    record = {
+        "batch": key,
+        "committed_s": now_s,
+        "messages": len(batch),
+        "rows": sum(len(r) for r in batch.rows.values()),
+        "quarantined": len(batch.quarantine),
+        "duplicates": batch.duplicates,
+        ds.FILES: json.dumps(files),
+        "ids": json.dumps(ids_record(batch.dedups)),
+    }
+    staged_record = stage / "record.parquet"
+    ds.write_record(staged_record, record)
+    ds.sync_filesystem(stage)  # every staged file on the disk
+    with ds.writing("commit a batch", root / UPLINK_COMMITS), ds.commit_lock(root):
+        for p, f in zip(staged, files, strict=True):  # the data files first, on the disk before the record
+            _move(p, place_of(root, f))
+        ds.sync_filesystem(root)
+        _move(staged_record, root / UPLINK_COMMITS / f"day={day}" / f"{key}.parquet")
+        ds.sync_filesystem(root)  # the record in place: the batch is committed
+    return record
+
+
 def _move(src: Path, dest: Path) -> None:
-    if not dest.parent.is_dir():
-        dest.parent.mkdir(parents=True, exist_ok=True)
-        ds.fsync_path(dest.parent.parent)
+    dest.parent.mkdir(parents=True, exist_ok=True)
     os.replace(src, dest)
-    ds.fsync_path(dest.parent)
 
 
 def committed_files(root: Path, verify: bool = False) -> tuple[dict[str, list[tuple[str | None, Path]]], list[str]]:

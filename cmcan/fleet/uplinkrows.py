@@ -286,7 +286,7 @@ def parse(topic: str, payload: bytes, prefix: str, received_s: float) -> Message
             "time_s": t_s,
             "late": late,
             **_entry_row(p, kind),
-            "payload": dumps(p),
+            "payload": payload.decode("utf-8"),  # as it arrived (it parsed: UTF-8 JSON of one object)
             "received_s": float(received_s),
         }
         dedup = (f"{machine}/{m.group(1)}", seq)
@@ -394,6 +394,7 @@ class Batch:
     quarantine: list[dict[str, Any]] = field(default_factory=list)
     dedups: list[tuple[str, int] | str] = field(default_factory=list)
     digests: dict[str, str] = field(default_factory=dict)  # id -> digest, of this batch's new rows
+    keys: set[str] = field(default_factory=set)  # the quarantined messages' keys (as in dedups)
     acks: list[tuple[int, int]] = field(default_factory=list)  # (mid, qos)
     duplicates: int = 0
     messages: int = 0
@@ -426,10 +427,11 @@ class Batch:
                 self.dedups.append(parsed.dedup)
                 self.digests[parsed.id] = parsed.digest
                 return "new"
-        if parsed.key in seen or parsed.key in self.dedups:
+        if parsed.key in seen or parsed.key in self.keys:
             self.duplicates += 1
             return "duplicate"
         self.dedups.append(parsed.key)
+        self.keys.add(parsed.key)
         self.quarantine.append(quarantine_row(parsed, received_s))
         return "quarantined"
 
