@@ -159,6 +159,7 @@ def main() -> None:
                 "ingest_cpu_us_per_message": round(cpu / a.messages * 1e6),
                 "batches": len(seen),
                 "files": files,
+                "rss_mb_every_10_s": [round(x / 1024, 1) for x in rss[::10]],
                 "rss_mb": {
                     "first": round(rss[0] / 1024, 1),
                     "peak": round(max(rss) / 1024, 1),
