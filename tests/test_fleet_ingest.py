@@ -341,3 +341,16 @@ def test_the_ingest_unit_verifies_and_restarts_only_what_a_restart_can_cure():
         res = subprocess.run(["systemd-analyze", "verify", str(p)], capture_output=True, text=True, timeout=60)
     assert res.returncode == 0, res.stderr
     assert "Unknown" not in res.stderr and "ignoring" not in res.stderr.lower(), res.stderr
+
+
+def test_the_command_line_names_the_option_and_exits_by_kind(tmp_path, capsys):
+    from cmcan.cli import main
+
+    base = ["fleet", "ingest", "--out", str(tmp_path / "ds")]
+    assert main([*base, "--broker", "mqtt://x", "--batch", "5000"]) == 78
+    assert "--batch (uplink.mqtt.max_inflight): expected an integer in [1, 1000], got 5000" in capsys.readouterr().err
+    assert main([*base, "--broker", "mqtts://x", "--ca-file", str(tmp_path / "none.pem")]) == 66
+    assert "--ca-file (uplink.mqtt.tls.ca_file):" in capsys.readouterr().err
+    assert main([*base, "--broker", "mqtt://u:secret@x"]) == 64
+    assert "secret" not in capsys.readouterr().err
+    assert not (tmp_path / "ds").exists()  # nothing made before the options are checked

@@ -17,6 +17,30 @@ from cmcan.errors import CmcanError, Kind
 log = logging.getLogger("cmcan")
 SCHEMES = {"mqtt": False, "mqtts": True}  # scheme -> TLS
 SOURCE = "cmcan fleet ingest"
+# The uplink's settings the options are checked as, and the option each comes from (the messages name both).
+OPTION_OF = {
+    "uplink.mqtt.tls.enabled": "--broker mqtts://",
+    "uplink.mqtt.tls.ca_file": "--ca-file",
+    "uplink.mqtt.tls.cert_file": "--cert-file",
+    "uplink.mqtt.tls.key_file": "--key-file",
+    "uplink.mqtt.host": "--broker",
+    "uplink.mqtt.port": "--broker",
+    "uplink.mqtt.protocol": "--protocol",
+    "uplink.mqtt.client_id": "--client-id",
+    "uplink.mqtt.topic_prefix": "--topic-prefix",
+    "uplink.mqtt.username": "--username",
+    "uplink.mqtt.password_file": "--password-file",
+    "uplink.mqtt.max_inflight": "--batch",
+}
+
+
+def as_options(exc: CmcanError) -> CmcanError:
+    """An error of the uplink's rules with the option it concerns named first (same kind)."""
+    text = str(exc)
+    for field, option in OPTION_OF.items():
+        if f"{field}:" in text:
+            return CmcanError(text.replace(f"{field}:", f"{option} ({field}):", 1), exc.kind)
+    return exc
 
 
 def add_parser(fsub: Subparsers) -> None:
@@ -103,10 +127,12 @@ def run(args: argparse.Namespace) -> int:
         logging.getLogger().setLevel(logging.INFO)
     if not args.batch_wait_s > 0:
         raise CmcanError(f"--batch-wait-s: expected a positive number of seconds, got {args.batch_wait_s}", Kind.USAGE)
-    settings = UplinkSettings.from_raw({"mqtt": mqtt_section(args)}, state_dir=".", source=SOURCE)
-    m = settings.mqtt
-    tls = tls_context(m.tls, SOURCE)
-    password = read_password(m, SOURCE)
+    try:
+        m = UplinkSettings.from_raw({"mqtt": mqtt_section(args)}, state_dir=".", source=SOURCE).mqtt
+        tls = tls_context(m.tls, SOURCE)
+        password = read_password(m, SOURCE)
+    except CmcanError as exc:
+        raise as_options(exc) from None
     root = ds.open_dataset(Path(args.out), create=True)
     with ingest_lock(root):
         removed = ds.remove_orphans(root) + remove_uplink_orphans(root)  # what a kill left behind
