@@ -61,6 +61,7 @@ QOS = 1
 INGEST_LOCK = "_ingest.lock"
 SESSION_EXPIRY_S = 7 * 86400  # MQTT 5: how long the broker keeps the session (and queues) while we are away
 STATUS_EVERY_S = 10.0
+IDLE_FLUSH_S = 0.1  # nothing arrived for this long: the broker's window is full or the stream paused
 
 
 # -- the data set's side ----------------------------------------------------------------------------
@@ -258,10 +259,11 @@ def subscriptions(prefix: str) -> list[tuple[str, int]]:
 
 class Ingest:
     """The subscriber's loop in one thread (``client.loop``): receive into the batch, commit it when
-    it is full (``max_batch``, at most the broker's window of unacknowledged messages) or its oldest
-    message waited ``batch_wait_s``, then acknowledge. A lost connection commits what arrived (its
-    acknowledgements go with the connection: the broker delivers those messages again) and connects
-    again with back-off."""
+    it is full (``max_batch``, at most the broker's window of unacknowledged messages), its oldest
+    message waited ``batch_wait_s`` or nothing arrived for :data:`IDLE_FLUSH_S` (the broker's window
+    is full, as MQTT 3.1.1 brokers keep it small, or the stream paused), then acknowledge. A lost
+    connection commits what arrived (its acknowledgements go with the connection: the broker delivers
+    those messages again) and connects again with back-off."""
 
     def __init__(
         self,
@@ -289,7 +291,7 @@ class Ingest:
         self.stats = IngestStats()
         self.ratelog = RateLimitedLog(clock=clock, logger=log)
         self.batch = Batch()
-        self.batch_started = 0.0
+        self.batch_started = self.last_message = 0.0
         self.client: Any = None
         self.connected = False
         self.lost = False  # the connection ended (on_disconnect)
@@ -382,8 +384,9 @@ class Ingest:
 
     def _on_message(self, _client: Any, _ud: Any, msg: Any) -> None:
         now = self.wall()
+        self.last_message = self.clock()
         if not len(self.batch):
-            self.batch_started = self.clock()
+            self.batch_started = self.last_message
         parsed = parse(msg.topic, msg.payload, self.m.topic_prefix, now)
         what = self.batch.add(parsed, self.seen, now, (msg.mid, msg.qos) if msg.qos > 0 else None)
         self.stats.received += 1
@@ -431,8 +434,11 @@ class Ingest:
                 self.client.disconnect()
             self._failed(why)
             return
-        if len(self.batch) >= self.max_batch or (
-            len(self.batch) and self.clock() - self.batch_started >= self.batch_wait_s
+        now = self.clock()
+        if len(self.batch) and (
+            len(self.batch) >= self.max_batch
+            or now - self.batch_started >= self.batch_wait_s
+            or now - self.last_message >= IDLE_FLUSH_S
         ):
             self.flush()
 
