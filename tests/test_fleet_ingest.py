@@ -354,3 +354,60 @@ def test_the_command_line_names_the_option_and_exits_by_kind(tmp_path, capsys):
     assert main([*base, "--broker", "mqtt://u:secret@x"]) == 64
     assert "secret" not in capsys.readouterr().err
     assert not (tmp_path / "ds").exists()  # nothing made before the options are checked
+
+
+# -- the loop's rules, with a stand-in client and clock -------------------------------------------------
+
+
+class LoopClient(FakeClient):
+    """Hands the messages queued in ``inbox`` to the ingest at its next ``loop``."""
+
+    def __init__(self, root: Path, ing: ig.Ingest) -> None:
+        super().__init__(root)
+        self.ing = ing
+        self.inbox: list[tuple[str, bytes]] = []
+        self.mid = 0
+
+    def loop(self, timeout: float) -> int:
+        for tp, body in self.inbox:
+            self.mid += 1
+            self.ing._on_message(self, None, SimpleNamespace(topic=tp, payload=body, mid=self.mid, qos=1))
+        self.inbox.clear()
+        return 0
+
+    def disconnect(self) -> None:
+        pass
+
+
+def looping(tmp_path: Path) -> tuple[ig.Ingest, LoopClient, list[float]]:
+    now = [100.0]
+    m = SimpleNamespace(max_inflight=5, topic_prefix="cmcan", reconnect_min_s=1.0, reconnect_max_s=2.0)
+    root = ds.open_dataset(tmp_path / "ds", create=True)
+    ing = ig.Ingest(root, m, Seen(), clock=lambda: now[0], batch_wait_s=10.0)  # type: ignore[arg-type]
+    client = LoopClient(ing.root, ing)
+    ing.client, ing.connected = client, True
+    return ing, client, now
+
+
+def test_a_batch_is_committed_when_full_or_when_nothing_more_arrives(tmp_path):
+    ing, client, now = looping(tmp_path)
+    client.inbox = [(topic(), payload(seq=i)) for i in range(1, 8)]  # more than a batch (5)
+    ing.step()
+    assert client.acked == [1, 2, 3, 4, 5, 6, 7] and ing.stats.batches == 1  # full: committed at once
+    client.inbox = [(topic(), payload(seq=8))]
+    ing.step()
+    assert client.acked[-1] == 7  # one message, just arrived: it waits
+    now[0] += ig.IDLE_FLUSH_S * 2  # (well before batch_wait_s)
+    ing.step()
+    assert client.acked[-1] == 8 and ing.stats.batches == 2  # nothing more came: committed
+
+
+def test_a_lost_connection_commits_what_arrived_and_acknowledges_nothing(tmp_path):
+    ing, client, _now = looping(tmp_path)
+    client.inbox = [(topic(), payload(seq=i)) for i in range(1, 3)]
+    ing.step()  # arrived, not yet due
+    ing.lost = True
+    ing.step()
+    assert client.acked == [] and ing.client is None and ing.failures == 1  # the broker sends them again
+    seen, n = ig.load_seen(ing.root)
+    assert n == 1 and ("wl-1/7d58", 2) in seen  # and they are duplicates then
