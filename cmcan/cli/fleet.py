@@ -9,7 +9,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from cmcan.cli import fleet_train
+from cmcan.cli import fleet_ingest, fleet_train
 from cmcan.cli.common import Subparsers
 from cmcan.cli.errors import EX_DATAERR, ensure_writable, require_extra
 from cmcan.cli.jsonout import print_json
@@ -88,12 +88,20 @@ def add_subparser(sub: Subparsers) -> None:
         "seconds): only rows up to it; ages counted to it (default: everything, ages to now)",
     )
     pl.add_argument("--json", action="store_true", help='print {"machines": [...]} as JSON')
+    pl.add_argument(
+        "--aemp",
+        metavar="FILE",
+        help="also write the plan as an ISO 15143-3 (AEMP 2.0) fleet snapshot (XML; cmcan's results as named "
+        "extension elements, docs/fleet-telematics.md)",
+    )
+    pl.add_argument("--force", action="store_true", help="overwrite an existing --aemp file")
     pl.set_defaults(func=run_plan)
 
     q = fsub.add_parser(
         "query",
         help="SQL over the data set with DuckDB",
-        description="Run SQL on the views timeline, events, logs, quarantine and machine_logs (docs/fleet.md).",
+        description="Run SQL on the views timeline, events, logs, quarantine, machine_logs, machines and the "
+        "uplink's uplink_summaries, uplink_events, uplink_dropped, uplink_status, uplink_quarantine (docs/fleet.md).",
     )
     q.add_argument("dataset", help="data set folder")
     q.add_argument("sql", help='the statement, e.g. "SELECT machine, sum(warnings_low) FROM logs GROUP BY 1"')
@@ -108,6 +116,7 @@ def add_subparser(sub: Subparsers) -> None:
     q.set_defaults(func=run_query)
 
     fleet_train.add_parser(fsub)
+    fleet_ingest.add_parser(fsub)
 
     d = fsub.add_parser(
         "drop",
@@ -254,7 +263,18 @@ def run_plan(args: argparse.Namespace) -> int:
     from cmcan.fleet.plan import build, format_table
 
     at_s = None if args.at is None else parse_time(args.at, "--at")
-    rows = build(args.dataset, at_s, time.time() if at_s is None else at_s)
+    now_s = time.time() if at_s is None else at_s
+    if args.aemp:
+        from cmcan.fleet.aemp import export
+
+        out = ensure_writable(args.aemp, args.force)
+        text, rows = export(args.dataset, at_s, now_s)
+        tmp = out.with_name(f".{out.name}.tmp")
+        tmp.write_text(text, encoding="utf-8")
+        tmp.replace(out)
+        print(f"{out}: ISO 15143-3 fleet snapshot of {len(rows)} machines", file=sys.stderr)
+    else:
+        rows = build(args.dataset, at_s, now_s)
     if args.json:
         print_json({"at": at_s, "machines": [r.to_dict() for r in rows]})
     else:

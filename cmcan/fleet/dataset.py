@@ -552,6 +552,26 @@ def _write_table(table: Any, path: Path) -> None:
     pq.write_table(table, path, compression="zstd", write_page_checksum=True)
 
 
+def sync_filesystem(path: Path) -> None:
+    """Everything written to the file system holding ``path`` on the disk, renames included, in one
+    flush (``syncfs``: one commit of the file system's journal instead of an fsync per file and
+    folder); ``os.sync`` where the C library has no ``syncfs``."""
+    import ctypes
+
+    libc = ctypes.CDLL(None, use_errno=True)
+    fn = getattr(libc, "syncfs", None)
+    if fn is None:
+        os.sync()
+        return
+    fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
+    try:
+        if fn(fd) != 0:  # a write-back error of the file system (Linux 5.8+ reports it here)
+            err = ctypes.get_errno()
+            raise OSError(err, os.strerror(err), str(path))
+    finally:
+        os.close(fd)
+
+
 def write_parquet(path: Path, columns: dict[str, Any] | Any) -> None:
     """One Parquet file, written under a hidden temporary name and renamed."""
     import pyarrow as pa

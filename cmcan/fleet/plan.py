@@ -14,6 +14,7 @@ dates by as much: the hours hold, the dates follow the utilisation.
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as dt
 import math
 from collections.abc import Sequence
@@ -32,6 +33,7 @@ WARNING_LEVELS = ("low", "high")
 UTILISATION_DAYS = 14.0  # the recent days the utilisation is taken over
 STALE_DAYS = 7.0  # a machine not heard for longer is flagged: its row is that old
 NOT_CONFIGURED = "not_configured"
+LOGS, UPLINK = "logs", "uplink"  # the two sources of a machine's state
 _STATE_NAMES = {code: name for name, code in STATE_CODES.items()}
 _DIRECTION_NAMES = {code: name for name, code in DIRECTION_CODES.items() if name}
 _BASELINE_NAMES = {int(m): name for m, name in MODE_NAMES.items()}
@@ -56,6 +58,7 @@ class Facts:
     recent_days: float = 1.0  # those days (at least one)
     fit: str = "unknown"
     end_of_life: str | None = None
+    source: str = LOGS  # where its latest state came from: its logs, or its gateway's uplink
 
 
 @dataclass(frozen=True)
@@ -78,6 +81,7 @@ class Row:
     last_heard_days: float
     end_of_life: str | None
     flags: list[str] = field(default_factory=list)
+    source: str = LOGS
 
     def to_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -171,6 +175,7 @@ def plan(machines: Sequence[Facts], now_s: float) -> list[Row]:
                 last_heard_days=round((now_s - f.last_heard_s) / 86400.0, 2),
                 end_of_life=f.end_of_life,
                 flags=flags_of(f, now_s),
+                source=f.source,
             )
         )
     return rows
@@ -189,8 +194,78 @@ _ROWS = """
 
 
 def facts(con: Any, at_s: float) -> list[Facts]:
-    """Every machine heard up to ``at_s`` (epoch s) as :class:`Facts` (one query over the data set's
-    views; the states and hours of its latest evaluated row, its level at its latest row)."""
+    """Every machine heard up to ``at_s`` (epoch s) as :class:`Facts`, from its logs and from its
+    gateway's uplink: a machine known from both once, from the source heard last (:func:`merge`)."""
+    return merge(log_facts(con, at_s), uplink_facts(con, at_s))
+
+
+def merge(from_logs: Sequence[Facts], from_uplink: Sequence[Facts]) -> list[Facts]:
+    """One :class:`Facts` per machine: the one heard last (the logs on a tie); a machine's uplink
+    state keeps what only its logs know (the fit check, what end of life means)."""
+    out = {f.machine: f for f in from_logs}
+    for u in from_uplink:
+        f = out.get(u.machine)
+        if f is None:
+            out[u.machine] = u
+        elif u.last_heard_s > f.last_heard_s:
+            out[u.machine] = dataclasses.replace(u, fit=f.fit, end_of_life=f.end_of_life)
+    return [out[m] for m in sorted(out)]
+
+
+_BASELINE_CODES = {name: int(mode) for mode, name in MODE_NAMES.items()}
+
+
+def uplink_facts(con: Any, at_s: float) -> list[Facts]:
+    """Every machine with a summary up to ``at_s`` in the uplink's rows: its latest summary's states
+    and hours, its level at its latest summary or level change (whichever is later), its operating
+    hours as the monitor counts them (time in any level since commissioning)."""
+    rows = con.execute(
+        f"""
+        WITH s AS (SELECT * FROM uplink_summaries WHERE time_s <= ?),
+        lv AS (SELECT machine, time_s, level FROM s
+               UNION ALL SELECT machine, time_s, to_level FROM uplink_events
+               WHERE type = 'level_change' AND to_level IS NOT NULL AND time_s <= ?),
+        heard AS (SELECT machine, max(time_s) AS last_s, arg_max(level, time_s) AS level FROM lv GROUP BY machine),
+        latest AS (SELECT machine, arg_max({{'filt': ratio_filt_pct, 'base': baseline_state,
+                          'state': prognosis_state, 'dir': prognosis_direction, 'warn': prognosis_to_warning_h,
+                          'p10': prognosis_to_eol_p10_h, 'p50': prognosis_to_eol_p50_h,
+                          'p90': prognosis_to_eol_p90_h, 'op': operating_total_h}}, time_s) AS v,
+                          max(time_s) AS last_s
+                   FROM s GROUP BY machine),
+        recent AS (SELECT s.machine, max(s.operating_total_h) - min(s.operating_total_h) AS recent_h,
+                          (max(s.time_s) - min(s.time_s)) / 86400.0 AS recent_days
+                   FROM s JOIN latest USING (machine)
+                   WHERE s.time_s >= latest.last_s - {UTILISATION_DAYS * 86400.0} GROUP BY s.machine)
+        SELECT latest.machine, heard.last_s, heard.level, latest.v, recent.recent_h, recent.recent_days
+        FROM latest JOIN heard USING (machine) LEFT JOIN recent USING (machine)
+        ORDER BY latest.machine""",
+        [at_s, at_s],
+    ).fetchall()
+    out = []
+    for machine, last_s, level, v, recent_h, recent_days in rows:
+        out.append(
+            Facts(
+                machine=machine,
+                last_heard_s=float(last_s),
+                operating_h=_num(v["op"]),
+                level=str(level or "ok"),
+                ratio_filt_pct=_num(v["filt"]),
+                baseline_state=_BASELINE_CODES.get(v["base"], 0),
+                prognosis_state=STATE_CODES.get(v["state"], 0),
+                direction=DIRECTION_CODES.get(v["dir"] or "", 0),
+                to_warning_h=_num(v["warn"]),
+                to_eol_h=(_num(v["p10"]), _num(v["p50"]), _num(v["p90"])),
+                recent_h=max(_num(recent_h), 0.0) if recent_h is not None else 0.0,
+                recent_days=max(_num(recent_days), 1.0) if recent_days is not None else 1.0,
+                source=UPLINK,
+            )
+        )
+    return out
+
+
+def log_facts(con: Any, at_s: float) -> list[Facts]:
+    """Every machine heard up to ``at_s`` (epoch s) in its logs as :class:`Facts` (one query over the
+    data set's views; the states and hours of its latest evaluated row, its level at its latest row)."""
     rows = con.execute(
         f"""
         WITH r AS ({_ROWS}),
@@ -248,7 +323,7 @@ def build(root: Any, at_s: float | None, now_s: float) -> list[Row]:
     counted to ``now_s`` (the plan's time: ``at_s`` where given)."""
     from cmcan.fleet.query import connect
 
-    con = connect(root, tables={"timeline"})
+    con = connect(root, tables={"timeline", "uplink_summaries", "uplink_events"})
     try:
         return plan(facts(con, math.inf if at_s is None else at_s), now_s)
     finally:
@@ -298,7 +373,7 @@ def format_table(rows: Sequence[Row]) -> str:
             "/".join(hours_text(h) for h in r.to_eol_h),
             " / ".join(d or "-" for d in r.due_date[:2]),
             hours_text(r.utilisation_h_per_day, "{:.1f}"),
-            f"{r.last_heard[:10]} ({r.last_heard_days:.0f} d)",
+            f"{r.last_heard[:10]} ({r.last_heard_days:.0f} d{', uplink' if r.source == UPLINK else ''})",
             ",".join(r.flags) or "-",
         )
         for r in rows

@@ -28,6 +28,8 @@ from typing import Any
 
 from cmcan.errors import CmcanError, Kind
 from cmcan.fleet import dataset as ds
+from cmcan.fleet.uplinkrows import COLUMNS as UPLINK_COLUMNS
+from cmcan.fleet.uplinkrows import UPLINK_QUARANTINE, UPLINK_TABLES
 
 # Columns of a table that has no file yet, so queries (and the report) over an empty data set run.
 _F, _I, _S, _B = "double", "int64", "string", "bool"
@@ -142,6 +144,9 @@ EMPTY: dict[str, dict[str, str]] = {
         ds.RECORD_HASH: _S,
     },
 }
+# The uplink's tables (``cmcan fleet ingest``), as its rows are written (one vocabulary).
+EMPTY.update({t: dict(UPLINK_COLUMNS[t]) for t in (*UPLINK_TABLES, UPLINK_QUARANTINE)})
+ALL_TABLES = (*ds.TABLES, *UPLINK_TABLES, UPLINK_QUARANTINE)
 PROVENANCE_KEYS = ("log_hash", "config_hash", "dbc_hash", "model_hash")
 # Which tables' files each view reads.
 VIEW_TABLES = {
@@ -151,6 +156,7 @@ VIEW_TABLES = {
     "quarantine": ("quarantine",),
     "machine_logs": ("logs",),
     "machines": ("logs",),
+    **{t: (t,) for t in (*UPLINK_TABLES, UPLINK_QUARANTINE)},
 }
 # DuckDB with nothing outside the views: set at connect, then locked.
 LOCKDOWN = {
@@ -186,8 +192,8 @@ def require_duckdb() -> Any:
 def _empty(table: str) -> Any:
     import pyarrow as pa
 
-    fields = [pa.field("machine", pa.string())]
-    if table != ds.QUARANTINE:
+    fields = [] if table == UPLINK_QUARANTINE else [pa.field("machine", pa.string())]  # (its own column)
+    if table not in (ds.QUARANTINE, UPLINK_QUARANTINE):
         fields.append(pa.field("day", pa.date32()))
     fields += [pa.field(k, pa.type_for_alias(t)) for k, t in EMPTY[table].items()]
     return pa.schema(fields).empty_table()
@@ -251,6 +257,7 @@ def _data_dataset(root: Path, table: str, files: list[Path]) -> Any:
     import pyarrow.dataset as pds
     import pyarrow.parquet as pq
 
+    partitioned = table != UPLINK_QUARANTINE
     part = pds.partitioning(pa.schema([("machine", pa.string()), ("day", pa.date32())]), flavor="hive")
     if not files:
         return _empty(table)
@@ -265,10 +272,13 @@ def _data_dataset(root: Path, table: str, files: list[Path]) -> Any:
         raise ds.Damaged(problems)
     # the columns cmcan writes today are there in every data set (null in files written before them):
     # a data set from an older cmcan answers the plan and the report instead of a binder error
-    schema = pa.unify_schemas([*schemas, part.schema, _empty(table).schema], promote_options="permissive")
+    parts = [part.schema] if partitioned else []
+    schema = pa.unify_schemas([*schemas, *parts, _empty(table).schema], promote_options="permissive")
     fmt = pds.ParquetFileFormat(
         default_fragment_scan_options=pds.ParquetFragmentScanOptions(page_checksum_verification=True)
     )
+    if not partitioned:
+        return pds.dataset([str(f) for f in files], schema=schema, format=fmt)
     return pds.dataset(
         [str(f) for f in files], schema=schema, format=fmt, partitioning=part, partition_base_dir=str(root / table)
     )
@@ -291,7 +301,7 @@ def plan_statement(sql: str) -> set[str]:
         try:
             names = {n.lower() for n in con.get_table_names(sql)}
         except duckdb.Error:
-            return set(ds.TABLES)
+            return set(ALL_TABLES)
     finally:
         con.close()
     return {t for n in names for t in VIEW_TABLES.get(n, ())}
@@ -303,7 +313,7 @@ def connect(root: str | Path, verify: bool = True, tables: set[str] | None = Non
     damaged file raises :class:`cmcan.fleet.dataset.Damaged`."""
     duckdb = require_duckdb()
     root = ds.open_dataset(Path(root), create=False)
-    want = set(ds.TABLES) if tables is None else tables
+    want = set(ALL_TABLES) if tables is None else tables
     logs, problems = _records(root, ds.SUMMARY_TABLE)
     quarantine, q_problems = _records(root, ds.QUARANTINE)
     if ds.QUARANTINE in want:
@@ -314,6 +324,12 @@ def connect(root: str | Path, verify: bool = True, tables: set[str] | None = Non
             data[t] += ds.data_files(root, rec["machine"], rec, t)
         if verify and want & set(ds.DATA_TABLES):
             problems += ds.check_files(root, rec["machine"], rec, want & set(ds.DATA_TABLES))
+    uplink: dict[str, list[Any]] = {}
+    if want & {*UPLINK_TABLES, UPLINK_QUARANTINE}:  # the gateways' rows, from the ingest's commit records
+        from cmcan.fleet.ingest import committed_files
+
+        uplink, up_problems = committed_files(root, verify)
+        problems += up_problems
     if problems:
         raise ds.Damaged(problems)
     con = _locked(duckdb)
@@ -323,6 +339,9 @@ def connect(root: str | Path, verify: bool = True, tables: set[str] | None = Non
         for t in ds.DATA_TABLES:  # a table the statement does not read is not opened (nor there)
             if t in want:
                 con.register(t, _data_dataset(root, t, data[t]))
+        for t in (*UPLINK_TABLES, UPLINK_QUARANTINE):
+            if t in want:
+                con.register(t, _data_dataset(root, t, [p for _m, p in uplink.get(t, [])]))
         _derived_views(con)
         con.execute("SET lock_configuration = true")
     except BaseException:
@@ -379,7 +398,7 @@ def check_statement(con: Any, sql: str) -> None:
     if kind not in ALLOWED_STATEMENTS:
         raise QueryRefused(
             f"query refused: statement type {kind}; fleet query is read-only and runs one SELECT over the views "
-            "timeline, events, logs, quarantine, machine_logs, machines (docs/security.md)"
+            "timeline, events, logs, quarantine, machine_logs, machines and the uplink's tables (docs/security.md)"
         )
 
 

@@ -311,7 +311,8 @@ def plan_section(rows: list[service.Row], spark: dict[str, bytes]) -> list[str]:
             f"<td>{' / '.join(service.hours_text(h, '{:.0f}', '&ndash;') for h in r.to_eol_h)}</td>"
             f"<td class='l'>{_date_span(r.due_date)}</td>"
             f"<td>{service.hours_text(r.utilisation_h_per_day, '{:.1f}', '&ndash;')}</td>"
-            f"<td class='l'>{html.escape(r.last_heard[:10])} ({r.last_heard_days:.0f} d)</td>"
+            f"<td class='l'>{html.escape(r.last_heard[:10])} ({r.last_heard_days:.0f} d"
+            f"{', uplink' if r.source == service.UPLINK else ''})</td>"
             f"<td class='l'>{html.escape(', '.join(f.replace('_', ' ') for f in r.flags)) or '&ndash;'}</td>"
             f"<td class='l spark'>{chart}</td></tr>"
         )
