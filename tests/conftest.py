@@ -74,21 +74,20 @@ def db():
 
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None):
-    """Under xdist, a vcan test (setup, where the VM runs them all, call and teardown) is first in
-    line for the CPU: tests that start while it runs run at idle priority; see
-    ``tests/machine_share.py``."""
+    """Under xdist, a vcan test (setup, where the VM runs them all, call and teardown) has the
+    machine to itself; see ``tests/machine_share.py``."""
     if not os.environ.get("PYTEST_XDIST_WORKER"):
         yield
         return
     from tests.machine_share import machine_share
 
-    with machine_share(realtime=item.get_closest_marker("vcan") is not None):
+    with machine_share(exclusive=item.get_closest_marker("vcan") is not None):
         yield
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """The longest files first: the vcan tier's (the VM, first in line for the CPU while the other
-    workers go on at idle priority beside it), then files with a slow test, then the rest, each file's tests in
+    """The longest files first: the vcan tier's (the VM, which then has the machine while the other
+    workers have only started), then files with a slow test, then the rest, each file's tests in
     their own order. xdist's loadfile distribution hands files to the workers in this order, and a
     long file taken last leaves the other workers idle while it runs (the soak's 3 min at the end
     of a CI run)."""
