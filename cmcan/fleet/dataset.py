@@ -48,7 +48,7 @@ import re
 import shutil
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -81,6 +81,20 @@ def sha256_file(path: str | Path) -> str:
         while chunk := f.read(HASH_CHUNK):
             h.update(chunk)
     return h.hexdigest()
+
+
+def file_problem(path: Path, entry: Mapping[str, Any], verify: bool = True) -> str | None:
+    """What is wrong with a committed file against its commit record's entry (its size, then, with
+    ``verify``, its SHA-256), or None."""
+    try:
+        size = path.stat().st_size
+    except OSError:
+        return f"{path}: missing"
+    if size != entry["bytes"]:
+        return f"{path}: {size} bytes, its commit record says {entry['bytes']}"
+    if verify and sha256_file(path) != entry["sha256"]:
+        return f"{path}: content differs from its commit record (SHA-256)"
+    return None
 
 
 # -- errors of the data set's own files -------------------------------------------------------------
@@ -456,16 +470,9 @@ def check_files(root: Path, machine: str, record: dict[str, Any], tables: Any = 
     for f in files:
         if f["table"] not in tables:
             continue
-        p = partition(root, f["table"], machine, f["day"]) / f["name"]
-        try:
-            size = p.stat().st_size
-        except OSError:
-            problems.append(f"{p}: missing")
-            continue
-        if size != f["bytes"]:
-            problems.append(f"{p}: {size} bytes, its commit record says {f['bytes']}")
-        elif sha256_file(p) != f["sha256"]:
-            problems.append(f"{p}: content differs from its commit record (SHA-256)")
+        problem = file_problem(partition(root, f["table"], machine, f["day"]) / f["name"], f)
+        if problem:
+            problems.append(problem)
     return problems
 
 

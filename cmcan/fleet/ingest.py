@@ -170,15 +170,9 @@ def committed_files(root: Path, verify: bool = False) -> tuple[dict[str, list[tu
         for f in files:
             path = place_of(root, f)
             out[f["table"]].append((f["machine"], path))
-            try:
-                size = path.stat().st_size
-            except OSError:
-                problems.append(f"{path}: missing")
-                continue
-            if size != f["bytes"]:
-                problems.append(f"{path}: {size} bytes, its commit record says {f['bytes']}")
-            elif verify and ds.sha256_file(path) != f["sha256"]:
-                problems.append(f"{path}: content differs from its commit record (SHA-256)")
+            problem = ds.file_problem(path, f, verify)
+            if problem:
+                problems.append(problem)
     return out, problems
 
 
