@@ -114,3 +114,17 @@ def helpers_impl(impl: str) -> Iterator[None]:
         yield
     finally:
         native.LIB = saved
+
+
+def systemd_verify(unit: str, file_name: str) -> None:
+    """``systemd-analyze verify`` of the unit text ``unit`` saved as ``file_name``: it must pass with
+    no unknown or ignored setting."""
+    import subprocess
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / file_name
+        p.write_text(unit)
+        res = subprocess.run(["systemd-analyze", "verify", str(p)], capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0, res.stderr
+    assert "Unknown" not in res.stderr and "ignoring" not in res.stderr.lower(), res.stderr

@@ -13,6 +13,7 @@ import yaml
 from cmcan.cli.errors import EX_CANTCREAT, EX_CONFIG, EX_NOINPUT, EX_UNAVAILABLE
 from tests.conftest import ROOT, run_cli
 from tests.daemon_proc import DaemonProc, virtual_config
+from tests.helpers import systemd_verify
 
 
 def config_copy(tmp_path: Path, **changes) -> Path:
@@ -110,7 +111,6 @@ def test_an_unwritable_state_directory(tmp_path):
 def test_systemd_unit_verifies(unit_name):
     if shutil.which("systemd-analyze") is None:
         pytest.fail("systemd-analyze is not installed (the CI installs the systemd package)")
-    import subprocess
 
     # the entry point beside this interpreter (a venv not on PATH), else on PATH
     beside = Path(sys.executable).parent / "cmcan"
@@ -133,14 +133,7 @@ def test_systemd_unit_verifies(unit_name):
         "IPAddressDeny=any",
     ):
         assert key in unit
-    import tempfile
-
-    with tempfile.TemporaryDirectory() as d:
-        p = Path(d) / unit_name.replace("@", "@left-travel")  # a template verifies as an instance
-        p.write_text(unit)
-        res = subprocess.run(["systemd-analyze", "verify", str(p)], capture_output=True, text=True, timeout=60)
-    assert res.returncode == 0, res.stderr
-    assert "Unknown" not in res.stderr and "ignoring" not in res.stderr.lower(), res.stderr
+    systemd_verify(unit, unit_name.replace("@", "@left-travel"))  # a template verifies as an instance
 
 
 def test_the_per_drive_template_is_the_single_unit_but_for_its_instance():

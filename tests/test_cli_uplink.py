@@ -18,6 +18,7 @@ from cmcan.uplink.outbox import Outbox
 from cmcan.uplink.records import Entry
 from cmcan.uplink.writer import OutboxWriter
 from tests.conftest import run_cli
+from tests.helpers import systemd_verify
 from tests.uplink_support import (
     Broker,
     Subscriber,
@@ -265,7 +266,6 @@ def test_username_and_password(tmp_path, state):
 
 
 def test_uplink_unit_verifies_and_keeps_the_bus_and_the_network_apart():
-    import tempfile
 
     if shutil.which("systemd-analyze") is None:
         pytest.fail("systemd-analyze is not installed (the CI installs the systemd package)")
@@ -281,12 +281,7 @@ def test_uplink_unit_verifies_and_keeps_the_bus_and_the_network_apart():
     for key in ("Type=notify", "WatchdogSec=", "DynamicUser=yes", "User=cmcan", "StateDirectory=cmcan",
                 "MemoryDenyWriteExecute=yes", "CapabilityBoundingSet=\n", "RestrictNamespaces=yes"):  # fmt: skip
         assert key in uplink, key
-    with tempfile.TemporaryDirectory() as d:
-        p = Path(d) / "cmcan-uplink.service"
-        p.write_text(uplink.replace("/usr/local/bin/cmcan", exe))
-        res = subprocess.run(["systemd-analyze", "verify", str(p)], capture_output=True, text=True, timeout=60)
-    assert res.returncode == 0, res.stderr
-    assert "Unknown" not in res.stderr and "ignoring" not in res.stderr.lower(), res.stderr
+    systemd_verify(uplink.replace("/usr/local/bin/cmcan", exe), "cmcan-uplink.service")
 
 
 @needs_mosquitto

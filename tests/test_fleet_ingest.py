@@ -30,6 +30,7 @@ from cmcan.fleet.uplinkrows import (
     parse,
 )
 from cmcan.uplink.records import envelope
+from tests.helpers import systemd_verify
 
 T0 = 1767225600.0
 
@@ -312,9 +313,7 @@ def test_mqtts_gives_tls_on_8883():
 
 def test_the_ingest_unit_verifies_and_restarts_only_what_a_restart_can_cure():
     import shutil
-    import subprocess
     import sys
-    import tempfile
 
     from cmcan.cli.errors import EX_DATAERR, EX_IOERR, EX_SOFTWARE, EX_TEMPFAIL, EXIT_CODES
 
@@ -335,12 +334,7 @@ def test_the_ingest_unit_verifies_and_restarts_only_what_a_restart_can_cure():
     beside = Path(sys.executable).with_name("cmcan")
     exe = shutil.which("cmcan") or (str(beside) if beside.exists() else None)
     assert exe, "the cmcan entry point must be installed"
-    with tempfile.TemporaryDirectory() as d:
-        p = Path(d) / "cmcan-fleet-ingest.service"
-        p.write_text(unit.replace("/usr/local/bin/cmcan", exe))
-        res = subprocess.run(["systemd-analyze", "verify", str(p)], capture_output=True, text=True, timeout=60)
-    assert res.returncode == 0, res.stderr
-    assert "Unknown" not in res.stderr and "ignoring" not in res.stderr.lower(), res.stderr
+    systemd_verify(unit.replace("/usr/local/bin/cmcan", exe), "cmcan-fleet-ingest.service")
 
 
 def test_the_command_line_names_the_option_and_exits_by_kind(tmp_path, capsys):
