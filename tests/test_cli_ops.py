@@ -97,3 +97,14 @@ def test_demo_without_the_plot_extra_says_so_before_running(tmp_path):
     assert "pip install 'cmcan[plot]'" in res.stderr and "--no-plot" in res.stderr
     assert len(res.stderr.strip().splitlines()) == 1
     assert not out.exists()  # nothing made before the refusal
+
+
+def test_a_command_runs_openblas_on_one_thread_unless_the_caller_chose(monkeypatch):
+    from cmcan.cli import one_blas_thread
+
+    monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
+    one_blas_thread()
+    assert os.environ["OPENBLAS_NUM_THREADS"] == "1"
+    monkeypatch.setenv("OPENBLAS_NUM_THREADS", "3")
+    one_blas_thread()
+    assert os.environ["OPENBLAS_NUM_THREADS"] == "3"

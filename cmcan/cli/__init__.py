@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import sys
 from collections.abc import Sequence
 from typing import NoReturn
@@ -71,7 +72,16 @@ def _unraisable(u: sys.UnraisableHookArgs) -> None:
     logging.getLogger("cmcan").debug("ignored in %r: %s: %s", u.object, u.exc_type.__name__, u.exc_value)
 
 
+def one_blas_thread() -> None:
+    """OpenBLAS on one thread unless the caller says otherwise, set before numpy is imported: the
+    monitor's arrays are small, so a thread pool per core only costs its start (some 50 ms of every
+    command on a 2-core gateway) and makes sums depend on the core count; fleet work spreads over
+    processes instead (Dask's workers inherit this)."""
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    one_blas_thread()
     from cmcan.io import mf4support
 
     mf4support.defer()  # python-can without asammdf and pandas until a log is an MF4 (1.1 s a start)
