@@ -95,6 +95,19 @@ def run(args: argparse.Namespace) -> int:
     if "plot" in outs:
         require_extra("plot", "matplotlib")
     logs = _logs(args.log)
+    from cmcan.io import readproc
+
+    if args.engine == "columnar" and any(p.suffix.lower() == ".mf4" for p in logs):
+        from cmcan.io.mf4columns import preload
+
+        readproc.warm(preload)  # asammdf imported by the reader process while the monitor is built
+    try:
+        return _run(args, outs, logs)
+    finally:
+        readproc.cancel()  # a reader nothing took (the configuration refused, the first log a candump)
+
+
+def _run(args: argparse.Namespace, outs: dict[str, Path], logs: list[Path]) -> int:
     cfg = load_config(args.config, check_dbc=False)
     from cmcan.assemble import assemble, build_monitor
     from cmcan.monitor.totals import Totals

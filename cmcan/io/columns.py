@@ -55,7 +55,10 @@ def column_chunks(
                 progress(done[0], frames)
         return
     if p.suffix.lower() == ".mf4":
-        for cols in read_ahead(mf4_chunks(p, chunk_frames)):  # the next chunk read while this one replays
+        from cmcan.io.readproc import read_in_process
+
+        # read in a process of its own: asammdf holds the GIL (a thread would only take turns)
+        for cols in read_in_process(mf4_chunks, p, chunk_frames):
             frames += len(cols)
             yield cols
             if progress is not None:
@@ -92,7 +95,7 @@ def mf4_chunks(p: Path, chunk_frames: int = CHUNK_FRAMES) -> Iterator[FrameColum
         raise LogError(f"{p}: cannot read as a .mf4 log: {type(exc).__name__}: {exc}") from None
     n, names = 0, set()
     try:
-        chunks = iter_mf4_columns(mdf, chunk_frames)
+        chunks = iter_mf4_columns(mdf, chunk_frames, max(1, chunk_frames // 8))  # the replay starts sooner
         while True:
             try:
                 cols = next(chunks)

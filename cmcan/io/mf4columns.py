@@ -22,6 +22,8 @@ bytes or too many channels is a :class:`cmcan.io.candump.LogError` naming the fr
 
 from __future__ import annotations
 
+import contextlib
+import logging
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -141,14 +143,16 @@ def _merge(parts: list[FrameColumns]) -> FrameColumns:
     return both.take(np.argsort(both.timestamp_s, kind="stable"))
 
 
-def iter_mf4_columns(mdf: Any, chunk_frames: int) -> Iterator[FrameColumns]:
-    """The CAN frames of an open MDF as chunks of columns in python-can's order (see the module)."""
+def iter_mf4_columns(mdf: Any, chunk_frames: int, first_frames: int | None = None) -> Iterator[FrameColumns]:
+    """The CAN frames of an open MDF as chunks of columns in python-can's order (see the module);
+    each group's first read ``first_frames`` long when given (a replay starts on it sooner)."""
     start_s = float(mdf.header.start_time.timestamp())
     groups = can_groups(mdf)
     while True:
         for g in groups:  # every group with more to read holds a chunk it has not merged yet
             if g.more and (g.pending is None or len(g.pending) == 0):
-                g.pending = chunk_of(mdf, g, chunk_frames, start_s)
+                first = g.offset == 0 and first_frames is not None
+                g.pending = chunk_of(mdf, g, min(first_frames, chunk_frames) if first else chunk_frames, start_s)
         live = [g for g in groups if g.pending is not None and len(g.pending)]
         if not live:
             return
@@ -177,6 +181,14 @@ def iter_mf4_columns(mdf: Any, chunk_frames: int) -> Iterator[FrameColumns]:
             assert g.pending is not None
             if g.more and float(g.pending.timestamp_s[-1]) == horizon:
                 g.pending = FrameColumns.concat([g.pending, chunk_of(mdf, g, chunk_frames, start_s)])
+
+
+def preload() -> None:
+    """What reading an MF4 needs, imported ahead (a reader process's start, :mod:`cmcan.io.readproc`);
+    asammdf's own log of a file it cannot read kept quiet: the reader's error says it in one line."""
+    logging.getLogger("asammdf").setLevel(logging.CRITICAL)
+    with contextlib.suppress(ImportError):  # without it, the reading says which extra to install
+        import asammdf  # noqa: F401
 
 
 def open_mdf(path: Path) -> Any:
