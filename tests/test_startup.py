@@ -112,6 +112,7 @@ def test_a_replay_of_a_candump_log_imports_no_mf4_support(tmp_path):
     # python-can itself comes with cantools, on a cold compiled-DBC cache only (see below)
     assert "cmcan.replay" in mods
     assert among(mods, ("asammdf", "pandas", "openpyxl")) == []
+    assert among(mods, ("multiprocessing", "cmcan.io.readproc")) == []  # an MF4's reader process
 
 
 @pytest.mark.parametrize("name", SUBCOMMANDS)

@@ -95,16 +95,18 @@ def run(args: argparse.Namespace) -> int:
     if "plot" in outs:
         require_extra("plot", "matplotlib")
     logs = _logs(args.log)
-    from cmcan.io import readproc
+    if not any(p.suffix.lower() == ".mf4" for p in logs):
+        return _run(args, outs, logs)
+    from cmcan.io import readproc  # (multiprocessing: only where a log is an MF4)
 
-    if args.engine == "columnar" and any(p.suffix.lower() == ".mf4" for p in logs):
+    if args.engine == "columnar":
         from cmcan.io.mf4columns import preload
 
         readproc.warm(preload)  # asammdf imported by the reader process while the monitor is built
     try:
         return _run(args, outs, logs)
     finally:
-        readproc.cancel()  # a reader nothing took (the configuration refused, the first log a candump)
+        readproc.cancel()  # the reader waiting for a next log, or one nothing took (a refused configuration)
 
 
 def _run(args: argparse.Namespace, outs: dict[str, Path], logs: list[Path]) -> int:
