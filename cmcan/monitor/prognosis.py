@@ -13,7 +13,8 @@ gap, ``a = (dp / dp_ref) * (mu(T_ref) / mu(T))``) and an orifice flow (a crack, 
 ``a^2``, ``leak * o``, ``a * o`` and ``o^2`` give its least-squares ``W`` for every orifice share ``s``
 (ticks at low pressure, whose leakage says little, count little; below ``min_dp_bar`` not at all);
 the estimate fits the share from the history's own spread of pressure and oil temperature
-(:func:`_mix`) and books by the earliest end of life among the shares the data allow. When the history holds more than
+(:func:`_mix`): laminar unless the data rule that out, then the earliest end of life among the
+shares they allow. When the history holds more than
 ``max_points``, adjacent points of its older half are merged in pairs down to three quarters of
 that: the recent stretch keeps its resolution, the state stays bounded. One tick at a time
 (:meth:`Prognosis.add`) or a stretch of ticks as arrays (:meth:`Prognosis.add_columns`): the same
@@ -174,7 +175,7 @@ class PrognosisParams:
     # (:func:`_mix`): long against the points' scatter, short against the oil's cycle (8-24 h)
     mix_window_h: float = 3.0
     # ... and a share whose score lies more than this many standard errors above the best's is ruled
-    # out; of the rest the one with the earliest end of life is booked by (:func:`_mix`)
+    # out; laminar is booked by unless ruled out, else the allowed share of the earliest end of life
     mix_sigmas: float = 1.0
     # Below this pressure a tick's leakage is model error more than wear (a gap flow vanishes with dp)
     min_dp_bar: float = 20.0
@@ -560,9 +561,9 @@ _SHARES = tuple(i / 20 for i in range(21))  # the orifice share of the leak at r
 @dataclass(frozen=True)
 class _Mix:
     """The leak's law fitted on the history: the orifice share of ``y = W * ((1 - s) a + s o)`` (``W``
-    the leakage at the reference conditions) that fits best, the one the estimate books by (of the
-    shares the data do not rule out, the one that reads the recent leakage highest: the earliest end
-    of life), and the history referred by that one."""
+    the leakage at the reference conditions) that fits best, the one the estimate books by (0, the
+    laminar law, unless the data rule it out; then of the shares they allow the one that reads the
+    recent leakage highest: the earliest end of life), and the history referred by that one."""
 
     best: float
     share: float
@@ -588,10 +589,10 @@ def _mix(p: PrognosisParams, h: NDArray[np.float64], leak: NDArray[np.float64], 
     follows the oil's viscosity). Each share is scored by the weighted squares of its referred
     points about a local line in time (+-``mix_window_h``: no law's slow curvature makes the score
     depend on the share). The data rule out a share whose score lies more than ``mix_sigmas``
-    standard errors above the least (from its excess's spread over blocks of the history). Of
-    the others the estimate books by the one that reads the recent leakage (the last
-    ``min_history_h``) highest: where the spread cannot tell the laws apart (constant work, a
-    steady oil), the end of life comes early, never late."""
+    standard errors above the least (from its excess's spread over blocks of the history). The
+    estimate books by the laminar law (the configured oil's, as before) unless the data rule it out;
+    then by the share, of those they allow, that reads the recent leakage (the last
+    ``min_history_h``) highest: the earliest end of life, never the late end of what is possible."""
     W, den = _refer_all(leak, sums)
     t = h - h[-1]
     lo = np.searchsorted(h, h - p.mix_window_h, side="left")
@@ -622,7 +623,7 @@ def _mix(p: PrognosisParams, h: NDArray[np.float64], leak: NDArray[np.float64], 
     ok = score - score[best] <= p.mix_sigmas * se
     recent = h >= h[-1] - p.min_history_h
     level = np.sum(W[:, recent] * sums[recent, 0], axis=1)
-    book = int(np.argmax(np.where(ok, level, -np.inf)))
+    book = 0 if ok[0] else int(np.argmax(np.where(ok, level, -np.inf)))
     return _Mix(_SHARES[best], _SHARES[book], W[book])
 
 
