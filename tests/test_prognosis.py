@@ -568,7 +568,7 @@ def test_the_orifice_share_of_a_leak_is_fitted_from_its_own_pressure_and_tempera
     p.add_columns(*ticks(h, x, seed=seed, noise_lpm=0.2, dp_bar=dp, temp_c=temp, orifice=share))
     t = p.table()
     mix = _mix(p.params, t[:, 0], t[:, 1], t[:, 3:])
-    assert abs(mix.best - share) <= 0.15, (mix.best, mix.share, share)
+    assert abs(mix.best - share) <= 0.15, (mix.best, mix.factor, share)
     late = t[:, 0] > 100.0
     truth = 40.0 * np.clip((t[late, 0] - 40) / 120, 0, 1) ** 2.5
     err = np.abs(mix.leak[late] - truth) / truth
@@ -581,8 +581,8 @@ def test_an_orifice_leak_is_booked_neither_early_nor_late(seed):
     160 h under an oil cycle about 50-58 C at 250-350 bar: referred as a laminar leak (as before) its
     end of life came more than 20 % early (0-28 h for 35 h left); with the law's orifice share
     fitted, from 40 h before failure to 10 h before it the p50 is never late by more than 20 % and
-    early by 30 % at most (booked by the share of the earliest end of life the data allow), and the
-    p10 below the truth."""
+    early by 30 % at most (booked by the best share, the end of life divided by how much higher the
+    shares the data allow read the recent leakage), and the p10 below the truth."""
     onset, fail, big_f = 40.0, 160.0, 40.0
     h = np.arange(0.0, fail, 0.01)
     rng = np.random.default_rng(seed)

@@ -13,8 +13,9 @@ gap, ``a = (dp / dp_ref) * (mu(T_ref) / mu(T))``) and an orifice flow (a crack, 
 ``a^2``, ``leak * o``, ``a * o`` and ``o^2`` give its least-squares ``W`` for every orifice share ``s``
 (ticks at low pressure, whose leakage says little, count little; below ``min_dp_bar`` not at all);
 the estimate fits the share from the history's own spread of pressure and oil temperature
-(:func:`_mix`): laminar unless the data rule that out, then the earliest end of life among the
-shares they allow. When the history holds more than
+(:func:`_mix`: the wear law's fit of each share's referral), refers by the best one and divides an
+end of life in l/min by how much higher the shares the data allow read the recent leakage. When the
+history holds more than
 ``max_points``, adjacent points of its older half are merged in pairs down to three quarters of
 that: the recent stretch keeps its resolution, the state stays bounded. One tick at a time
 (:meth:`Prognosis.add`) or a stretch of ticks as arrays (:meth:`Prognosis.add_columns`): the same
@@ -171,12 +172,11 @@ class PrognosisParams:
         Num(-20, 150, "C", default=60.0), "the oil temperature the extra leakage is referred to", "ref_temp_c"
     )
     oil: Oil = VG46  # the configured oil's viscosity law (Config.oil)
-    # The orifice share of the leak is fitted against a local line in time over +-this many hours
-    # (:func:`_mix`): long against the points' scatter, short against the oil's cycle (8-24 h)
-    mix_window_h: float = 3.0
-    # ... and a share whose score lies more than this many standard errors above the best's is ruled
-    # out; laminar is booked by unless ruled out, else the allowed share of the earliest end of life
-    mix_sigmas: float = 1.0
+    # The orifice share of the leak is fitted by the wear law's own fit of each share's referral
+    # (:func:`_mix`); a share whose fit leaves more than this many times the best one's residual
+    # variance (autocorrelation-inflated) more is ruled out. The end of life in l/min is booked at the
+    # highest recent level of the shares left, over the best's (a factor on it)
+    mix_chi2: float = 9.0
     # Below this pressure a tick's leakage is model error more than wear (a gap flow vanishes with dp)
     min_dp_bar: float = 20.0
     # The stage (:class:`Stage`) estimates once per this many operating hours (an estimate is a grid
@@ -561,12 +561,13 @@ _SHARES = tuple(i / 20 for i in range(21))  # the orifice share of the leak at r
 @dataclass(frozen=True)
 class _Mix:
     """The leak's law fitted on the history: the orifice share of ``y = W * ((1 - s) a + s o)`` (``W``
-    the leakage at the reference conditions) that fits best, the one the estimate books by (0, the
-    laminar law, unless the data rule it out; then of the shares they allow the one that reads the
-    recent leakage highest: the earliest end of life), and the history referred by that one."""
+    the leakage at the reference conditions) whose referral the wear law fits best, the history
+    referred by it, and ``factor`` (>= 1): how much higher than by the best share any share the data
+    do not rule out reads the recent leakage. The end of life in l/min is divided by it: the level is
+    uncertain by as much, and the early end of that is the one booked."""
 
     best: float
-    share: float
+    factor: float
     leak: NDArray[np.float64]
 
 
@@ -584,47 +585,41 @@ def _refer_all(leak: NDArray[np.float64], sums: NDArray[np.float64]) -> tuple[ND
 
 def _mix(p: PrognosisParams, h: NDArray[np.float64], leak: NDArray[np.float64], sums: NDArray[np.float64]) -> _Mix:
     """The share of the leak that flows by the orifice law, from the history's own spread of pressure
-    and oil temperature: referred by the right share, the leakage follows a smooth curve in time;
-    by a wrong one it swings with the operating point (a laminar leak referred as an orifice one
-    follows the oil's viscosity). Each share is scored by the weighted squares of its referred
-    points about a local line in time (+-``mix_window_h``: no law's slow curvature makes the score
-    depend on the share). The data rule out a share whose score lies more than ``mix_sigmas``
-    standard errors above the least (from its excess's spread over blocks of the history). The
-    estimate books by the laminar law (the configured oil's, as before) unless the data rule it out;
-    then by the share, of those they allow, that reads the recent leakage (the last
-    ``min_history_h``) highest: the earliest end of life, never the late end of what is possible."""
-    W, den = _refer_all(leak, sums)
-    t = h - h[-1]
-    lo = np.searchsorted(h, h - p.mix_window_h, side="left")
-    hi = np.searchsorted(h, h + p.mix_window_h, side="right")
+    and oil temperature: referred by the right share, the leakage follows the wear law's curve in
+    time; by a wrong one it swings with the operating point on top of it (a laminar leak referred as
+    an orifice one follows the oil's viscosity, over the oil's whole cycle). Each share's referral is
+    fitted by the wear law itself (the grid of :func:`_detect`), scaled to the laminar referral's
+    recent level so that the squares compare, and the share whose fit leaves the least is the best.
 
-    def window(x: NDArray[np.float64]) -> NDArray[np.float64]:
-        c = np.concatenate([np.zeros((x.shape[0], 1)), np.cumsum(x, axis=1)], axis=1)
-        return c[:, hi] - c[:, lo]
+    The squares are not judged about a local line in time: that is blind to a swing slower than its
+    window (an oil cycle of a day) and sees a temperature sensor's steps instead (J1939's 1 C: the
+    laminar referral jumps 3 % at each, the leak does not), and it ruled the laminar law out on the
+    J1939 demo's laminar wear (best share 0.7-0.8; booked 1.0, its p50 read 14 h for 10 h left).
 
-    sw, st, stt = window(den), window(den * t), window(den * t * t)
-    sy, sty = window(den * W), window(den * t * W)
-    det = sw * stt - st * st
-    with np.errstate(divide="ignore", invalid="ignore"):
-        slope = np.where(det > 1e-12 * sw * sw, (sw * sty - st * sy) / det, 0.0)
-        fit = (sy - slope * st) / sw + slope * t
-    r = W - fit
-    # the score in blocks of a window's width: the oil's cycle and the duty make neighbouring points'
-    # residuals alike, blocks far less so; a share's excess over the best is judged against the
-    # spread of its excess from block to block
-    block = np.floor((h - h[0]) / (2.0 * p.mix_window_h)).astype(np.int64)
-    nb = int(block[-1]) + 1
-    parts = np.zeros((len(_SHARES), nb))
-    np.add.at(parts.T, block, (den * r * r).T)
-    score = parts.sum(axis=1)
-    best = int(np.argmin(score))
-    excess = parts - parts[best]
-    se = np.sqrt(nb * np.var(excess, axis=1) * nb / max(nb - 1, 1))
-    ok = score - score[best] <= p.mix_sigmas * se
+    A share is ruled out when its fit's excess over the best's exceeds ``mix_chi2`` times the best
+    fit's residual variance (inflated for the residuals' lag-1 autocorrelation). ``factor``: the
+    highest recent level (the last ``min_history_h``) of a share not ruled out over the best's."""
+    W, _ = _refer_all(leak, sums)
     recent = h >= h[-1] - p.min_history_h
-    level = np.sum(W[:, recent] * sums[recent, 0], axis=1)
-    book = 0 if ok[0] else int(np.argmax(np.where(ok, level, -np.inf)))
-    return _Mix(_SHARES[best], _SHARES[book], W[book])
+    wt = sums[recent, 0]
+    level = W[:, recent] @ wt / float(wt.sum())
+    rms = np.sqrt((W[:, recent] ** 2) @ wt / float(wt.sum()))
+    Y = W * (rms[0] / np.where(rms > 0, rms, 1.0))[:, None]
+    grid = _grid(p, h)
+    n = len(h)
+    Yc = Y - Y.mean(axis=1, keepdims=True)
+    suy = Yc @ grid.basis.T - Yc.sum(axis=1, keepdims=True) * grid.u_mean
+    gain = np.where(suy > 0, suy * suy / np.where(grid.suu > 0, grid.suu, np.inf), 0.0)
+    cell = np.argmax(gain, axis=1)
+    sse = np.maximum(np.einsum("ij,ij->i", Yc, Yc) - gain[np.arange(len(_SHARES)), cell], 0.0)
+    best = int(np.argmin(sse))
+    g = int(cell[best])
+    c = float(suy[best, g] / grid.suu[g]) if gain[best, g] > 0 else 0.0
+    resid = Yc[best] - c * (grid.basis[g] - grid.u_mean[g])
+    s2 = max(float(sse[best]) / max(n - 4, 1), 1e-12) * _inflation(resid)
+    ok = sse - sse[best] <= p.mix_chi2 * s2
+    factor = float(np.max(np.where(ok, level, -np.inf)) / level[best]) if level[best] > 0 else 1.0
+    return _Mix(_SHARES[best], max(factor, 1.0), W[best])
 
 
 # -- the estimate -----------------------------------------------------------------------------------
@@ -668,7 +663,10 @@ def estimate(
     )
     sides = []
     if d_low.trend:
-        sides.append((LOW, d_low, _track_hours(p, h, leak, d_low, _leak_thresholds(p, leak, ratio), _LEAK)))
+        warn, eol = _leak_thresholds(p, leak, ratio)
+        if mix is not None and p.eol_kind == "leak_lpm":  # a ratio's leakage moves with the referral
+            eol /= mix.factor
+        sides.append((LOW, d_low, _track_hours(p, h, leak, d_low, (warn, eol), _LEAK)))
     if d_high.trend:
         ys = (float(_short_pct(np.array(p.high_pct))), float(_short_pct(np.array(p.eol_high_pct))))
         sides.append((HIGH, d_high, _track_hours(p, h, excess, d_high, ys, _RATIO)))
