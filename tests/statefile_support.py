@@ -59,11 +59,15 @@ def _made() -> tuple[str, tuple[Frame, ...]]:
 
 def trend() -> list[list[Any]]:
     """80 half-hour points (40 h) of a leak rising with scatter, as a worn unit's: the estimate finds a
-    trend and draws its curves when the state is read."""
+    trend and draws its curves when the state is read. Each point's ticks at one operating point (the
+    orifice gain's sums as the laminar one's)."""
     rng = np.random.default_rng(5)
     hours = 0.25 + 0.5 * np.arange(80)
     leak = 0.004 * hours**2 + rng.normal(0.0, 0.05, len(hours))
-    return [[float(h), float(x), float(100.0 - 0.8 * x), 900, 850.0] for h, x in zip(hours, leak, strict=True)]
+    return [
+        [float(h), float(x), float(100.0 - 0.8 * x), 900, 850.0, 850.0 * float(x), 850.0, 850.0]
+        for h, x in zip(hours, leak, strict=True)
+    ]
 
 
 def good_doc() -> dict[str, Any]:

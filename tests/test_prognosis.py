@@ -12,7 +12,18 @@ import pytest
 from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
-from cmcan.monitor.prognosis import HIGH, IMMINENT, LOW, NONE, TREND, Prognosis, PrognosisParams, Stage, estimate
+from cmcan.monitor.prognosis import (
+    HIGH,
+    IMMINENT,
+    LOW,
+    NONE,
+    TREND,
+    Prognosis,
+    PrognosisParams,
+    Stage,
+    _mix,
+    estimate,
+)
 from cmcan.oil import VG46, oil_from_grade
 
 FLOW_LPM = 234.0  # 78 cm3/rev at 3000 rpm: the extra leakage's share of it is the ratio's deficit
@@ -20,17 +31,19 @@ SMALL = PrognosisParams(bin_h=0.25, max_points=12, min_ticks=2, min_points=4, on
 REF = PrognosisParams()
 
 
-def ticks(hours, leak_lpm, seed=0, noise_lpm=0.3, dp_bar=None, temp_c=None):
+def ticks(hours, leak_lpm, seed=0, noise_lpm=0.3, dp_bar=None, temp_c=None, orifice=0.0):
     """Evaluated ticks: the leakage with noise (correlated from tick to tick, as window means are) and
     its ratio, at the reference conditions unless an operating point is given (then the leakage given
-    is the one at the reference conditions and the tick's is a laminar flow at its point)."""
+    is the one at the reference conditions and the tick's flows at its point by the laminar law, or
+    its share ``orifice`` by the orifice law)."""
     rng = np.random.default_rng(seed)
     n = len(hours)
     dp = np.full(n, REF.dp_ref_bar) if dp_bar is None else np.asarray(dp_bar, float)
     temp = np.full(n, REF.temp_ref_c) if temp_c is None else np.asarray(temp_c, float)
     white = rng.normal(0.0, noise_lpm, n)
     kernel = np.ones(8) / 8
-    noisy = leak_lpm * laminar_gain(dp, temp) + np.convolve(white, kernel, mode="same") * math.sqrt(8)
+    gain = (1.0 - orifice) * laminar_gain(dp, temp) + orifice * np.sqrt(dp / 480.0)
+    noisy = leak_lpm * gain + np.convolve(white, kernel, mode="same") * math.sqrt(8)
     return hours, noisy, 100.0 - noisy / FLOW_LPM * 100.0, dp, temp, np.ones(n, bool)
 
 
@@ -514,7 +527,7 @@ def test_a_saved_history_whose_hours_do_not_increase_is_refused_not_a_hang():
     p = Prognosis()
     p.add_columns(*ticks(h, np.full(len(h), 1.0)))
     doc = json.loads(json.dumps(p.to_dict()))
-    doc["points"] += [[doc["points"][-1][0], 1.0, 99.5, 20, 1.0]] * 4
+    doc["points"] += [doc["points"][-1]] * 4
     with pytest.raises(ValueError, match="hours must increase"):
         Prognosis.from_dict(doc)
     assert "hours must increase" in Stage(REF, doc).note  # the daemon goes on with a new history
@@ -528,3 +541,101 @@ def test_a_history_without_any_scatter_gets_an_estimate():
     est = estimate(p, 0.25 + 0.5 * i, 0.1 * i, 100.0 - 0.05 * i)
     assert est.state in ("trend", "imminent") and est.direction == "low"
     assert all(math.isfinite(q) for q in est.to_eol_h)
+
+
+# -- the leak's law: laminar and orifice shares (issue 40) -------------------------------------------
+
+
+def _worn_duty(seed: int, hours: np.ndarray, mixed: bool) -> tuple[np.ndarray, np.ndarray]:
+    """An oil cycle of a few to 25 C about 50-65 C, and constant work at 250-470 bar or a mixed duty."""
+    rng = np.random.default_rng(seed)
+    temp = rng.uniform(50, 65) + rng.uniform(3, 25) * np.sin(2 * np.pi * hours / rng.uniform(8, 24))
+    dp = rng.uniform(80, 470, len(hours)) if mixed else np.full(len(hours), rng.uniform(250, 470))
+    return dp, temp
+
+
+@settings(max_examples=12, deadline=None, derandomize=True)
+@given(st.sampled_from([0.0, 0.3, 0.7, 1.0]) | st.floats(0.0, 1.0), st.integers(0, 50), st.booleans())
+def test_the_orifice_share_of_a_leak_is_fitted_from_its_own_pressure_and_temperature_spread(share, seed, mixed):
+    """A wear of any mix of laminar and orifice flow (x = 40 s^2.5 at 480 bar and 60 C), seen through an
+    oil cycle and constant or mixed work: the share fitted is the mix's within 0.15, and the history
+    referred by it follows x over its last 40 h within 3 % on average and 10 % at any point (the
+    laminar referral of an orifice leak at 300 bar reads 26 % high and more)."""
+    h = np.arange(0.0, 140.0, 0.01)
+    x = 40.0 * np.clip((h - 40) / 120, 0, 1) ** 2.5
+    dp, temp = _worn_duty(seed, h, mixed)
+    p = Prognosis()
+    p.add_columns(*ticks(h, x, seed=seed, noise_lpm=0.2, dp_bar=dp, temp_c=temp, orifice=share))
+    t = p.table()
+    mix = _mix(p.params, t[:, 0], t[:, 1], t[:, 3:])
+    assert abs(mix.best - share) <= 0.15, (mix.best, mix.factor, share)
+    late = t[:, 0] > 100.0
+    truth = 40.0 * np.clip((t[late, 0] - 40) / 120, 0, 1) ** 2.5
+    err = np.abs(mix.leak[late] - truth) / truth
+    assert float(np.mean(err)) < 0.03 and float(np.max(err)) < 0.1, err
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_an_orifice_leak_is_booked_neither_early_nor_late(seed):
+    """An orifice wear (a crack: sqrt(dp), no viscosity term) growing x = 40 s^3 from 40 h to failure at
+    160 h under an oil cycle about 50-58 C at 250-350 bar: referred as a laminar leak (as before) its
+    end of life came more than 20 % early (0-28 h for 35 h left); with the law's orifice share
+    fitted, from 40 h before failure to 10 h before it the p50 is never late by more than 20 % and
+    early by 30 % at most (booked by the best share, the end of life divided by how much higher the
+    shares the data allow read the recent leakage), and the p10 below the truth."""
+    onset, fail, big_f = 40.0, 160.0, 40.0
+    h = np.arange(0.0, fail, 0.01)
+    rng = np.random.default_rng(seed)
+    dp = np.full(len(h), rng.uniform(250.0, 350.0))  # where a laminar referral of an orifice leak reads high
+    temp = rng.uniform(50.0, 58.0) + rng.uniform(5.0, 15.0) * np.sin(2 * np.pi * h / rng.uniform(8.0, 24.0))
+    cols = ticks(h, big_f * np.clip((h - onset) / (fail - onset), 0, 1) ** 3, seed=seed, dp_bar=dp, temp_c=temp,
+                 orifice=1.0)  # fmt: skip
+    params = PrognosisParams(eol_kind="leak_lpm", eol_value=big_f)
+    p = Prognosis(params)
+    early, checked = 0, 0
+    for a in range(0, len(h), 500):
+        p.add_columns(*(c[a : a + 500] for c in cols))
+        left = fail - p.newest_h()
+        if not 10.0 <= left <= 40.0:
+            continue
+        e = p.estimate()
+        lo, mid, _ = e.to_eol_h
+        assert e.state != NONE and 0.7 * left <= mid <= 1.2 * left and lo <= left, (left, e)
+        hh, leak, ratio = p.arrays(with_open=True)
+        early += estimate(params, hh, leak, ratio).to_eol_h[1] < 0.8 * left  # the laminar referral
+        checked += 1
+    assert checked >= 5 and early == checked, (early, checked)
+
+
+def test_a_history_saved_by_the_previous_version_goes_on_and_estimates_as_before():
+    """A cmcan-prognosis/2 history (the laminar sums only) is no reason to lose a gateway's history:
+    it is read on, and estimates as the laminar referral did (its points tell nothing of the law's
+    orifice share); the new format carries the new sums and round-trips."""
+    h = np.arange(0.0, 100.0, 0.01)
+    wear = 30.0 * np.clip((h - 30) / 90, 0, 1) ** 2
+    dp, temp = _worn_duty(3, h, mixed=True)
+    cols = ticks(h, wear, seed=3, dp_bar=dp, temp_c=temp)
+    now = Prognosis()
+    now.add_columns(*(c[:-37] for c in cols))
+    doc = json.loads(json.dumps(now.to_dict()))
+    assert doc["format"] == "cmcan-prognosis/3" and len(doc["points"][0]) == 8 and len(doc["open"]) == 9
+    v2 = doc | {"format": "cmcan-prognosis/2", "points": [q[:5] for q in doc["points"]], "open": doc["open"][:6]}
+    old = Prognosis.from_dict(v2)
+    assert old.restarted == "" and len(old.points) == len(now.points)
+    hh, leak, ratio = now.arrays(with_open=True)
+    assert repr(old.estimate()) == repr(estimate(old.params, hh, leak, ratio))
+    assert old.estimate().state != NONE and Stage(REF, v2).note == ""
+    for x in (old, now):  # and both go on
+        x.add_columns(*(c[-37:] for c in cols))
+    assert old.points[-1][:4] == now.points[-1][:4]
+    same(now, Prognosis.from_dict(json.loads(json.dumps(now.to_dict()))))
+
+
+def test_gain_sums_that_no_ticks_could_give_are_refused():
+    h = np.arange(0.0, 5.0, 0.01)
+    p = Prognosis()
+    p.add_columns(*ticks(h, np.full(len(h), 2.0)))
+    doc = json.loads(json.dumps(p.to_dict()))
+    doc["points"][2][6] = 10.0 * math.sqrt(doc["points"][2][4] * doc["points"][2][7])  # sum(a o)^2 > sum(a^2) sum(o^2)
+    with pytest.raises(ValueError, match="gain sums"):
+        Prognosis.from_dict(doc)

@@ -206,6 +206,22 @@ def test_a_good_state_is_read_whole(tmp_path):
     assert files_but_lock(tmp_path) == ["state.json"]
 
 
+def test_a_state_saved_before_the_orifice_sums_is_read_whole_and_its_history_goes_on(tmp_path):
+    """A gateway upgraded from cmcan-prognosis/2 (the laminar sums only): its state is neither lost
+    nor refused; the monitor goes on with its history and estimates as before."""
+    d = sf.good_doc()
+    d["prognosis"] |= {"format": "cmcan-prognosis/2", "points": [q[:5] for q in d["prognosis"]["points"]]}
+    store = StateStore(tmp_path)
+    store.path.write_bytes(raw(d))
+    assert examine(store.path.read_bytes()).damage == ()
+    totals = store.load()
+    assert totals.prognosis == d["prognosis"] and files_but_lock(tmp_path) == ["state.json"]
+    (tmp_path / "cfg").mkdir()
+    mon = sf.build(sf.config_file(tmp_path / "cfg"), totals)
+    assert mon.prognosis is not None and not mon.prognosis.note and mon.prognosis.est.state == "imminent"
+    assert len(mon.prognosis.history.points) == len(d["prognosis"]["points"])
+
+
 def test_the_parts_name_every_field_and_the_required_ones_are_totals_own():
     """Every field of a saved state is in one part; the warning totals' fields are the ones
     ``Totals.from_dict`` requires (the later parts may be absent: states of older versions)."""

@@ -6,11 +6,16 @@ The time base is operating hours: :class:`Stage` keeps an operating clock (the t
 with input, gaps over ``max_gap_h`` cut out); no estimate on less than ``min_history_h`` of history.
 
 Evaluated ticks go into a decimated history: one point per
-``bin_h`` of operating time, the mean hour and ratio of its ticks and its leakage referred to the
-reference conditions (``dp_ref_bar``, ``temp_ref_c``): a worn gap leaks laminar, ``leak = L * g`` with
-``g = (dp / dp_ref) * (mu(T_ref) / mu(T))`` from the tick's dp and oil temperature, and the bin's ``L``
-is the least-squares one, ``sum(leak * g) / sum(g^2)`` (ticks at low pressure, whose leakage says
-little, count little; below ``min_dp_bar`` not at all). When the history holds more than
+``bin_h`` of operating time, the mean hour and ratio of its ticks and the sums that refer its leakage
+to the reference conditions (``dp_ref_bar``, ``temp_ref_c``). A leak is a mix of a laminar flow (a worn
+gap, ``a = (dp / dp_ref) * (mu(T_ref) / mu(T))``) and an orifice flow (a crack, a torn seal,
+``o = sqrt(dp / dp_ref)``): ``leak = W * ((1 - s) a + s o)``. Per bin the sums of ``leak * a``,
+``a^2``, ``leak * o``, ``a * o`` and ``o^2`` give its least-squares ``W`` for every orifice share ``s``
+(ticks at low pressure, whose leakage says little, count little; below ``min_dp_bar`` not at all);
+the estimate fits the share from the history's own spread of pressure and oil temperature
+(:func:`_mix`: the wear law's fit of each share's referral), refers by the best one and divides an
+end of life in l/min by how much higher the shares the data allow read the recent leakage. When the
+history holds more than
 ``max_points``, adjacent points of its older half are merged in pairs down to three quarters of
 that: the recent stretch keeps its resolution, the state stays bounded. One tick at a time
 (:meth:`Prognosis.add`) or a stretch of ticks as arrays (:meth:`Prognosis.add_columns`): the same
@@ -71,7 +76,8 @@ from cmcan.monitor.operating import OperatingClock
 from cmcan.oil import VG46, Oil
 from cmcan.schema import Num, Str, finite_number, integer, setting
 
-FORMAT = "cmcan-prognosis/2"
+FORMAT = "cmcan-prognosis/3"
+_FORMAT_V2 = "cmcan-prognosis/2"  # laminar sums only: read on, its points tell nothing of the orifice share
 _FORMAT_V1 = "cmcan-prognosis/1"  # leakage as measured, not referred to reference conditions
 NONE, TREND, IMMINENT = "none", "trend", "imminent"
 LOW, HIGH = "low", "high"  # a trend's direction: the ratio to the low warning (wear) or the high one
@@ -166,6 +172,11 @@ class PrognosisParams:
         Num(-20, 150, "C", default=60.0), "the oil temperature the extra leakage is referred to", "ref_temp_c"
     )
     oil: Oil = VG46  # the configured oil's viscosity law (Config.oil)
+    # The orifice share of the leak is fitted by the wear law's own fit of each share's referral
+    # (:func:`_mix`); a share whose fit leaves more than this many times the best one's residual
+    # variance (autocorrelation-inflated) more is ruled out. The end of life in l/min is booked at the
+    # highest recent level of the shares left, over the best's (a factor on it)
+    mix_chi2: float = 9.0
     # Below this pressure a tick's leakage is model error more than wear (a gap flow vanishes with dp)
     min_dp_bar: float = 20.0
     # The stage (:class:`Stage`) estimates once per this many operating hours (an estimate is a grid
@@ -206,9 +217,11 @@ class PrognosisParams:
 
 
 Triple = tuple[float, float, float]
-# A history point: mean hour, leakage referred to the reference conditions (l/min), ratio (%), ticks,
-# and the bin's sum of squared gains (the least-squares weight of its leakage when bins merge)
-Point = tuple[float, float, float, int, float]
+# A history point: mean hour, leakage referred to the reference conditions by the laminar law (l/min),
+# ratio (%), ticks, and the bin's sums over its ticks of a^2, y * o, a * o and o^2 (y the leakage, a the
+# laminar gain, o the orifice gain): with sum(y * a) = leak * sum(a^2) they refer the bin by any mix of
+# the two laws (:func:`_refer`), and two bins merge by adding them
+Point = tuple[float, float, float, int, float, float, float, float]
 _NAN3: Triple = (math.nan, math.nan, math.nan)
 
 
@@ -245,9 +258,12 @@ class Prognosis:
     open_bin: int | None = None  # index floor(hour / bin_h) of the bin being filled
     open_n: int = 0
     open_sum_h: float = 0.0
-    open_sum_lg: float = 0.0  # sum of leak * gain
+    open_sum_lg: float = 0.0  # sum of leak * gain (the laminar gain a)
     open_sum_gg: float = 0.0  # sum of gain^2
     open_sum_ratio: float = 0.0
+    open_sum_lo: float = 0.0  # sum of leak * o (the orifice gain)
+    open_sum_go: float = 0.0  # sum of a * o
+    open_sum_oo: float = 0.0  # sum of o^2
     restarted: str = ""
 
     # -- one tick ------------------------------------------------------------------------------------
@@ -260,7 +276,8 @@ class Prognosis:
         ok = valid and all(math.isfinite(x) for x in (hour, leak_lpm, ratio_pct, dp_bar, temp_c))
         if not (ok and dp_bar >= self.params.min_dp_bar):
             return
-        g = float(_gain(self.params, np.array([dp_bar]), np.array([temp_c]))[0])
+        ga, go = _gains(self.params, np.array([dp_bar]), np.array([temp_c]))
+        g, o = float(ga[0]), float(go[0])
         b = math.floor(hour / self.params.bin_h)
         if self.open_bin is None or b > self.open_bin:  # an earlier hour (clock back) stays in the open bin
             self._close()
@@ -270,6 +287,9 @@ class Prognosis:
         self.open_sum_lg += leak_lpm * g
         self.open_sum_gg += g * g
         self.open_sum_ratio += ratio_pct
+        self.open_sum_lo += leak_lpm * o
+        self.open_sum_go += g * o
+        self.open_sum_oo += o * o
 
     # -- a stretch of ticks --------------------------------------------------------------------------
 
@@ -289,8 +309,8 @@ class Prognosis:
         h, lk, r, dp, tc = (x[keep] for x in cols)
         if not len(h):
             return
-        g = _gain(self.params, dp, tc)
-        lg, gg = lk * g, g * g
+        g, o = _gains(self.params, dp, tc)
+        lg, gg, lo, go, oo = lk * g, g * g, lk * o, g * o, o * o
         bins = np.floor(h / self.params.bin_h)
         start = -np.inf if self.open_bin is None else float(self.open_bin)
         eff = np.maximum.accumulate(np.maximum(bins, start))  # as add: never back to an earlier bin
@@ -306,6 +326,9 @@ class Prognosis:
             self.open_sum_lg = _add_in_order(self.open_sum_lg, lg[a:z])
             self.open_sum_gg = _add_in_order(self.open_sum_gg, gg[a:z])
             self.open_sum_ratio = _add_in_order(self.open_sum_ratio, r[a:z])
+            self.open_sum_lo = _add_in_order(self.open_sum_lo, lo[a:z])
+            self.open_sum_go = _add_in_order(self.open_sum_go, go[a:z])
+            self.open_sum_oo = _add_in_order(self.open_sum_oo, oo[a:z])
 
     # -- history -------------------------------------------------------------------------------------
 
@@ -323,6 +346,7 @@ class Prognosis:
         self.open_bin = None
         self.open_n = 0
         self.open_sum_h = self.open_sum_lg = self.open_sum_gg = self.open_sum_ratio = 0.0
+        self.open_sum_lo = self.open_sum_go = self.open_sum_oo = 0.0
 
     def restart(self) -> None:
         """A replaced unit or a reset baseline: the wear history so far no longer applies."""
@@ -330,20 +354,30 @@ class Prognosis:
         self._clear_open()
 
     def arrays(self, with_open: bool = False) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-        """The closed points' hours, leakage at the reference conditions and ratio; ``with_open``:
-        and the open bin's as the newest point, when it holds ``min_ticks`` ticks already."""
-        pts = self.points + ([q] if with_open and (q := self._open_point()) is not None else [])
-        if not pts:
-            e = np.empty(0)
-            return e, e.copy(), e.copy()
-        p = np.array(pts, dtype=np.float64)
+        """The closed points' hours, leakage at the reference conditions by the laminar law and ratio;
+        ``with_open``: and the open bin's as the newest point, when it holds ``min_ticks`` ticks already."""
+        p = self.table(with_open)
         return p[:, 0].copy(), p[:, 1].copy(), p[:, 2].copy()
+
+    def table(self, with_open: bool = False) -> NDArray[np.float64]:
+        """The points as rows (the fields of :data:`Point`), the open bin's last as in :meth:`arrays`."""
+        pts = self.points + ([q] if with_open and (q := self._open_point()) is not None else [])
+        return np.array(pts, dtype=np.float64).reshape(len(pts), 8)
 
     def _open_point(self) -> Point | None:
         n = self.open_n
         if n < self.params.min_ticks or not self.open_sum_gg > 0:
             return None
-        return (self.open_sum_h / n, self.open_sum_lg / self.open_sum_gg, self.open_sum_ratio / n, n, self.open_sum_gg)
+        return (
+            self.open_sum_h / n,
+            self.open_sum_lg / self.open_sum_gg,
+            self.open_sum_ratio / n,
+            n,
+            self.open_sum_gg,
+            self.open_sum_lo,
+            self.open_sum_go,
+            self.open_sum_oo,
+        )
 
     def newest_h(self) -> float:
         """The newest operating hour the history holds: its last point's, or its open bin's (0: none)."""
@@ -355,8 +389,8 @@ class Prognosis:
     def estimate(self) -> Estimate:
         """The estimate from the history and the open bin: the newest ticks count as soon as they
         make a point, not only when a later bin begins (half an hour and more sooner near the end)."""
-        h, leak, ratio = self.arrays(with_open=True)
-        return estimate(self.params, h, leak, ratio)
+        p = self.table(with_open=True)
+        return estimate(self.params, p[:, 0], p[:, 1], p[:, 2], sums=p[:, 3:])
 
     # -- state file ----------------------------------------------------------------------------------
 
@@ -376,6 +410,9 @@ class Prognosis:
                 self.open_sum_lg,
                 self.open_sum_gg,
                 self.open_sum_ratio,
+                self.open_sum_lo,
+                self.open_sum_go,
+                self.open_sum_oo,
             ],
         }
 
@@ -384,7 +421,10 @@ class Prognosis:
         """A saved history, checked. A damaged document or one binned by another width raises
         ValueError. One this history cannot continue, though sound, gives a new empty history with
         :attr:`restarted` saying why: saved by the first version (leakage not referred to reference
-        conditions) or referred to other reference conditions or another oil."""
+        conditions) or referred to other reference conditions or another oil. A ``cmcan-prognosis/2``
+        history (laminar sums only) goes on: its points are given orifice sums equal to their laminar
+        ones, which refer them alike by any mix of the laws (they tell nothing of the mix; the
+        points after the upgrade do)."""
         params = params or PrognosisParams()
         fmt = d.get("format") if isinstance(d, dict) else None
         if fmt == _FORMAT_V1:
@@ -393,8 +433,9 @@ class Prognosis:
                 f"a {_FORMAT_V1} history holds leakage not referred to reference conditions: a new history begins"
             )
             return out
-        if fmt != FORMAT:
+        if fmt not in (FORMAT, _FORMAT_V2):
             raise ValueError(f"not a {FORMAT} document")
+        width, open_width = (8, 9) if fmt == FORMAT else (5, 6)
         if d.get("bin_h") != params.bin_h:
             raise ValueError(f"history binned by {d.get('bin_h')!r} h, not {params.bin_h} h")
         if d.get("reference") != _reference(params):
@@ -408,26 +449,44 @@ class Prognosis:
             raise ValueError("field 'points': expected a list")
         out = cls(params)
         for i, q in enumerate(pts):
-            ok = isinstance(q, list) and len(q) == 5 and all(finite_number(x) for x in q[:3]) and count(q[3])
-            if not (ok and finite_number(q[4]) and q[4] > 0):
-                raise ValueError(f"field 'points[{i}]': expected [hour, leak, ratio, ticks, weight], got {q!r:.60}")
-            out.points.append((float(q[0]), float(q[1]), float(q[2]), int(q[3]), float(q[4])))
+            ok = isinstance(q, list) and len(q) == width and count(q[3])
+            if not (ok and all(finite_number(x) for x in q[:3] + q[4:]) and q[4] > 0):
+                raise ValueError(f"field 'points[{i}]': expected [{', '.join(_POINT_FIELDS[:width])}], got {q!r:.60}")
+            x = [float(v) for v in q[:3] + q[4:]]
+            lam = (x[3], x[1] * x[3], x[3], x[3])  # a /2 point: orifice sums as its laminar ones
+            s_aa, s_lo, s_ao, s_oo = lam if width == 5 else x[3:]
+            if not _mix_sums_ok(s_aa, s_ao, s_oo):
+                raise ValueError(f"field 'points[{i}]': its gain sums cannot come from one set of ticks, got {q!r:.60}")
+            out.points.append((x[0], x[1], x[2], int(q[3]), s_aa, s_lo, s_ao, s_oo))
         hours = [q[0] for q in out.points]
         if any(b <= a for a, b in itertools.pairwise(hours)):
             raise ValueError("field 'points': the hours must increase")
         out.points = out.points[-params.max_points :]
         op = d.get("open")
         if op is not None:
-            ok = isinstance(op, list) and len(op) == 6 and integer(op[0]) and count(op[1])
+            ok = isinstance(op, list) and len(op) == open_width and integer(op[0]) and count(op[1])
             if not (ok and all(finite_number(x) for x in op[2:]) and op[4] >= 0):
-                raise ValueError(
-                    f"field 'open': expected [bin, ticks, sum_h, sum_lg, sum_gg, sum_ratio], got {op!r:.60}"
-                )
+                raise ValueError(f"field 'open': expected [{', '.join(_OPEN_FIELDS[:open_width])}], got {op!r:.60}")
             if out.points and int(op[0]) < math.floor(out.points[-1][0] / params.bin_h):
                 raise ValueError("field 'open': its bin lies before the last point")
+            x = [float(v) for v in op[2:]]
+            mix = x[4:] if open_width == 9 else [x[1], x[2], x[2]]  # a /2 bin: orifice sums as its laminar ones
+            if not (op[1] == 0 or _mix_sums_ok(x[2], mix[1], mix[2])):
+                raise ValueError(f"field 'open': its gain sums cannot come from one set of ticks, got {op!r:.60}")
             out.open_bin, out.open_n = int(op[0]), int(op[1])
-            out.open_sum_h, out.open_sum_lg, out.open_sum_gg, out.open_sum_ratio = (float(x) for x in op[2:])
+            out.open_sum_h, out.open_sum_lg, out.open_sum_gg, out.open_sum_ratio = x[:4]
+            out.open_sum_lo, out.open_sum_go, out.open_sum_oo = mix
         return out
+
+
+_POINT_FIELDS = ("hour", "leak", "ratio", "ticks", "weight", "sum_lo", "sum_ao", "sum_oo")
+_OPEN_FIELDS = ("bin", "ticks", "sum_h", "sum_lg", "sum_gg", "sum_ratio", "sum_lo", "sum_ao", "sum_oo")
+
+
+def _mix_sums_ok(s_aa: float, s_ao: float, s_oo: float) -> bool:
+    """Sums of a^2, a * o and o^2 over one set of ticks (gains never negative): not negative, and
+    Cauchy-Schwarz (s_ao^2 <= s_aa * s_oo, to rounding), so every mix of the gains has a weight >= 0."""
+    return s_aa >= 0 and s_ao >= 0 and s_oo >= 0 and s_ao * s_ao <= s_aa * s_oo * (1.0 + 1e-9)
 
 
 def _reference(p: PrognosisParams) -> list[float]:
@@ -449,16 +508,21 @@ def _visc_table(oil: Oil, temp_ref_c: float) -> NDArray[np.float64]:
     return tab
 
 
-def _gain(p: PrognosisParams, dp_bar: NDArray[np.float64], temp_c: NDArray[np.float64]) -> NDArray[np.float64]:
-    """g = (dp / dp_ref) * (mu_ref / mu(T)): a laminar gap flow at this point over its flow at the
-    reference conditions (the simulator's wear law, and the physics of a worn gap). Temperatures
-    outside -30 ... 150 C are taken at the nearer end."""
+def _gains(
+    p: PrognosisParams, dp_bar: NDArray[np.float64], temp_c: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """A leak's flow at this point over its flow at the reference conditions, for the two laws of a
+    leak: laminar, ``a = (dp / dp_ref) * (mu_ref / mu(T))`` (a worn gap; the simulator's wear law),
+    and orifice, ``o = sqrt(dp / dp_ref)`` (a crack, a torn seal: turbulent, hardly viscous). A real
+    leak is a mix of both. Temperatures outside -30 ... 150 C are taken at the nearer end; sqrt is
+    correctly rounded, so a lone value and an array's agree."""
     tab = _visc_table(p.oil, p.temp_ref_c)
     x = (np.clip(temp_c, _TEMP_LO_C, _TEMP_HI_C) - _TEMP_LO_C) / _TEMP_STEP_C
     i = np.minimum(np.floor(x), len(tab) - 2).astype(np.int64)
     f = x - i
     visc = tab[i] + f * (tab[i + 1] - tab[i])
-    return dp_bar / p.dp_ref_bar * visc
+    rel = dp_bar / p.dp_ref_bar
+    return rel * visc, np.sqrt(rel)
 
 
 def count(x: Any) -> bool:
@@ -481,26 +545,106 @@ def _thin(points: list[Point], keep: int) -> list[Point]:
     while len(pts) > keep and half >= 2:
         w = [pts[i][3] + pts[i + 1][3] for i in range(half - 1)]
         i = w.index(min(w))
-        (h1, l1, r1, n1, g1), (h2, l2, r2, n2, g2) = pts[i], pts[i + 1]
+        (h1, l1, r1, n1, g1, *m1), (h2, l2, r2, n2, g2, *m2) = pts[i], pts[i + 1]
         n, g = n1 + n2, g1 + g2
-        pts[i : i + 2] = [((h1 * n1 + h2 * n2) / n, (l1 * g1 + l2 * g2) / g, (r1 * n1 + r2 * n2) / n, n, g)]
+        lo, ao, oo = (x1 + x2 for x1, x2 in zip(m1, m2, strict=True))
+        pts[i : i + 2] = [((h1 * n1 + h2 * n2) / n, (l1 * g1 + l2 * g2) / g, (r1 * n1 + r2 * n2) / n, n, g, lo, ao, oo)]
         half -= 1
     return pts
+
+
+# -- the leak's law: laminar and orifice shares ----------------------------------------------------
+
+_SHARES = tuple(i / 20 for i in range(21))  # the orifice share of the leak at reference conditions tried
+
+
+@dataclass(frozen=True)
+class _Mix:
+    """The leak's law fitted on the history: the orifice share of ``y = W * ((1 - s) a + s o)`` (``W``
+    the leakage at the reference conditions) whose referral the wear law fits best, the history
+    referred by it, and ``factor`` (>= 1): how much higher than by the best share any share the data
+    do not rule out reads the recent leakage. The end of life in l/min is divided by it: the level is
+    uncertain by as much, and the early end of that is the one booked."""
+
+    best: float
+    factor: float
+    leak: NDArray[np.float64]
+
+
+def _refer_all(leak: NDArray[np.float64], sums: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Every point referred by every share of :data:`_SHARES` (rows), and its weight there (the
+    least-squares ``W = sum(y g) / sum(g^2)`` of ``g = (1 - s) a + s o``, and ``sum(g^2)``)."""
+    s = np.array(_SHARES)[:, None]
+    s_aa, s_lo, s_ao, s_oo = (sums[:, j] for j in range(1, 5))
+    s_la = leak * s_aa
+    num = s_la + s * (s_lo - s_la)
+    den = s_aa + 2.0 * s * (s_ao - s_aa) + s * s * (s_oo - 2.0 * s_ao + s_aa)
+    den = np.maximum(den, 1e-300)  # Cauchy-Schwarz keeps it >= 0; rounding may reach 0 for a = o
+    return num / den, den
+
+
+def _mix(p: PrognosisParams, h: NDArray[np.float64], leak: NDArray[np.float64], sums: NDArray[np.float64]) -> _Mix:
+    """The share of the leak that flows by the orifice law, from the history's own spread of pressure
+    and oil temperature: referred by the right share, the leakage follows the wear law's curve in
+    time; by a wrong one it swings with the operating point on top of it (a laminar leak referred as
+    an orifice one follows the oil's viscosity, over the oil's whole cycle). Each share's referral is
+    fitted by the wear law itself (the grid of :func:`_detect`), scaled to the laminar referral's
+    recent level so that the squares compare, and the share whose fit leaves the least is the best.
+
+    The squares are not judged about a local line in time: that is blind to a swing slower than its
+    window (an oil cycle of a day) and sees a temperature sensor's steps instead (J1939's 1 C: the
+    laminar referral jumps 3 % at each, the leak does not), and it ruled the laminar law out on the
+    J1939 demo's laminar wear (best share 0.7-0.8; booked 1.0, its p50 read 14 h for 10 h left).
+
+    A share is ruled out when its fit's excess over the best's exceeds ``mix_chi2`` times the best
+    fit's residual variance (inflated for the residuals' lag-1 autocorrelation). ``factor``: the
+    highest recent level (the last ``min_history_h``) of a share not ruled out over the best's."""
+    W, _ = _refer_all(leak, sums)
+    recent = h >= h[-1] - p.min_history_h
+    wt = sums[recent, 0]
+    level = W[:, recent] @ wt / float(wt.sum())
+    rms = np.sqrt((W[:, recent] ** 2) @ wt / float(wt.sum()))
+    Y = W * (rms[0] / np.where(rms > 0, rms, 1.0))[:, None]
+    grid = _grid(p, h)
+    n = len(h)
+    Yc = Y - Y.mean(axis=1, keepdims=True)
+    suy = Yc @ grid.basis.T - Yc.sum(axis=1, keepdims=True) * grid.u_mean
+    gain = np.where(suy > 0, suy * suy / np.where(grid.suu > 0, grid.suu, np.inf), 0.0)
+    cell = np.argmax(gain, axis=1)
+    sse = np.maximum(np.einsum("ij,ij->i", Yc, Yc) - gain[np.arange(len(_SHARES)), cell], 0.0)
+    best = int(np.argmin(sse))
+    g = int(cell[best])
+    c = float(suy[best, g] / grid.suu[g]) if gain[best, g] > 0 else 0.0
+    resid = Yc[best] - c * (grid.basis[g] - grid.u_mean[g])
+    s2 = max(float(sse[best]) / max(n - 4, 1), 1e-12) * _inflation(resid)
+    ok = sse - sse[best] <= p.mix_chi2 * s2
+    factor = float(np.max(np.where(ok, level, -np.inf)) / level[best]) if level[best] > 0 else 1.0
+    return _Mix(_SHARES[best], max(factor, 1.0), W[best])
 
 
 # -- the estimate -----------------------------------------------------------------------------------
 
 
 def estimate(
-    p: PrognosisParams, h: NDArray[np.float64], leak: NDArray[np.float64], ratio: NDArray[np.float64]
+    p: PrognosisParams,
+    h: NDArray[np.float64],
+    leak: NDArray[np.float64],
+    ratio: NDArray[np.float64],
+    sums: NDArray[np.float64] | None = None,
 ) -> Estimate:
     """The prognosis from a history (hours increasing): see the module's description. Two sides are
     tracked: the leakage growing (wear; the ratio falls to the low warning) and the ratio rising (a
-    drifting displacement control; to the high warning). Where both trend, the one ending sooner."""
+    drifting displacement control; to the high warning). Where both trend, the one ending sooner.
+    ``leak`` is referred by the laminar law; with ``sums`` (the points' ticks and gain sums, the
+    fields of :data:`Point` from the fourth on) the law's orifice share is fitted first (:func:`_mix`)
+    and the leakage referred by it."""
     n = len(h)
     if n < p.min_points + 2 or not h[-1] - h[0] >= p.min_history_h:
         return Estimate(at_h=float(h[-1]) if n else math.nan)
     T = float(h[-1])
+    mix = _mix(p, h, leak, sums) if sums is not None else None
+    if mix is not None:
+        leak = mix.leak
     d_low = _detect(p, h, leak, _LEAK)
     # The high side follows the ratio above 100 %: flow a healthy drive cannot deliver, which a leak,
     # however it swings with the oil and the pressure, never gives (it only lowers the ratio). As the
@@ -519,7 +663,10 @@ def estimate(
     )
     sides = []
     if d_low.trend:
-        sides.append((LOW, d_low, _track_hours(p, h, leak, d_low, _leak_thresholds(p, leak, ratio), _LEAK)))
+        warn, eol = _leak_thresholds(p, leak, ratio)
+        if mix is not None and p.eol_kind == "leak_lpm":  # a ratio's leakage moves with the referral
+            eol /= mix.factor
+        sides.append((LOW, d_low, _track_hours(p, h, leak, d_low, (warn, eol), _LEAK)))
     if d_high.trend:
         ys = (float(_short_pct(np.array(p.high_pct))), float(_short_pct(np.array(p.eol_high_pct))))
         sides.append((HIGH, d_high, _track_hours(p, h, excess, d_high, ys, _RATIO)))
@@ -858,7 +1005,12 @@ def _leak_thresholds(p: PrognosisParams, leak: NDArray[np.float64], ratio: NDArr
 
 
 def _hours_to(
-    y: float, b: NDArray[np.float64], c: NDArray[np.float64], t0: NDArray[np.float64], k: NDArray[np.float64], T: float
+    y: float,
+    b: NDArray[np.float64],
+    c: NDArray[np.float64],
+    t0: NDArray[np.float64],
+    k: NDArray[np.float64],
+    T: float,
 ) -> NDArray[np.float64]:
     """Per drawn curve, operating hours from ``T`` until it reaches ``y`` (0: reached already)."""
     if not math.isfinite(y):

@@ -51,6 +51,7 @@ MAX_NODE_BYTES = 64 << 10
 MAX_DEPTH = 64  # a state nests 6 deep
 MAX_MAGNITUDE = 1e15  # beyond any count, time (s) or sum cmcan keeps; squares stay far from overflow
 _PROGNOSIS_V1 = "cmcan-prognosis/1"  # the first prognosis history: the core begins a new one, and says so
+_PROGNOSIS_V2 = "cmcan-prognosis/2"  # laminar sums only: the core reads it on (no orifice sums yet)
 _BIN_H = PrognosisParams().bin_h  # the only width cmcan bins the prognosis history by
 SIGHUP = 1  # its bit in /proc/PID/status SigCgt (signal N is bit N - 1)
 
@@ -309,8 +310,9 @@ def _prognosis_problem(d: dict[str, Any]) -> str | None:
     fmt = d.get("format")
     if fmt == _PROGNOSIS_V1:
         return None
-    if fmt != PROGNOSIS_FORMAT:
+    if fmt not in (PROGNOSIS_FORMAT, _PROGNOSIS_V2):
         return f"field 'prognosis.format': expected {PROGNOSIS_FORMAT!r}, got {fmt!r:.40}"
+    width = len(_POINT) + 1 if fmt == PROGNOSIS_FORMAT else 5
     if d.get("bin_h") != _BIN_H:
         return f"field 'prognosis.bin_h': expected {_BIN_H} (hours per point), got {d.get('bin_h')!r:.40}"
     ref = d.get("reference")
@@ -320,19 +322,31 @@ def _prognosis_problem(d: dict[str, Any]) -> str | None:
     if not isinstance(pts, list):
         return f"field 'prognosis.points': expected a list, got {pts!r:.40}"
     for i, q in enumerate(pts):
-        ok = isinstance(q, list) and len(q) == 5 and count(q[3])
+        ok = isinstance(q, list) and len(q) == width and count(q[3])
         values = q[:3] + q[4:] if ok else []
-        if not (ok and all(finite_number(x) and lo <= x <= hi for x, (lo, hi) in zip(values, _POINT, strict=True))):
-            return f"field 'prognosis.points[{i}]': expected [{_POINT_TEXT}], got {q!r:.60}"
+        if not (ok and all(finite_number(x) and lo <= x <= hi for x, (lo, hi) in zip(values, _POINT, strict=False))):
+            return f"field 'prognosis.points[{i}]': expected [{', '.join(_POINT_TEXT[:width])}], got {q!r:.60}"
         if i and not q[0] > pts[i - 1][0]:
             return f"field 'prognosis.points[{i}]': hour {q[0]!r} after {pts[i - 1][0]!r}: the hours must increase"
-    return _open_problem(d.get("open"), pts) or _estimate_problem(d)
+    return _open_problem(d.get("open"), pts, width + 1) or _estimate_problem(d)
 
 
 # What a prognosis point may hold (hour, leakage at the reference conditions in l/min, ratio in %, its
-# weight: the bin's sum of squared gains, from the coldest oil to the hottest): beyond, no drive.
-_POINT = ((0.0, 1e6), (-1e5, 1e5), (-1e4, 1e4), (1e-12, 1e12))
-_POINT_TEXT = "hour 0..1e6, leak +-1e5 l/min, ratio +-1e4 %, ticks, weight 1e-12..1e12"
+# weight: the bin's sum of squared laminar gains, from the coldest oil to the hottest; in
+# cmcan-prognosis/3 also the sums of leak times orifice gain, of both gains' product and of the
+# orifice gain squared): beyond, no drive. The sums' consistency the core checks (Prognosis.from_dict).
+_POINT = ((0.0, 1e6), (-1e5, 1e5), (-1e4, 1e4), (1e-12, 1e12), (-1e15, 1e15), (0.0, 1e12), (0.0, 1e12))
+_POINT_TEXT = (
+    "hour 0..1e6",
+    "leak +-1e5 l/min",
+    "ratio +-1e4 %",
+    "ticks",
+    "weight 1e-12..1e12",
+    "sum_lo +-1e15",
+    "sum_ao 0..1e12",
+    "sum_oo 0..1e12",
+)
+_OPEN_TEXT = ("bin", "ticks", "sum_h", "sum_lg", "sum_gg", "sum_ratio", "sum_lo", "sum_ao", "sum_oo")
 
 
 def _estimate_problem(d: dict[str, Any]) -> str | None:
@@ -350,12 +364,12 @@ def _estimate_problem(d: dict[str, Any]) -> str | None:
     return None
 
 
-def _open_problem(op: Any, pts: list[Any]) -> str | None:
+def _open_problem(op: Any, pts: list[Any], width: int) -> str | None:
     if op is None:
         return None
-    ok = isinstance(op, list) and len(op) == 6 and integer(op[0]) and count(op[1])
+    ok = isinstance(op, list) and len(op) == width and integer(op[0]) and count(op[1])
     if not (ok and all(finite_number(x) for x in op[2:]) and op[4] >= 0):
-        return f"field 'prognosis.open': expected [bin, ticks, sum_h, sum_lg, sum_gg, sum_ratio], got {op!r:.60}"
+        return f"field 'prognosis.open': expected [{', '.join(_OPEN_TEXT[:width])}], got {op!r:.60}"
     if pts and op[0] < math.floor(pts[-1][0] / _BIN_H):
         return f"field 'prognosis.open': bin {op[0]} lies before the last point's"
     return None
