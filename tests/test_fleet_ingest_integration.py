@@ -21,7 +21,8 @@ import pytest
 pytest.importorskip("pyarrow")
 
 from cmcan.fleet import dataset as ds
-from cmcan.fleet import ingest as ig
+from cmcan.fleet import uplinkstore as store
+from cmcan.fleet.uplinkrows import UPLINK_QUARANTINE, UPLINK_TABLES
 from cmcan.uplink.config import UplinkSettings
 from cmcan.uplink.outbox import open_outbox
 from cmcan.uplink.publisher import Publisher
@@ -72,7 +73,7 @@ def start_ingest(port: int, out: Path, log: Path) -> subprocess.Popen[bytes]:
     with open(log, "ab") as f:
         return subprocess.Popen(
             [sys.executable, "-m", "cmcan", "fleet", "ingest", "--broker", f"mqtt://127.0.0.1:{port}",
-             "--out", str(out), "--batch", "10", "--batch-wait-s", "0.1"],
+             "--out", str(out), "--batch", "10", "--batch-wait-s", "0.1", "--fold-every", "4"],
             stdout=f, stderr=subprocess.STDOUT, env={**os.environ, "PYTHONUNBUFFERED": "1"},
         )  # fmt: skip
 
@@ -94,9 +95,10 @@ def rows(root: Path) -> dict[str, list[dict]]:
     import pyarrow.parquet as pq
 
     out: dict[str, list[dict]] = {}
-    for table, files in ig.committed_files(root)[0].items():
-        for machine, p in files:
-            out.setdefault(table, []).extend({**r, "machine": machine} for r in pq.read_table(p).to_pylist())
+    for table, files in store.committed_files(root)[0].items():
+        for machine, p in files:  # a flat file's rows carry their machine (the quarantine's its own)
+            got = pq.read_table(p).to_pylist()
+            out.setdefault(table, []).extend(got if machine is None else ({**r, "machine": machine} for r in got))
     return out
 
 
@@ -142,7 +144,7 @@ def test_nothing_lost_nothing_doubled_through_kills_and_a_broker_restart(tmp_pat
             t.start()
 
         def commits() -> int:
-            return len(ig.commit_records(out))
+            return len(store.record_paths(out))
 
         for kill in range(2):  # SIGKILL twice while batches are being committed
             n = commits()
@@ -157,7 +159,7 @@ def test_nothing_lost_nothing_doubled_through_kills_and_a_broker_restart(tmp_pat
             t.join(120)
         assert outbox_left(tmp_path, machines) == 0, "the gateways' outboxes did not drain"
         total = sum(published.values())
-        wait(lambda: sum(len(r) for t, r in rows(out).items() if t in ig.UPLINK_TABLES[:3]) >= total, 60,
+        wait(lambda: sum(len(r) for t, r in rows(out).items() if t in UPLINK_TABLES[:3]) >= total, 60,
              "every entry in the data set", log)  # fmt: skip
         ingest.send_signal(signal.SIGTERM)
         assert ingest.wait(20) == 0, log.read_text()
@@ -178,12 +180,14 @@ def test_nothing_lost_nothing_doubled_through_kills_and_a_broker_restart(tmp_pat
         assert sorted(r["seq"] for r in entries if r["machine"] == m) == list(range(1, published[m] + 1))
     assert {r["to_level"] for r in got["uplink_events"] if r["type"] == "level_change"} == {"low", "ok"}
     assert {r["machine"] for r in got["uplink_status"]} == set(machines)
-    reasons = sorted(r["reason"].split(" (")[0] for r in got[ig.UPLINK_QUARANTINE])
+    reasons = sorted(r["reason"].split(" (")[0] for r in got[UPLINK_QUARANTINE])
     for want in ("payload is not JSON", "machine id", "payload nested too deep", "payload of 10000000 bytes",
                  "schema 99 is newer"):  # fmt: skip
         assert sum(r.startswith(want) for r in reasons) == 1, (want, reasons)
     # no file outside a commit, no staging left behind
-    listed = {p for files in ig.committed_files(out)[0].values() for _m, p in files} | set(ig.commit_records(out))
+    records, problems = store.read_records(out)
+    assert not problems
+    listed = {store.place_of(out, f) for r in records for f in r.files} | set(store.record_paths(out))
     on_disk = {p for p in out.rglob("*.parquet")}
     assert on_disk == listed
     assert not list((out / ds.STAGING).glob("ingest-*"))
