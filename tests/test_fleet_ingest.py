@@ -69,6 +69,22 @@ def test_a_summary_as_the_uplink_publishes_it_parses_into_its_row():
     assert json.loads(r["payload"])["evaluated_total_h"] == 12.5
 
 
+def test_an_integer_too_large_for_a_float_reads_as_no_number():
+    """(It raised OverflowError, so one such message stopped the ingest at every redelivery.)"""
+    huge = 10**400
+    prognosis = {"state": "trend", "to_warning_h": huge, "to_eol_h": [1.0, huge, "never"]}
+    m = parse(topic(), payload(ratio_filt_pct=huge, warning_count=huge, prognosis=prognosis), "cmcan", T0)
+    assert isinstance(m, Message), m
+    r = m.row
+    assert (r["ratio_filt_pct"], r["warning_count"], r["prognosis_to_warning_h"]) == (None, None, None)
+    assert (r["prognosis_to_eol_p10_h"], r["prognosis_to_eol_p50_h"], r["prognosis_to_eol_p90_h"]) == (
+        1.0,
+        None,
+        math.inf,
+    )
+    assert parse(topic(), payload(ratio_filt_pct=10**300), "cmcan", T0).row["ratio_filt_pct"] == 1e300  # a float still
+
+
 @pytest.mark.parametrize(
     ("tp", "body", "reason"),
     [
@@ -89,6 +105,8 @@ def test_a_summary_as_the_uplink_publishes_it_parses_into_its_row():
         (topic(), payload().replace(b'"id":"7d58-1"', b'"id":"7d58-2"'), "does not end in its seq"),
         (topic(), payload(level="purple"), "field 'level'"),
         (topic(), payload().replace(b'"t_s":1767226500.0', b'"t_s":1e300'), "between 1970 and 9999"),
+        (topic(), payload().replace(b'"t_s":1767226500.0', b'"t_s":1' + b"0" * 400), "between 1970 and 9999"),
+        (topic("wl-1", "dropped"), payload(kind="dropped", reason="full", entries=10**30), "beyond 64 bits"),
     ],
 )
 def test_hostile_payloads_are_refused_with_their_reason(tp, body, reason):

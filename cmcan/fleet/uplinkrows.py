@@ -17,6 +17,7 @@ import hashlib
 import json
 import math
 import re
+import sys
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any
@@ -91,11 +92,13 @@ def _no_constant(name: str) -> Any:
 
 
 def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for k, v in pairs:
-        if k in out:
-            raise _Bad(f"payload repeats the key {shown(k)!r}")
-        out[k] = v
+    out = dict(pairs)  # (in C; a key is looked for only when one repeats)
+    if len(out) != len(pairs):
+        seen: set[str] = set()
+        for k, _v in pairs:
+            if k in seen:
+                raise _Bad(f"payload repeats the key {shown(k)!r}")
+            seen.add(k)
     return out
 
 
@@ -131,14 +134,31 @@ def _field(p: dict[str, Any], name: str, types: tuple[type, ...], required: bool
 
 
 _NUM = (int, float)
+_FLOAT_MAX = sys.float_info.max
+INT64 = (-(2**63), 2**63 - 1)  # what an integer column holds
+
+
+def _finite(v: Any) -> float | None:
+    """A JSON number as a finite float, else None (a bool, NaN, infinity, an integer too large for a
+    float: ``float()`` of one raises, which made one such field of one message stop the ingest)."""
+    t = type(v)
+    if t is float:
+        return v if math.isfinite(v) else None
+    if t is int:
+        return float(v) if -_FLOAT_MAX <= v <= _FLOAT_MAX else None
+    return None
+
+
+def _int64(p: dict[str, Any], name: str) -> int:
+    v = _field(p, name, (int,))
+    if not INT64[0] <= v <= INT64[1]:
+        raise _Bad(f"field {name!r}: an integer beyond 64 bits")
+    return v
 
 
 def _opt_num(d: Any, name: str) -> float | None:
     """A number of an optional part of the payload (None when absent, null, "never" or not a number)."""
-    if not isinstance(d, dict):
-        return None
-    v = d.get(name)
-    return float(v) if isinstance(v, _NUM) and not isinstance(v, bool) and math.isfinite(v) else None
+    return _finite(d.get(name)) if isinstance(d, dict) else None
 
 
 def _opt_str(d: Any, name: str) -> str | None:
@@ -150,7 +170,7 @@ def _hours(v: Any) -> float | None:
     """An hours field of the prognosis: a number, ``"never"`` (infinity), or None."""
     if v == "never":
         return math.inf
-    return float(v) if isinstance(v, _NUM) and not isinstance(v, bool) and math.isfinite(v) else None
+    return _finite(v)
 
 
 def _total_h(levels: Any) -> float | None:
@@ -188,10 +208,10 @@ def _envelope(p: dict[str, Any], machine: str, kind: str) -> None:
 
 
 def _time(p: dict[str, Any]) -> float:
-    t = float(_field(p, "t_s", _NUM))
-    if not T_MIN_S <= t <= T_MAX_S:
-        raise _Bad(f"field 't_s': {t} is not a time between 1970 and 9999")
-    return t
+    t = _field(p, "t_s", _NUM)
+    if not T_MIN_S <= t <= T_MAX_S:  # (compared as it came: a huge integer is no float)
+        raise _Bad(f"field 't_s': {shown(str(t))} is not a time between 1970 and 9999")
+    return float(t)
 
 
 def _entry_row(p: dict[str, Any], kind: str) -> dict[str, Any]:
@@ -208,7 +228,7 @@ def _entry_row(p: dict[str, Any], kind: str) -> dict[str, Any]:
     if kind == DROPPED:
         return {
             "reason": shown(_field(p, "reason", (str,))),
-            "entries": int(_field(p, "entries", (int,))),
+            "entries": _int64(p, "entries"),
             "first_seq": _opt_num(p, "first_seq"),
             "last_seq": _opt_num(p, "last_seq"),
         }
