@@ -173,17 +173,18 @@ def main() -> None:
     pub.connect("127.0.0.1", port)
     pub.loop_start()
     done = Committed(out)
-    rss: list[int] = []
-    last_sample = 0.0
+    rss: list[tuple[float, int]] = []  # (seconds since the first publish, VmRSS kB)
+    last_poll = 0.0
 
     def poll() -> None:
-        nonlocal last_sample
+        nonlocal last_poll
+        last_poll = time.monotonic()
         done.poll()
-        if ingest.poll() is None and time.monotonic() - last_sample >= 1.0:
-            last_sample = time.monotonic()
-            rss.append(rss_kb(ingest.pid))
-            if a.minutes and len(rss) % 60 == 0:
-                print(f"{len(rss) // 60} min: {done.rows} committed, RSS {rss[-1] / 1024:.1f} MB", file=sys.stderr)
+        if ingest.poll() is None:
+            t = time.monotonic() - t0
+            if a.minutes and rss and int(t // 60) > int(rss[-1][0] // 60):
+                print(f"{int(t // 60)} min: {done.rows} committed, RSS {rss[-1][1] / 1024:.1f} MB", file=sys.stderr)
+            rss.append((t, rss_kb(ingest.pid)))
 
     t0 = time.monotonic()
     until = t0 + a.minutes * 60.0 if a.minutes else None
@@ -203,6 +204,7 @@ def main() -> None:
             for info in infos:  # the broker has them (PUBACK): the publisher's memory stays bounded
                 info.wait_for_publish(60)
             infos.clear()
+        if time.monotonic() - last_poll >= 1.0:  # the records, and the ingest's memory every second
             poll()
     for info in infos:
         info.wait_for_publish(60)
@@ -229,8 +231,9 @@ def main() -> None:
     broker.terminate()
     broker.wait(10)
     close = day_close(out)
-    mb = [round(x / 1024, 1) for x in rss]
-    minute = min(60, len(mb) - 1)
+    mb = [round(kb / 1024, 1) for _t, kb in rss]
+    every_minute = [round(kb / 1024, 1) for k, (t, kb) in enumerate(rss) if k == 0 or t // 60 > rss[k - 1][0] // 60]
+    after_1 = next((round(kb / 1024, 1) for t, kb in rss if t >= 60.0), mb[0] if mb else None)
     result = {
         "messages": n,
         "machines": a.machines,
@@ -245,8 +248,8 @@ def main() -> None:
         "capacity_per_s_on_two_idle_cores": round(capacity),
         "batches": done.batches,
         "rss_mb": {"first": mb[0], "peak": max(mb), "last": mb[-1]} if mb else None,
-        "rss_mb_every_minute": mb[::60],
-        "rss_growth_mb_after_minute_1": round(mb[-1] - mb[minute], 1) if mb else None,
+        "rss_mb_every_minute": every_minute,
+        "rss_growth_mb_after_minute_1": round(mb[-1] - after_1, 1) if mb and after_1 is not None else None,
         "day_close_fold": close,
     }
     print(
