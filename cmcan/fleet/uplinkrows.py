@@ -35,7 +35,7 @@ TABLE_OF_KIND = {
 }
 UPLINK_TABLES = tuple(TABLE_OF_KIND.values())
 UPLINK_QUARANTINE = "uplink_quarantine"
-UPLINK_COMMITS = "uplink_commits"  # one record per committed batch: its files and the ids in them
+UPLINK_COMMITS = "uplink_commits"  # one record per committed batch or fold: its files and the ids in them
 MAX_PAYLOAD_BYTES = 256 * 1024  # a summary is some 2 KiB; anything near this is not a gateway's
 MAX_SHOWN = 120  # characters of a hostile topic or id kept in a quarantine row
 # <stream>-<seq>: the outbox's random stream id (hex) and the entry's number in it
