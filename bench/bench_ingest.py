@@ -233,7 +233,9 @@ def main() -> None:
     close = day_close(out)
     mb = [round(kb / 1024, 1) for _t, kb in rss]
     every_minute = [round(kb / 1024, 1) for k, (t, kb) in enumerate(rss) if k == 0 or t // 60 > rss[k - 1][0] // 60]
-    after_1 = next((round(kb / 1024, 1) for t, kb in rss if t >= 60.0), mb[0] if mb else None)
+    # from the first sample after a minute (pyarrow loaded, the first batches and folds done) to the
+    # last; a run shorter than two minutes has no such figure
+    after_1 = next((round(kb / 1024, 1) for t, kb in rss if t >= 60.0), None) if rss and rss[-1][0] >= 120 else None
     result = {
         "messages": n,
         "machines": a.machines,
