@@ -283,10 +283,10 @@ def test_an_os_error_of_the_data_set_ends_the_run_with_its_kind_and_path(
     _d, a, b = logs
     real = ds._write_table
 
-    def failing(table, path):
+    def failing(table, path, *options):
         if "_staging" in str(path) and "logs" in Path(path).parts:
             raise OSError(err, os.strerror(err), str(path))
-        return real(table, path)
+        return real(table, path, *options)
 
     monkeypatch.setattr(ds, "_write_table", failing)
     with pytest.raises(ds.DatasetError) as exc:

@@ -17,9 +17,12 @@ from hypothesis import strategies as st
 
 pytest.importorskip("pyarrow")
 
+import pyarrow.parquet as pq
+
 from cmcan.errors import CmcanError, Kind
 from cmcan.fleet import dataset as ds
 from cmcan.fleet import ingest as ig
+from cmcan.fleet import uplinkstore as store
 from cmcan.fleet.uplinkrows import (
     MAX_PAYLOAD_BYTES,
     UPLINK_QUARANTINE,
@@ -66,6 +69,22 @@ def test_a_summary_as_the_uplink_publishes_it_parses_into_its_row():
     assert json.loads(r["payload"])["evaluated_total_h"] == 12.5
 
 
+def test_an_integer_too_large_for_a_float_reads_as_no_number():
+    """(It raised OverflowError, so one such message stopped the ingest at every redelivery.)"""
+    huge = 10**400
+    prognosis = {"state": "trend", "to_warning_h": huge, "to_eol_h": [1.0, huge, "never"]}
+    m = parse(topic(), payload(ratio_filt_pct=huge, warning_count=huge, prognosis=prognosis), "cmcan", T0)
+    assert isinstance(m, Message), m
+    r = m.row
+    assert (r["ratio_filt_pct"], r["warning_count"], r["prognosis_to_warning_h"]) == (None, None, None)
+    assert (r["prognosis_to_eol_p10_h"], r["prognosis_to_eol_p50_h"], r["prognosis_to_eol_p90_h"]) == (
+        1.0,
+        None,
+        math.inf,
+    )
+    assert parse(topic(), payload(ratio_filt_pct=10**300), "cmcan", T0).row["ratio_filt_pct"] == 1e300  # a float still
+
+
 @pytest.mark.parametrize(
     ("tp", "body", "reason"),
     [
@@ -86,6 +105,8 @@ def test_a_summary_as_the_uplink_publishes_it_parses_into_its_row():
         (topic(), payload().replace(b'"id":"7d58-1"', b'"id":"7d58-2"'), "does not end in its seq"),
         (topic(), payload(level="purple"), "field 'level'"),
         (topic(), payload().replace(b'"t_s":1767226500.0', b'"t_s":1e300'), "between 1970 and 9999"),
+        (topic(), payload().replace(b'"t_s":1767226500.0', b'"t_s":1' + b"0" * 400), "between 1970 and 9999"),
+        (topic("wl-1", "dropped"), payload(kind="dropped", reason="full", entries=10**30), "beyond 64 bits"),
     ],
 )
 def test_hostile_payloads_are_refused_with_their_reason(tp, body, reason):
@@ -199,11 +220,11 @@ class FakeClient:
         self.acked: list[int] = []
 
     def ack(self, mid: int, _qos: int) -> None:
-        records = ig.commit_records(self.root)
+        records = store.record_paths(self.root)
         assert records, "acknowledged before the commit record was in place"
         for r in records:
             for f in json.loads(ds.read_record(r)[ds.FILES]):
-                assert ig.place_of(self.root, f).is_file()
+                assert store.place_of(self.root, f).is_file()
         self.acked.append(mid)
 
 
@@ -219,18 +240,24 @@ def test_a_batch_is_committed_before_its_messages_are_acknowledged(tmp_path):
     ing.batch = a_batch()
     ing.flush()
     assert sorted(ing.client.acked) == sorted([*range(1, 6)] * 2 + [99])
-    seen, n = ig.load_seen(root)
-    assert n == 1 and ("wl-2/7d58", 5) in seen and ("wl-2/7d58", 6) not in seen
+    seen, records = store.load_seen(root)
+    assert len(records) == 1 and ("wl-2/7d58", 5) in seen and ("wl-2/7d58", 6) not in seen
+    # one file per table, whatever the number of machines: the machine and day are columns
     files = sorted(p.relative_to(root).as_posix() for p in root.rglob("*.parquet"))
-    assert [f.split("/")[0] for f in files] == ["uplink_commits", UPLINK_QUARANTINE, *["uplink_summaries"] * 2]
-    assert "uplink_summaries/machine=wl-2/day=2026-01-01/" in files[3]
+    key = records[0].key
+    assert files[0].startswith("uplink_commits/day=") and files[0].endswith(f"/{key}.parquet")
+    assert files[1:] == [f"{UPLINK_QUARANTINE}/{key}.parquet", f"uplink_summaries/{key}.parquet"]
+    got = pq.read_table(root / files[2]).to_pylist()
+    assert [(r["machine"], str(r["day"]), r["seq"]) for r in got] == [
+        (m, "2026-01-01", seq) for m in ("wl-1", "wl-2") for seq in range(1, 6)
+    ]
     assert all((root / f).resolve().is_relative_to(root.resolve()) for f in files)
-    assert ig.remove_uplink_orphans(root) == 0
+    assert store.prepare(root, T0) == 0
 
 
 def test_a_commit_cut_short_leaves_no_row_and_no_id(tmp_path, monkeypatch):
     root = ds.open_dataset(tmp_path / "ds", create=True)
-    real, moved = ig._move, []
+    real, moved = store._move, []
 
     def crash_after_two(src, dest):
         if len(moved) == 2:
@@ -238,24 +265,24 @@ def test_a_commit_cut_short_leaves_no_row_and_no_id(tmp_path, monkeypatch):
         moved.append(dest)
         real(src, dest)
 
-    monkeypatch.setattr(ig, "_move", crash_after_two)
+    monkeypatch.setattr(store, "_move", crash_after_two)
     with pytest.raises(KeyboardInterrupt):
-        ig.commit_batch(root, a_batch(), ig.batch_key(1), T0)
+        store.commit_batch(root, a_batch(), store.key_of(1), T0)
     monkeypatch.undo()
-    assert len(list(root.glob("uplink_summaries/*/*/*.parquet"))) == 2 and not ig.commit_records(root)
+    assert len(list(root.glob("uplink_*/*.parquet"))) == 2 and not store.record_paths(root)
     assert not list((root / ds.STAGING).glob("ingest-*"))  # its staging folder went with it
-    assert ig.remove_uplink_orphans(root) == 2
-    seen, n = ig.load_seen(root)
-    assert n == 0 and not seen.ranges and not list(root.rglob("*.parquet"))
+    assert store.prepare(root, T0) == 2
+    seen, records = store.load_seen(root)
+    assert not records and not seen.ranges and not list(root.rglob("*.parquet"))
 
 
 def test_a_damaged_commit_record_is_named(tmp_path):
     root = ds.open_dataset(tmp_path / "ds", create=True)
-    ig.commit_batch(root, a_batch(2), ig.batch_key(1), T0)
-    (rec,) = ig.commit_records(root)
+    store.commit_batch(root, a_batch(2), store.key_of(1), T0)
+    (rec,) = store.record_paths(root)
     rec.write_bytes(rec.read_bytes()[:-20])
     with pytest.raises(ds.Damaged, match=rec.name):
-        ig.load_seen(root)
+        store.load_seen(root)
 
 
 # -- the command line --------------------------------------------------------------------------------
@@ -403,5 +430,5 @@ def test_a_lost_connection_commits_what_arrived_and_acknowledges_nothing(tmp_pat
     ing.lost = True
     ing.step()
     assert client.acked == [] and ing.client is None and ing.failures == 1  # the broker sends them again
-    seen, n = ig.load_seen(ing.root)
-    assert n == 1 and ("wl-1/7d58", 2) in seen  # and they are duplicates then
+    seen, records = store.load_seen(ing.root)
+    assert len(records) == 1 and ("wl-1/7d58", 2) in seen  # and they are duplicates then

@@ -1,19 +1,24 @@
-"""``cmcan fleet ingest`` end to end against a real mosquitto: several gateways' outboxes published by
-the uplink's publisher, the ingest as a real process killed with SIGKILL twice mid-run and the broker
-restarted once; afterwards every published id is in the data set exactly once, the hostile messages
-are in the quarantine with their reasons, and no file lies outside a commit.
+"""``cmcan fleet ingest`` end to end against a real mosquitto: 20 gateways, each a real ``cmcan uplink``
+process publishing its outbox (written by the monitor from a simulated run, as the daemon writes it),
+the ingest as a real process killed with SIGKILL twice mid-run and the broker restarted once;
+afterwards every published id is in the data set exactly once, the hostile messages are in the
+quarantine with their reasons, no file lies outside a commit, and the plan from the uplink equals
+the plan from the same machines' logs.
 
-``CMCAN_INGEST_GATEWAYS`` (default 4) sets the number of gateways (the issue's run: 20)."""
+The gateways' runs are prepared in two processes at once (a run is cheap to simulate; its two
+replays, into the log-derived data set and through the monitor into the outbox, are not), and the
+uplinks are started together. ``CMCAN_INGEST_GATEWAYS`` sets another number of gateways."""
 
 from __future__ import annotations
 
 import json
+import multiprocessing
 import os
 import signal
 import subprocess
 import sys
-import threading
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -21,40 +26,47 @@ import pytest
 pytest.importorskip("pyarrow")
 
 from cmcan.fleet import dataset as ds
-from cmcan.fleet import ingest as ig
-from cmcan.uplink.config import UplinkSettings
+from cmcan.fleet import uplinkstore as store
+from cmcan.fleet.uplinkrows import UPLINK_QUARANTINE, UPLINK_TABLES
 from cmcan.uplink.outbox import open_outbox
-from cmcan.uplink.publisher import Publisher
 from tests.uplink_support import Broker, needs_mosquitto
 
 pytestmark = [needs_mosquitto, pytest.mark.slow]
 
-GATEWAYS = int(os.environ.get("CMCAN_INGEST_GATEWAYS", "4"))
+GATEWAYS = int(os.environ.get("CMCAN_INGEST_GATEWAYS", "20"))
 LEAKS_LPM = (0.0, 6.0, 12.0)  # by turns: healthy, a warning that clears, a warning at the end
 SUMMARY_EVERY_S = 10.0  # the uplink's shortest period: some 36 summaries from each 6 min log
 
 
-def gateway(d: Path, machine: str, i: int, port: int, logs_root: Path) -> tuple[UplinkSettings, int]:
+def gateway_config(d: Path, machine: str, port: int) -> Path:
+    """A gateway's configuration: the reference drive, its uplink to the broker on ``port``."""
+    from tests.uplink_support import uplink_config
+
+    state = d / machine
+    state.mkdir(exist_ok=True)
+    path = uplink_config(d / f"{machine}.yaml", state, port, machine_id=machine, summary_every_s=SUMMARY_EVERY_S,
+                         mqtt={"reconnect_min_s": 0.1, "reconnect_max_s": 0.5})  # fmt: skip
+    with open(path, "a") as f:
+        f.write("baseline: {enabled: true}\nprognosis: {enabled: true}\n")
+    return path
+
+
+def prepare_gateway(d: Path, machine: str, i: int, logs_root: Path) -> int:
     """A machine's simulated log, replayed into the log-derived data set by ``fleet replay``'s task and
-    through the monitor with the daemon's uplink feed into its gateway's outbox; the outbox's size."""
+    through the monitor with the daemon's uplink feed into its gateway's outbox; the outbox's size.
+    (The broker's port is not known yet: the configuration is written again before the uplink starts.)"""
     from cmcan import config as cfgmod
     from cmcan.daemon.preflight import prepare
     from cmcan.fleet.task import LogJob, Options, process_log
     from cmcan.replay import replay_file
     from cmcan.uplink.feed import UplinkFeed
     from tests.helpers import sim_frames, write_log
-    from tests.uplink_support import uplink_config
 
     leak = LEAKS_LPM[i % len(LEAKS_LPM)]
     events = [{"type": "leakage", "component": "loop", "start_h": 0.01, "extra_lpm": leak, "ref_dp_bar": 300}]
     _run, frames = sim_frames("single_set_leakage", duration_h=0.1, events=events if leak else [], seed=i)
     log = write_log(d / f"{machine}.log", frames)
-    state = d / machine
-    state.mkdir()
-    path = uplink_config(d / f"{machine}.yaml", state, port, machine_id=machine, summary_every_s=SUMMARY_EVERY_S,
-                         mqtt={"reconnect_min_s": 0.1, "reconnect_max_s": 0.5})  # fmt: skip
-    with open(path, "a") as f:
-        f.write("baseline: {enabled: true}\nprognosis: {enabled: true}\n")
+    path = gateway_config(d, machine, 1)
     assert process_log(LogJob(machine, str(log), config=str(path)), Options(dataset=str(logs_root)))["status"] == "done"
     cfg = cfgmod.load(path)
     mon = prepare(cfg).parts.monitor
@@ -65,14 +77,23 @@ def gateway(d: Path, machine: str, i: int, port: int, logs_root: Path) -> tuple[
     box = open_outbox(cfg.uplink.outbox.path, durable=False)
     n = box.count()
     box.close()
-    return cfg.uplink, n
+    return n
+
+
+def start_uplink(config: Path, log: Path) -> subprocess.Popen[bytes]:
+    """The real ``cmcan uplink``, until its outbox is empty and acknowledged (exit 0)."""
+    with open(log, "ab") as f:
+        return subprocess.Popen(
+            [sys.executable, "-m", "cmcan", "-v", "uplink", "--config", str(config), "--drain", "--timeout", "300"],
+            stdout=f, stderr=subprocess.STDOUT, env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        )  # fmt: skip
 
 
 def start_ingest(port: int, out: Path, log: Path) -> subprocess.Popen[bytes]:
     with open(log, "ab") as f:
         return subprocess.Popen(
             [sys.executable, "-m", "cmcan", "fleet", "ingest", "--broker", f"mqtt://127.0.0.1:{port}",
-             "--out", str(out), "--batch", "10", "--batch-wait-s", "0.1"],
+             "--out", str(out), "--batch", "10", "--batch-wait-s", "0.1", "--fold-every", "4"],
             stdout=f, stderr=subprocess.STDOUT, env={**os.environ, "PYTHONUNBUFFERED": "1"},
         )  # fmt: skip
 
@@ -94,18 +115,11 @@ def rows(root: Path) -> dict[str, list[dict]]:
     import pyarrow.parquet as pq
 
     out: dict[str, list[dict]] = {}
-    for table, files in ig.committed_files(root)[0].items():
-        for machine, p in files:
-            out.setdefault(table, []).extend({**r, "machine": machine} for r in pq.read_table(p).to_pylist())
+    for table, files in store.committed_files(root)[0].items():
+        for machine, p in files:  # a flat file's rows carry their machine (the quarantine's its own)
+            got = pq.read_table(p).to_pylist()
+            out.setdefault(table, []).extend(got if machine is None else ({**r, "machine": machine} for r in got))
     return out
-
-
-def publish(s: UplinkSettings, publishers: list[Publisher]) -> None:
-    """A gateway's uplink in its own thread (its outbox's SQLite connection belongs to the thread)."""
-    pub = Publisher(s, open_outbox(s.outbox.path, durable=False))
-    publishers.append(pub)
-    pub.run(drain=True, timeout_s=120)
-    pub.box.close()
 
 
 def outbox_left(root: Path, machines: list[str]) -> int:
@@ -113,18 +127,18 @@ def outbox_left(root: Path, machines: list[str]) -> int:
 
 
 def test_nothing_lost_nothing_doubled_through_kills_and_a_broker_restart(tmp_path):
+    machines = [f"gw-{i:02d}" for i in range(GATEWAYS)]
+    logs_root = ds.open_dataset(tmp_path / "logs-ds", create=True)
+    with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("fork")) as pool:
+        sizes = pool.map(prepare_gateway, [tmp_path] * GATEWAYS, machines, range(GATEWAYS), [logs_root] * GATEWAYS)
+        published = dict(zip(machines, sizes, strict=True))
     conf = ["allow_anonymous true", "persistence true", f"persistence_location {tmp_path}/", "max_queued_messages 0"]
     broker = Broker(tmp_path, conf=conf).start()
     out, log = tmp_path / "ds", tmp_path / "ingest.log"
-    machines = [f"gw-{i:02d}" for i in range(GATEWAYS)]
-    publishers, threads, published = [], [], {}
+    uplinks: dict[str, subprocess.Popen[bytes]] = {}
     ingest = start_ingest(broker.port, out, log)
     try:
         wait(lambda: subscribed_times(log) >= 1, 30, "the ingest's subscription", log)
-        logs_root = ds.open_dataset(tmp_path / "logs-ds", create=True)
-        for i, m in enumerate(machines):
-            settings, published[m] = gateway(tmp_path, m, i, broker.port, logs_root)
-            threads.append(threading.Thread(target=publish, args=(settings, publishers), daemon=True))
         # hostile messages from a misbehaving client, beside the gateways
         import paho.mqtt.client as mqtt
         from paho.mqtt.enums import CallbackAPIVersion
@@ -138,11 +152,11 @@ def test_nothing_lost_nothing_doubled_through_kills_and_a_broker_restart(tmp_pat
             bad.publish(tp, body, qos=1).wait_for_publish(10)
         bad.disconnect()
         bad.loop_stop()
-        for t in threads:
-            t.start()
+        for m in machines:  # all at once: they start (and publish) side by side
+            uplinks[m] = start_uplink(gateway_config(tmp_path, m, broker.port), tmp_path / f"{m}-uplink.log")
 
         def commits() -> int:
-            return len(ig.commit_records(out))
+            return len(store.record_paths(out))
 
         for kill in range(2):  # SIGKILL twice while batches are being committed
             n = commits()
@@ -153,19 +167,22 @@ def test_nothing_lost_nothing_doubled_through_kills_and_a_broker_restart(tmp_pat
                 broker.kill(signal.SIGTERM)
                 broker.start()
             ingest = start_ingest(broker.port, out, log)
-        for t in threads:
-            t.join(120)
+        for m, proc in uplinks.items():
+            rc = proc.wait(300)
+            assert rc == 0, (m, rc, (tmp_path / f"{m}-uplink.log").read_text()[-3000:])
         assert outbox_left(tmp_path, machines) == 0, "the gateways' outboxes did not drain"
         total = sum(published.values())
-        wait(lambda: sum(len(r) for t, r in rows(out).items() if t in ig.UPLINK_TABLES[:3]) >= total, 60,
+        wait(lambda: sum(len(r) for t, r in rows(out).items() if t in UPLINK_TABLES[:3]) >= total, 60,
              "every entry in the data set", log)  # fmt: skip
         ingest.send_signal(signal.SIGTERM)
         assert ingest.wait(20) == 0, log.read_text()
     finally:
         if ingest.poll() is None:
             ingest.kill()
-        for p in publishers:
-            p.stop()
+        for proc in uplinks.values():
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(10)
         broker.kill()
 
     text = log.read_text()
@@ -178,12 +195,14 @@ def test_nothing_lost_nothing_doubled_through_kills_and_a_broker_restart(tmp_pat
         assert sorted(r["seq"] for r in entries if r["machine"] == m) == list(range(1, published[m] + 1))
     assert {r["to_level"] for r in got["uplink_events"] if r["type"] == "level_change"} == {"low", "ok"}
     assert {r["machine"] for r in got["uplink_status"]} == set(machines)
-    reasons = sorted(r["reason"].split(" (")[0] for r in got[ig.UPLINK_QUARANTINE])
+    reasons = sorted(r["reason"].split(" (")[0] for r in got[UPLINK_QUARANTINE])
     for want in ("payload is not JSON", "machine id", "payload nested too deep", "payload of 10000000 bytes",
                  "schema 99 is newer"):  # fmt: skip
         assert sum(r.startswith(want) for r in reasons) == 1, (want, reasons)
     # no file outside a commit, no staging left behind
-    listed = {p for files in ig.committed_files(out)[0].values() for _m, p in files} | set(ig.commit_records(out))
+    records, problems = store.read_records(out)
+    assert not problems
+    listed = {store.place_of(out, f) for r in records for f in r.files} | set(store.record_paths(out))
     on_disk = {p for p in out.rglob("*.parquet")}
     assert on_disk == listed
     assert not list((out / ds.STAGING).glob("ingest-*"))

@@ -15,7 +15,7 @@ pytest.importorskip("pyarrow")
 pytest.importorskip("duckdb")
 
 from cmcan.fleet import dataset as ds
-from cmcan.fleet import ingest as ig
+from cmcan.fleet import uplinkstore as store
 from cmcan.fleet.plan import LOGS, UPLINK, Facts, merge
 from cmcan.fleet.uplinkrows import Batch, Seen, parse
 from cmcan.uplink.records import dumps, envelope
@@ -34,10 +34,16 @@ def summary(machine: str, seq: int, t_s: float, level: str = "ok", op_h: float =
 
 
 def ingest(root: Path, messages: list[tuple[str, bytes]]) -> None:
-    b = Batch()
-    for tp, body in messages:
-        assert b.add(parse(tp, body, "cmcan", T0_S), Seen(), T0_S, None) == "new"
-    ig.commit_batch(root, b, ig.batch_key(1), T0_S)
+    """Two batches (every other message); the first folded into the machine/day partitions, the
+    second not: the readers take both layouts as one."""
+    for k in (0, 1):
+        b = Batch()
+        for tp, body in messages[k::2]:
+            assert b.add(parse(tp, body, "cmcan", T0_S), Seen(), T0_S, None) == "new"
+        first = store.commit_batch(root, b, store.key_of(k + 1), T0_S)
+        if k == 0:
+            assert first is not None
+            store.fold(root, [first], store.key_of(3), T0_S + 100 * DAY_S)
 
 
 PROGNOSIS = {"state": "trend", "direction": "low", "to_warning_h": 5.0, "to_eol_h": [12.0, 20.0, "never"]}
@@ -104,14 +110,16 @@ def test_the_query_has_the_uplinks_tables(dataset, capsys):
     assert capsys.readouterr().out == "n\n0\n"
 
 
-def test_a_damaged_uplink_file_is_named_not_read(dataset, tmp_path, capsys):
+@pytest.mark.parametrize("folded", [True, False])
+def test_a_damaged_uplink_file_is_named_not_read(dataset, tmp_path, capsys, folded):
     import shutil
 
     from cmcan.cli import main
 
     copy = tmp_path / "ds"
     shutil.copytree(dataset, copy)
-    f = next((copy / "uplink_summaries" / "machine=m-gw").rglob("*.parquet"))
+    live = store.committed_files(copy)[0]["uplink_summaries"]
+    f = next(p for m, p in live if (m is not None) == folded)  # in a partition, or a batch's flat file
     f.write_bytes(f.read_bytes()[:-8] + b"\0" * 8)
     assert main(["fleet", "query", str(copy), "SELECT count(*) FROM uplink_summaries"]) == 65
     assert f.name in capsys.readouterr().err

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import logging
 import signal
+import time
 from pathlib import Path
 from types import FrameType
 from typing import Any
@@ -77,6 +78,14 @@ def add_parser(fsub: Subparsers) -> None:
     p.add_argument(
         "--batch-wait-s", type=float, default=0.5, help="commit a batch once its oldest message waited this long"
     )
+    p.add_argument(
+        "--fold-every",
+        type=int,
+        default=None,
+        metavar="N",
+        help="fold N commits of one level into one (default 20); a closed day's rows are folded into the "
+        "machine/day partitions in any case (docs/fleet-telematics.md)",
+    )
     p.set_defaults(func=run)
 
 
@@ -118,7 +127,8 @@ def mqtt_section(args: argparse.Namespace) -> dict[str, Any]:
 def run(args: argparse.Namespace) -> int:
     require_extra("fleet", "pyarrow")
     from cmcan.fleet import dataset as ds
-    from cmcan.fleet.ingest import Ingest, ingest_lock, load_seen, remove_uplink_orphans
+    from cmcan.fleet import uplinkstore as store
+    from cmcan.fleet.ingest import FOLD_EVERY, Ingest, ingest_lock
     from cmcan.service.sdnotify import Notifier
     from cmcan.uplink.config import UplinkSettings
     from cmcan.uplink.setup import read_password, tls_context
@@ -127,6 +137,9 @@ def run(args: argparse.Namespace) -> int:
         logging.getLogger().setLevel(logging.INFO)
     if not args.batch_wait_s > 0:
         raise CmcanError(f"--batch-wait-s: expected a positive number of seconds, got {args.batch_wait_s}", Kind.USAGE)
+    fold_every = FOLD_EVERY if args.fold_every is None else args.fold_every
+    if fold_every < 2:
+        raise CmcanError(f"--fold-every: expected an integer of at least 2, got {fold_every}", Kind.USAGE)
     try:
         m = UplinkSettings.from_raw({"mqtt": mqtt_section(args)}, state_dir=".", source=SOURCE).mqtt
         tls = tls_context(m.tls, SOURCE)
@@ -135,18 +148,28 @@ def run(args: argparse.Namespace) -> int:
         raise as_options(exc) from None
     root = ds.open_dataset(Path(args.out), create=True)
     with ingest_lock(root):
-        removed = ds.remove_orphans(root) + remove_uplink_orphans(root)  # what a kill left behind
-        seen, batches = load_seen(root)
+        removed = ds.remove_orphans(root) + store.prepare(root, time.time())  # what a kill left behind
+        seen, records = store.load_seen(root)
         log.info(
-            "%s: %d batches committed before%s; subscribing to %s/+/... at %s:%d",
+            "%s: %d commit records%s; subscribing to %s/+/... at %s:%d",
             root,
-            batches,
-            f", {removed} files of an interrupted commit removed" if removed else "",
+            len(records),
+            f", {removed} files of an interrupted commit or of a fold removed" if removed else "",
             m.topic_prefix,
             m.host,
             m.port,
         )
-        ingest = Ingest(root, m, seen, password=password, tls=tls, notifier=Notifier(), batch_wait_s=args.batch_wait_s)
+        ingest = Ingest(
+            root,
+            m,
+            seen,
+            records=records,
+            fold_every=fold_every,
+            password=password,
+            tls=tls,
+            notifier=Notifier(),
+            batch_wait_s=args.batch_wait_s,
+        )
 
         def on_signal(signum: int, _frame: FrameType | None) -> None:
             log.info("received %s, committing what arrived and stopping", signal.Signals(signum).name)

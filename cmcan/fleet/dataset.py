@@ -40,6 +40,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import fcntl
+import functools
 import hashlib
 import json
 import math
@@ -172,7 +173,12 @@ def check_machine(machine: str, where: str) -> str:
 
 
 def day_of(t_s: float) -> str:
-    return str(np.datetime64(int(t_s // 86400), "D"))
+    return _day(int(t_s // 86400))
+
+
+@functools.lru_cache(maxsize=1024)  # the ingest asks for the same few days for every message
+def _day(days: int) -> str:
+    return str(np.datetime64(days, "D"))
 
 
 def days_of(t_s: np.ndarray) -> np.ndarray:
@@ -553,10 +559,17 @@ def _table(columns: dict[str, Any]) -> Any:
     return pa.table(arrays)
 
 
-def _write_table(table: Any, path: Path) -> None:
+def _write_table(table: Any, path: Path, row_group_rows: int | None = None) -> None:
     import pyarrow.parquet as pq
 
-    pq.write_table(table, path, compression="zstd", write_page_checksum=True)
+    pq.write_table(table, path, compression="zstd", write_page_checksum=True, row_group_size=row_group_rows)
+
+
+def parquet_writer(path: Path, schema: Any) -> Any:
+    """A Parquet file written in parts, as every file of the data set is (zstd, page checksums)."""
+    import pyarrow.parquet as pq
+
+    return pq.ParquetWriter(path, schema, compression="zstd", write_page_checksum=True)
 
 
 def sync_filesystem(path: Path) -> None:
@@ -579,7 +592,7 @@ def sync_filesystem(path: Path) -> None:
         os.close(fd)
 
 
-def write_parquet(path: Path, columns: dict[str, Any] | Any) -> None:
+def write_parquet(path: Path, columns: dict[str, Any] | Any, row_group_rows: int | None = None) -> None:
     """One Parquet file, written under a hidden temporary name and renamed."""
     import pyarrow as pa
 
@@ -588,7 +601,7 @@ def write_parquet(path: Path, columns: dict[str, Any] | Any) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
         try:
-            _write_table(table, tmp)
+            _write_table(table, tmp, row_group_rows)
             os.replace(tmp, path)
         except BaseException:
             tmp.unlink(missing_ok=True)
@@ -653,7 +666,6 @@ class LogWriter:
 
     def _flush(self, key: tuple[str, str]) -> None:
         import pyarrow as pa
-        import pyarrow.parquet as pq
 
         parts = self._buffers.pop(key, [])
         self._buffered.pop(key, None)
@@ -665,7 +677,7 @@ class LogWriter:
             w = self._writers.get(key)
             if w is None:
                 path.parent.mkdir(parents=True, exist_ok=True)
-                w = pq.ParquetWriter(path, t.schema, compression="zstd", write_page_checksum=True)
+                w = parquet_writer(path, t.schema)
                 self._writers[key] = w
                 self._written.add(key)
             w.write_table(t.cast(w.schema))

@@ -3,36 +3,27 @@
 A subscriber to ``<prefix>/+/event|summary|dropped|status`` with a persistent session (clean start
 off, a stable client id, QoS 1) and manual acknowledgement. What arrives is sorted into a batch
 (:class:`cmcan.fleet.uplinkrows.Batch`: new rows, duplicates by ``id``, quarantine rows); a batch is
-committed (:func:`commit_batch`) and only then are its messages acknowledged to the broker. So a
-kill -9 or a power cut before the commit leaves the messages unacknowledged (the broker delivers
-them again), and one after it leaves their ids in the commit record (the copies the broker delivers
-again are duplicates): nothing lost, nothing doubled.
+committed (:func:`cmcan.fleet.uplinkstore.commit_batch`: one file per table, fsync'd, with its
+commit record) and only then are its messages acknowledged to the broker. So a kill -9 or a power
+cut before the commit leaves the messages unacknowledged (the broker delivers them again), and one
+after it leaves their ids in the commit record (the copies the broker delivers again are
+duplicates): nothing lost, nothing doubled.
 
-**A batch's commit** (under the data set's commit lock, shared with ``fleet replay``): every file is
-written into the batch's own staging folder (one Parquet file per table, machine and day; the
-quarantine rows in one file), then the commit record, listing each file with its size and SHA-256
-and the batch's ids (ranges of ``seq`` per stream), with its own ``record_sha256``; the file system
-is synced (``syncfs``: one flush for the whole batch, not an fsync per file); then the files are
-renamed into place and synced, the record last and synced. A batch is in the data set
-exactly when its record is; a file of an uplink table no record lists is a commit that was cut
-short and is removed when the ingest starts (one ingest per data set: ``_ingest.lock``).
-
-Paths come from checked names only (the machine id a safe partition name, the day from a time
-between 1970 and 9999, the file name the batch's key), so nothing a gateway sends can name a path
-outside the data set.
+Folds (:func:`cmcan.fleet.uplinkstore.fold`: the batches' rows into the machine/day partitions once
+their day closes, and merged meanwhile) run in a thread beside the loop, one at a time, so the
+messages keep coming while a day is folded; the flat files a fold replaced are removed
+:data:`cmcan.fleet.uplinkstore.READER_GRACE_S` after it. One ingest per data set (``_ingest.lock``).
 """
 
 from __future__ import annotations
 
 import contextlib
 import fcntl
-import json
 import logging
 import os
 import random
-import shutil
+import threading
 import time
-import uuid
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,18 +31,8 @@ from typing import Any
 
 from cmcan.errors import CmcanError, Kind
 from cmcan.fleet import dataset as ds
-from cmcan.fleet.uplinkrows import (
-    COLUMNS,
-    INGEST_KINDS,
-    UPLINK_COMMITS,
-    UPLINK_QUARANTINE,
-    UPLINK_TABLES,
-    Batch,
-    Refusal,
-    Seen,
-    ids_record,
-    parse,
-)
+from cmcan.fleet import uplinkstore as store
+from cmcan.fleet.uplinkrows import INGEST_KINDS, Batch, Refusal, Seen, parse
 from cmcan.service.ratelog import RateLimitedLog
 from cmcan.service.sdnotify import Notifier
 from cmcan.uplink.config import MqttSettings
@@ -62,156 +43,10 @@ INGEST_LOCK = "_ingest.lock"
 SESSION_EXPIRY_S = 7 * 86400  # MQTT 5: how long the broker keeps the session (and queues) while we are away
 STATUS_EVERY_S = 10.0
 IDLE_FLUSH_S = 0.1  # nothing arrived for this long: the broker's window is full or the stream paused
+FOLD_EVERY = 20  # records of one level folded into one (see uplinkstore.fold_due)
 
 
-# -- the data set's side ----------------------------------------------------------------------------
-
-
-def _arrow(table: str, rows: list[dict[str, Any]]) -> Any:
-    import pyarrow as pa
-
-    cols = COLUMNS[table]
-    schema = pa.schema([pa.field(k, pa.type_for_alias(t)) for k, t in cols.items()])
-    return pa.Table.from_pylist([{k: r.get(k) for k in cols} for r in rows], schema=schema)
-
-
-def _listed(path: Path, table: str, machine: str | None, day: str | None) -> dict[str, Any]:
-    return {
-        "table": table,
-        "machine": machine,
-        "day": day,
-        "name": path.name,
-        "bytes": path.stat().st_size,
-        "sha256": ds.sha256_file(path),
-    }
-
-
-def place_of(root: Path, f: dict[str, Any]) -> Path:
-    """Where a file a commit record lists lies in the data set."""
-    if f["machine"] is None:
-        return root / f["table"] / f["name"]
-    return ds.partition(root, f["table"], f["machine"], f["day"]) / f["name"]
-
-
-def batch_key(now_ns: int) -> str:
-    """Sortable by commit time, unique."""
-    return f"{now_ns:020d}-{uuid.uuid4().hex[:8]}"
-
-
-def commit_batch(root: Path, batch: Batch, key: str, now_s: float) -> dict[str, Any] | None:
-    """The batch's rows and quarantine rows, and its commit record, into the data set (see the
-    module's notes); returns the record (None when the batch had nothing new to write)."""
-    if not batch.rows and not batch.quarantine:
-        return None
-    stage = root / ds.STAGING / f"ingest-{key}"
-    with ds.writing("create a staging folder", stage):
-        lock = ds.hold_stage(stage)
-        stage.mkdir()
-    try:
-        with ds.writing("write a batch", stage):
-            return _commit(root, batch, key, now_s, stage)
-    finally:
-        shutil.rmtree(stage, ignore_errors=True)
-        stage.with_name(stage.name + ".lock").unlink(missing_ok=True)
-        os.close(lock)
-
-
-def _commit(root: Path, batch: Batch, key: str, now_s: float, stage: Path) -> dict[str, Any]:
-    """Staged and listed in the record, synced; then moved into place, the record last, each step synced."""
-    files, staged = [], []  # staged flat (numbered), so no folder per machine is made and removed
-    parts = [(t, m, d, rows) for (t, m, d), rows in sorted(batch.rows.items())]
-    if batch.quarantine:
-        parts.append((UPLINK_QUARANTINE, None, None, batch.quarantine))
-    for n, (table, machine, day, rows) in enumerate(parts):
-        p = stage / f"{n}.parquet"
-        ds.write_parquet(p, _arrow(table, rows))
-        files.append({**_listed(p, table, machine, day), "name": f"{key}.parquet"})
-        staged.append(p)
-    day = ds.day_of(now_s)
-    record = {
-        "batch": key,
-        "committed_s": now_s,
-        "messages": len(batch),
-        "rows": sum(len(r) for r in batch.rows.values()),
-        "quarantined": len(batch.quarantine),
-        "duplicates": batch.duplicates,
-        ds.FILES: json.dumps(files),
-        "ids": json.dumps(ids_record(batch.dedups)),
-    }
-    staged_record = stage / "record.parquet"
-    ds.write_record(staged_record, record)
-    ds.sync_filesystem(stage)  # every staged file on the disk
-    with ds.writing("commit a batch", root / UPLINK_COMMITS), ds.commit_lock(root):
-        for p, f in zip(staged, files, strict=True):  # the data files first, on the disk before the record
-            _move(p, place_of(root, f))
-        ds.sync_filesystem(root)
-        _move(staged_record, root / UPLINK_COMMITS / f"day={day}" / f"{key}.parquet")
-        ds.sync_filesystem(root)  # the record in place: the batch is committed
-    return record
-
-
-def _move(src: Path, dest: Path) -> None:
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    os.replace(src, dest)
-
-
-def committed_files(root: Path, verify: bool = False) -> tuple[dict[str, list[tuple[str | None, Path]]], list[str]]:
-    """The files of each uplink table (and its quarantine) that the commit records list, with their
-    machine (None for the quarantine), and what is wrong with them: a damaged record, a listed file
-    missing or of another size, and (``verify``) of other content than its SHA-256 says."""
-    out: dict[str, list[tuple[str | None, Path]]] = {t: [] for t in (*UPLINK_TABLES, UPLINK_QUARANTINE)}
-    problems: list[str] = []
-    for p in commit_records(root):
-        try:
-            files = json.loads(ds.read_record(p)[ds.FILES])
-        except ds.Damaged as exc:
-            problems += exc.problems
-            continue
-        for f in files:
-            path = place_of(root, f)
-            out[f["table"]].append((f["machine"], path))
-            problem = ds.file_problem(path, f, verify)
-            if problem:
-                problems.append(problem)
-    return out, problems
-
-
-def commit_records(root: Path) -> list[Path]:
-    base = root / UPLINK_COMMITS
-    return sorted(p for p in base.glob("day=*/*.parquet") if not p.name.startswith(".")) if base.is_dir() else []
-
-
-def load_seen(root: Path) -> tuple[Seen, int]:
-    """The ids of every committed batch, and the number of batches; a damaged commit record is named
-    (:class:`cmcan.fleet.dataset.Damaged`): which ids it held is unknown."""
-    seen = Seen()
-    n = 0
-    for p in commit_records(root):
-        row = ds.read_record(p)
-        try:
-            seen.merge(json.loads(row["ids"]))
-        except (KeyError, TypeError, ValueError):
-            raise ds.Damaged([f"{p}: its ids are not readable"]) from None
-        n += 1
-    return seen, n
-
-
-def remove_uplink_orphans(root: Path) -> int:
-    """Files of the uplink tables that no commit record lists (a commit cut short), and temporaries."""
-    listed: set[Path] = set()
-    for p in commit_records(root):
-        listed |= {place_of(root, f) for f in json.loads(ds.read_record(p)[ds.FILES])}
-    n = 0
-    for table in (*UPLINK_TABLES, UPLINK_QUARANTINE, UPLINK_COMMITS):
-        base = root / table
-        if not base.is_dir():
-            continue
-        for f in base.rglob("*"):
-            is_tmp = f.name.startswith(".") and f.name.endswith(".tmp")
-            if f.is_file() and (is_tmp or (table != UPLINK_COMMITS and f.suffix == ".parquet" and f not in listed)):
-                f.unlink(missing_ok=True)
-                n += 1
-    return n
+# -- the data set's lock ----------------------------------------------------------------------------
 
 
 @contextlib.contextmanager
@@ -240,6 +75,7 @@ class IngestStats:
     duplicate: int = 0
     quarantined: int = 0
     batches: int = 0
+    folds: int = 0
     connects: int = 0
     connections_lost: int = 0
 
@@ -249,6 +85,74 @@ class IngestStats:
 
 def subscriptions(prefix: str) -> list[tuple[str, int]]:
     return [(f"{prefix}/+/{kind}", QOS) for kind in INGEST_KINDS]
+
+
+class Folder:
+    """The folds of the data set's uplink rows, one at a time in a thread (:mod:`cmcan.fleet.uplinkstore`):
+    which records are not folded yet (those the ingest commits are added), which folds' sources
+    wait for their grace to pass before their flat files go. A fold that failed raises its error in
+    the loop's thread (:meth:`poll`)."""
+
+    def __init__(self, root: Path, records: list[store.Record], every: int, wall: Callable[[], float]) -> None:
+        self.root = root
+        self.every = every
+        self.wall = wall
+        self.unfolded = store.unfolded(records)
+        by_key = {r.key: r for r in records}
+        # folds whose sources' flat files are still there (prepare removed those past their grace)
+        self.pending = [(r, by_key) for r in records if any(by_key.get(k) and by_key[k].flat_files() for k in r.folds)]
+        self.thread: threading.Thread | None = None
+        self.done: store.Record | None = None
+        self.sources: list[store.Record] = []
+        self.error: BaseException | None = None
+        self.stop_event = threading.Event()
+        self.folds = 0
+
+    def committed(self, record: store.Record) -> None:
+        self.unfolded.append(record)
+
+    def poll(self) -> None:
+        """A finished fold taken in; the next one started when due; sources past their grace dropped."""
+        if self.thread is not None:
+            if self.thread.is_alive():
+                return
+            self.thread = None
+            if self.error is not None:
+                err, self.error = self.error, None
+                raise err
+            if self.done is not None:
+                folded = set(self.done.folds)
+                self.unfolded = [r for r in self.unfolded if r.key not in folded]
+                if self.done.flat_files():
+                    self.unfolded.append(self.done)
+                self.pending.append((self.done, {r.key: r for r in self.sources}))
+                self.folds += 1
+                self.done = None
+        now = self.wall()
+        while self.pending and self.pending[0][0].committed_s <= now - store.READER_GRACE_S:
+            rec, by_key = self.pending.pop(0)
+            for k in rec.folds:
+                store.drop(self.root, by_key, k)
+        sources = store.fold_due(self.unfolded, now, self.every)
+        if sources:
+            self.sources = sources
+            self.thread = threading.Thread(target=self._fold, args=(sources, now), name="fold", daemon=True)
+            self.thread.start()
+
+    def _fold(self, sources: list[store.Record], now_s: float) -> None:
+        try:
+            self.done = store.fold(self.root, sources, store.key_of(time.time_ns()), now_s, self.stop_event)
+        except store.Stopped:
+            self.done = None
+        except BaseException as exc:  # raised in the loop's thread (poll)
+            self.error = exc
+
+    def stop(self) -> None:
+        """A fold in progress given up (nothing of it committed), or let finish if it is committing."""
+        self.stop_event.set()
+        if self.thread is not None:
+            self.thread.join()
+            self.thread = None
 
 
 class Ingest:
@@ -265,6 +169,8 @@ class Ingest:
         m: MqttSettings,
         seen: Seen,
         *,
+        records: list[store.Record] | None = None,
+        fold_every: int = FOLD_EVERY,
         password: str | None = None,
         tls: Any = None,
         notifier: Notifier | None = None,
@@ -283,6 +189,7 @@ class Ingest:
         self.clock = clock
         self.wall = wall
         self.stats = IngestStats()
+        self.folder = Folder(root, records or [], fold_every, wall)
         self.ratelog = RateLimitedLog(clock=clock, logger=log)
         self.batch = Batch()
         self.batch_started = self.last_message = 0.0
@@ -394,7 +301,9 @@ class Ingest:
         b, self.batch = self.batch, Batch()
         if not len(b):
             return
-        commit_batch(self.root, b, batch_key(time.time_ns()), self.wall())
+        record = store.commit_batch(self.root, b, store.key_of(time.time_ns()), self.wall())
+        if record is not None:
+            self.folder.committed(record)
         b.committed_into(self.seen)
         self.stats.batches += 1
         self.stats.new += sum(len(r) for r in b.rows.values())
@@ -437,6 +346,8 @@ class Ingest:
             self.flush()
 
     def housekeeping(self) -> None:
+        self.folder.poll()
+        self.stats.folds = self.folder.folds
         now = self.clock()
         if self.notifier.watchdog_interval_s and now >= self.next_watchdog:
             self.notifier.watchdog()
@@ -457,6 +368,7 @@ class Ingest:
             self.flush()  # what arrived is committed and acknowledged before we go
         finally:
             self.notifier.stopping()
+            self.folder.stop()
             if self.client is not None:
                 with contextlib.suppress(Exception):
                     self.client.disconnect()

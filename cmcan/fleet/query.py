@@ -250,20 +250,22 @@ def _records_table(table: str, rows: list[dict[str, Any]]) -> Any:
     return pa.table(arrays)
 
 
-def _data_dataset(root: Path, table: str, files: list[Path]) -> Any:
+def _data_dataset(root: Path, table: str, files: list[Path], flat: list[Path] | None = None) -> Any:
     """The data files of a table as one pyarrow dataset (hive partitions, unioned columns, page
-    checksums verified while it is read)."""
+    checksums verified while it is read). ``flat``: files of the uplink's tables not folded into the
+    partitions yet, whose rows carry their ``machine`` and ``day`` (``cmcan.fleet.uplinkstore``)."""
     import pyarrow as pa
     import pyarrow.dataset as pds
     import pyarrow.parquet as pq
 
     partitioned = table != UPLINK_QUARANTINE
     part = pds.partitioning(pa.schema([("machine", pa.string()), ("day", pa.date32())]), flavor="hive")
-    if not files:
+    flat = flat or []
+    if not files and not flat:
         return _empty(table)
     schemas = []
     problems = []
-    for f in files:
+    for f in [*files, *flat]:
         try:
             schemas.append(pq.read_schema(f))
         except (OSError, pa.ArrowException) as exc:
@@ -278,10 +280,13 @@ def _data_dataset(root: Path, table: str, files: list[Path]) -> Any:
         default_fragment_scan_options=pds.ParquetFragmentScanOptions(page_checksum_verification=True)
     )
     if not partitioned:
-        return pds.dataset([str(f) for f in files], schema=schema, format=fmt)
-    return pds.dataset(
+        return pds.dataset([str(f) for f in [*files, *flat]], schema=schema, format=fmt)
+    parted = pds.dataset(
         [str(f) for f in files], schema=schema, format=fmt, partitioning=part, partition_base_dir=str(root / table)
     )
+    if not flat:
+        return parted
+    return pds.dataset([parted, pds.dataset([str(f) for f in flat], schema=schema, format=fmt)])
 
 
 def _locked(duckdb: Any) -> Any:
@@ -326,7 +331,7 @@ def connect(root: str | Path, verify: bool = True, tables: set[str] | None = Non
             problems += ds.check_files(root, rec["machine"], rec, want & set(ds.DATA_TABLES))
     uplink: dict[str, list[Any]] = {}
     if want & {*UPLINK_TABLES, UPLINK_QUARANTINE}:  # the gateways' rows, from the ingest's commit records
-        from cmcan.fleet.ingest import committed_files
+        from cmcan.fleet.uplinkstore import committed_files
 
         uplink, up_problems = committed_files(root, verify)
         problems += up_problems
@@ -341,7 +346,11 @@ def connect(root: str | Path, verify: bool = True, tables: set[str] | None = Non
                 con.register(t, _data_dataset(root, t, data[t]))
         for t in (*UPLINK_TABLES, UPLINK_QUARANTINE):
             if t in want:
-                con.register(t, _data_dataset(root, t, [p for _m, p in uplink.get(t, [])]))
+                files = uplink.get(t, [])
+                con.register(
+                    t,
+                    _data_dataset(root, t, [p for m, p in files if m is not None], [p for m, p in files if m is None]),
+                )
         _derived_views(con)
         con.execute("SET lock_configuration = true")
     except BaseException:

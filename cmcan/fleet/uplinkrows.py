@@ -17,6 +17,7 @@ import hashlib
 import json
 import math
 import re
+import sys
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any
@@ -34,7 +35,7 @@ TABLE_OF_KIND = {
 }
 UPLINK_TABLES = tuple(TABLE_OF_KIND.values())
 UPLINK_QUARANTINE = "uplink_quarantine"
-UPLINK_COMMITS = "uplink_commits"  # one record per committed batch: its files and the ids in them
+UPLINK_COMMITS = "uplink_commits"  # one record per committed batch or fold: its files and the ids in them
 MAX_PAYLOAD_BYTES = 256 * 1024  # a summary is some 2 KiB; anything near this is not a gateway's
 MAX_SHOWN = 120  # characters of a hostile topic or id kept in a quarantine row
 # <stream>-<seq>: the outbox's random stream id (hex) and the entry's number in it
@@ -91,11 +92,13 @@ def _no_constant(name: str) -> Any:
 
 
 def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for k, v in pairs:
-        if k in out:
-            raise _Bad(f"payload repeats the key {shown(k)!r}")
-        out[k] = v
+    out = dict(pairs)  # (in C; a key is looked for only when one repeats)
+    if len(out) != len(pairs):
+        seen: set[str] = set()
+        for k, _v in pairs:
+            if k in seen:
+                raise _Bad(f"payload repeats the key {shown(k)!r}")
+            seen.add(k)
     return out
 
 
@@ -131,14 +134,31 @@ def _field(p: dict[str, Any], name: str, types: tuple[type, ...], required: bool
 
 
 _NUM = (int, float)
+_FLOAT_MAX = sys.float_info.max
+INT64 = (-(2**63), 2**63 - 1)  # what an integer column holds
+
+
+def _finite(v: Any) -> float | None:
+    """A JSON number as a finite float, else None (a bool, NaN, infinity, an integer too large for a
+    float: ``float()`` of one raises, which made one such field of one message stop the ingest)."""
+    t = type(v)
+    if t is float:
+        return v if math.isfinite(v) else None
+    if t is int:
+        return float(v) if -_FLOAT_MAX <= v <= _FLOAT_MAX else None
+    return None
+
+
+def _int64(p: dict[str, Any], name: str) -> int:
+    v = _field(p, name, (int,))
+    if not INT64[0] <= v <= INT64[1]:
+        raise _Bad(f"field {name!r}: an integer beyond 64 bits")
+    return v
 
 
 def _opt_num(d: Any, name: str) -> float | None:
     """A number of an optional part of the payload (None when absent, null, "never" or not a number)."""
-    if not isinstance(d, dict):
-        return None
-    v = d.get(name)
-    return float(v) if isinstance(v, _NUM) and not isinstance(v, bool) and math.isfinite(v) else None
+    return _finite(d.get(name)) if isinstance(d, dict) else None
 
 
 def _opt_str(d: Any, name: str) -> str | None:
@@ -150,7 +170,7 @@ def _hours(v: Any) -> float | None:
     """An hours field of the prognosis: a number, ``"never"`` (infinity), or None."""
     if v == "never":
         return math.inf
-    return float(v) if isinstance(v, _NUM) and not isinstance(v, bool) and math.isfinite(v) else None
+    return _finite(v)
 
 
 def _total_h(levels: Any) -> float | None:
@@ -188,10 +208,10 @@ def _envelope(p: dict[str, Any], machine: str, kind: str) -> None:
 
 
 def _time(p: dict[str, Any]) -> float:
-    t = float(_field(p, "t_s", _NUM))
-    if not T_MIN_S <= t <= T_MAX_S:
-        raise _Bad(f"field 't_s': {t} is not a time between 1970 and 9999")
-    return t
+    t = _field(p, "t_s", _NUM)
+    if not T_MIN_S <= t <= T_MAX_S:  # (compared as it came: a huge integer is no float)
+        raise _Bad(f"field 't_s': {shown(str(t))} is not a time between 1970 and 9999")
+    return float(t)
 
 
 def _entry_row(p: dict[str, Any], kind: str) -> dict[str, Any]:
@@ -208,7 +228,7 @@ def _entry_row(p: dict[str, Any], kind: str) -> dict[str, Any]:
     if kind == DROPPED:
         return {
             "reason": shown(_field(p, "reason", (str,))),
-            "entries": int(_field(p, "entries", (int,))),
+            "entries": _int64(p, "entries"),
             "first_seq": _opt_num(p, "first_seq"),
             "last_seq": _opt_num(p, "last_seq"),
         }
@@ -241,8 +261,26 @@ def _entry_row(p: dict[str, Any], kind: str) -> dict[str, Any]:
     }
 
 
-def digest_of(p: dict[str, Any]) -> str:
-    """What copies of one entry share: everything but ``late`` (docs/uplink.md)."""
+_HEAD_KEYS = ("schema", "kind", "machine_id", "id", "seq", "t", "t_s")  # the envelope before its `late`
+
+
+def digest_of(p: dict[str, Any], payload: bytes | None = None) -> str:
+    """What copies of one entry share: everything but ``late`` (docs/uplink.md). A payload laid out as
+    the uplink writes it (:func:`cmcan.uplink.records.envelope`: these keys first, then ``late``) is
+    hashed as its bytes with ``late`` false (the copies the uplink sends differ in that value alone),
+    a tenth of the cost of writing the content out again; any other payload by its content without
+    ``late``. (So a copy re-serialised by something between, its bytes but not its content other, is
+    quarantined as other content: never dropped unseen.)"""
+    late = p.get("late")
+    if payload is not None and isinstance(late, bool):
+        try:
+            head = dumps({k: p[k] for k in _HEAD_KEYS})[:-1].encode() + b',"late":'
+        except (KeyError, TypeError, ValueError):
+            head = b""
+        value = b"true" if late else b"false"
+        if head and payload.startswith(head) and payload.startswith(value, len(head)):
+            # the top-level key at that place (the head is whole keys and values; no key repeats)
+            return hashlib.sha256(b"%sfalse%s" % (head, payload[len(head) + len(value) :])).hexdigest()[:32]
     return hashlib.sha256(dumps({k: v for k, v in p.items() if k != "late"}).encode()).hexdigest()[:32]
 
 
@@ -291,7 +329,15 @@ def parse(topic: str, payload: bytes, prefix: str, received_s: float) -> Message
         }
         dedup = (f"{machine}/{m.group(1)}", seq)
         return Message(
-            kind, TABLE_OF_KIND[kind], machine, day_of(t_s), dedup, f"{machine}/{ident}", topic, digest_of(p), row
+            kind,
+            TABLE_OF_KIND[kind],
+            machine,
+            day_of(t_s),
+            dedup,
+            f"{machine}/{ident}",
+            topic,
+            digest_of(p, payload),
+            row,
         )
     except _Bad as exc:
         return Refusal(str(exc), shown(topic), machine, ident, len(payload), sha)
