@@ -65,6 +65,15 @@ def test_demo_reports_lead_times_as_json(tmp_path):
     assert kinds["misposition"]["level"] == "high"
     assert all(f["lead_h"] >= 10 for f in doc["failures"])
     assert (tmp_path / "demo.png").stat().st_size > 20_000
+    # beside each failure, what the default end of life (the ratio at 90 / 110 %) gave 10 h before it:
+    # a trend, its quantiles in order, and the ratio reached that end of life after the estimate
+    for f in doc["failures"]:
+        if f["kind"] not in ("wear", "misposition"):
+            continue
+        d = f["prognosis_default_eol"]
+        assert d["state"] in ("trend", "imminent") and d["at_h"] == f["fail_h"] - 10.0, d
+        p10, p50, p90 = d["to_eol_h"]
+        assert 0.0 <= p10 <= p50 <= p90 and d["reached_h"] > d["at_h"], d
 
 
 @pytest.mark.slow

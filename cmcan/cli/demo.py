@@ -150,5 +150,5 @@ def _default_eol_line(dd: dict[str, Any]) -> str:
     )
     if dd["to_eol_h"] is None:
         return f"at {dd['at_h']:.1f} h {dd['state'] or 'nothing'} (no trend); {when}"
-    p10, p50, p90 = dd["to_eol_h"]
-    return f"at {dd['at_h']:.1f} h {p50:.1f} h to end of life (10-90 %: {p10:.1f}-{p90:.1f} h); {when}"
+    p10, p50, p90 = ("never" if x is None else f"{x:.1f}" for x in dd["to_eol_h"])
+    return f"at {dd['at_h']:.1f} h {p50} h to end of life (10-90 %: {p10}-{p90} h); {when}"
