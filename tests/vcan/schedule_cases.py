@@ -4,9 +4,9 @@ the bus is silent, flooded or full of requests. Collected into ``cases`` (one VM
 One daemon start for every check (a Python start in the guest costs 30-75 s): the example machine on a
 silent bus (its drive controller sends nothing), its state seeded with three previously active DTCs (a
 DM2 of 14 bytes: an answer by BAM). Then, recorded by candump:
-- 60 s of requests from a service tool on a kernel CAN_J1939 socket (DM1, DM2, CM_RATIO, Address
-  Claimed, one every 0.5 s);
-- 20 s of a flood of DM2 requests to all from rotating source addresses (a raw CAN socket, 100 a
+- 30 s of requests from a service tool on a kernel CAN_J1939 socket (DM1, DM2, CM_RATIO, Address
+  Claimed, one every 0.5 s: 15 of each);
+- 12 s of a flood of DM2 requests to all from rotating source addresses (a raw CAN socket, 100 a
   second);
 - j1939acd takes cmcan's address with a lower NAME; on the quiet bus that follows, requests for
   Address Claimed, each answered by cmcan's Cannot Claim after its delay (J1939-81: 0 to 153 ms)."""
@@ -41,7 +41,8 @@ PERIOD_TOL_S = 0.010
 EMULATED = in_vm()
 EMULATED_P95_S, EMULATED_WORST_S = 0.050, 0.150
 SEEDED = {"520193:2": 1, "520193:12": 2, "520192:17": 1}  # DM2 of three DTCs: 14 bytes, by BAM
-REQUESTS_S, FLOOD_S, FLOOD_PER_S = 60.0, 20.0, 100
+# about 300 CM_RATIO periods among the requests; under the flood about 118 of CM_RATIO and 11 of DM1
+REQUESTS_S, FLOOD_S, FLOOD_PER_S = 30.0, 12.0, 100
 
 
 def flood(stop_at: float) -> int:
