@@ -247,17 +247,22 @@ def test_the_ingest_folds_in_its_thread_and_acknowledges_only_committed_batches(
     ing = ig.Ingest(root, m, Seen(), clock=lambda: now[0], wall=lambda: T0, fold_every=2)  # type: ignore[arg-type]
     client = LoopClient(root, ing)
     ing.client, ing.connected = client, True
+    workers = set()
     for k in range(5):
         client.inbox = [(topic(mc), payload(mc, s)) for mc in MACHINES for s in range(k * 4 + 1, k * 4 + 5)]
         ing.step()
         ing.housekeeping()
+        assert ing.folder.wait(60)
         if ing.folder.thread is not None:
-            ing.folder.thread.join()
+            workers.add(ing.folder.thread)
     ing.folder.poll()
     assert ing.stats.batches == 5 and ing.folder.folds >= 2 and len(client.acked) == 60
+    # every fold in one worker thread (a thread per fold took an allocator arena each: memory in steps)
+    assert len(workers) == 1
     got = rows(root)
     assert got == expected(range(1, 21))
     seen, _records = store.load_seen(root)
     assert all((f"{mc}/7d58", s) in seen for mc in MACHINES for s in range(1, 21))
     ing.folder.stop()
+    assert ing.folder.thread is None and not workers.pop().is_alive()
     assert json.loads((root / "_dataset.json").read_text())["format"] == ds.FORMAT

@@ -101,7 +101,14 @@ class Folder:
         by_key = {r.key: r for r in records}
         # folds whose sources' flat files are still there (prepare removed those past their grace)
         self.pending = [(r, by_key) for r in records if any(by_key.get(k) and by_key[k].flat_files() for k in r.folds)]
+        # One worker thread for the life of the ingest, woken for each fold: a thread per fold took
+        # a fresh allocator arena (glibc's, pyarrow's) for each, and the resident memory rose in
+        # steps over the hours with the number of arenas, not with the data.
         self.thread: threading.Thread | None = None
+        self.job: tuple[list[store.Record], float] | None = None
+        self.wake = threading.Condition()
+        self.busy = False  # a fold given to the worker and not yet taken in by poll
+        self.finished = threading.Event()
         self.done: store.Record | None = None
         self.sources: list[store.Record] = []
         self.error: BaseException | None = None
@@ -113,10 +120,11 @@ class Folder:
 
     def poll(self) -> None:
         """A finished fold taken in; the next one started when due; sources past their grace dropped."""
-        if self.thread is not None:
-            if self.thread.is_alive():
+        if self.busy:
+            if not self.finished.is_set():
                 return
-            self.thread = None
+            self.busy = False
+            self.finished.clear()
             if self.error is not None:
                 err, self.error = self.error, None
                 raise err
@@ -136,20 +144,42 @@ class Folder:
         sources = store.fold_due(self.unfolded, now, self.every)
         if sources:
             self.sources = sources
-            self.thread = threading.Thread(target=self._fold, args=(sources, now), name="fold", daemon=True)
-            self.thread.start()
+            if self.thread is None:
+                self.thread = threading.Thread(target=self._work, name="fold", daemon=True)
+                self.thread.start()
+            with self.wake:
+                self.busy = True
+                self.job = (sources, now)
+                self.wake.notify()
 
-    def _fold(self, sources: list[store.Record], now_s: float) -> None:
-        try:
-            self.done = store.fold(self.root, sources, store.key_of(time.time_ns()), now_s, self.stop_event)
-        except store.Stopped:
-            self.done = None
-        except BaseException as exc:  # raised in the loop's thread (poll)
-            self.error = exc
+    def _work(self) -> None:
+        """The worker: each fold given to it, until the ingest stops."""
+        while True:
+            with self.wake:
+                while self.job is None and not self.stop_event.is_set():
+                    self.wake.wait()
+                if self.job is None:
+                    return
+                (sources, now_s), self.job = self.job, None
+            try:
+                self.done = store.fold(self.root, sources, store.key_of(time.time_ns()), now_s, self.stop_event)
+            except store.Stopped:
+                self.done = None
+            except BaseException as exc:  # raised in the loop's thread (poll)
+                self.error = exc
+            self.finished.set()
+
+    def wait(self, timeout_s: float | None = None) -> bool:
+        """Until the fold given to the worker has finished (True; :meth:`poll` takes it in), or
+        ``timeout_s`` has passed (False)."""
+        return not self.busy or self.finished.wait(timeout_s)
 
     def stop(self) -> None:
-        """A fold in progress given up (nothing of it committed), or let finish if it is committing."""
-        self.stop_event.set()
+        """A fold in progress given up (nothing of it committed), or let finish if it is committing;
+        the worker ends."""
+        with self.wake:
+            self.stop_event.set()
+            self.wake.notify()
         if self.thread is not None:
             self.thread.join()
             self.thread = None
