@@ -266,3 +266,34 @@ def test_the_ingest_folds_in_its_thread_and_acknowledges_only_committed_batches(
     ing.folder.stop()
     assert ing.folder.thread is None and not workers.pop().is_alive()
     assert json.loads((root / "_dataset.json").read_text())["format"] == ds.FORMAT
+
+
+def test_a_reader_slower_than_the_grace_reads_again_on_a_fresh_listing(tmp_path):
+    """A fold and the removal of what it replaced between a reader's listing and its reading: read
+    again on the new files, the same rows; a file missing while the records stand still is raised."""
+    pytest.importorskip("duckdb")
+    from cmcan.errors import CmcanError
+    from cmcan.fleet.query import read
+
+    root, _seen = dataset(tmp_path)
+    sql = "SELECT machine, count(*), count(DISTINCT id) FROM uplink_summaries GROUP BY 1 ORDER BY 1"
+    calls = []
+
+    def slow(con):
+        calls.append(1)
+        if len(calls) == 1:  # listed and opened; now the ingest folds and, past its grace, drops the sources
+            records, _ = store.read_records(root)
+            store.fold(root, store.unfolded(records), store.key_of(10), OPEN_DAY_2)
+            assert store.drop_folded(root, OPEN_DAY_2 + store.READER_GRACE_S + 1.0) > 0
+        return con.execute(sql).fetchall()
+
+    assert read(root, slow, {"uplink_summaries"}) == [(m, 120, 120) for m in MACHINES]
+    assert len(calls) == 2
+
+    # a listed file gone with the records unchanged: damage, named, not read around
+    gone = next(p for _m, p in store.committed_files(root)[0]["uplink_summaries"])
+    gone.unlink()
+    calls.clear()
+    with pytest.raises(CmcanError, match="missing"):
+        read(root, lambda con: calls.append(1) or con.execute(sql).fetchall(), {"uplink_summaries"})
+    assert calls == []

@@ -132,13 +132,13 @@ _SINCE = """
 def export(root: Any, at_s: float | None, now_s: float) -> tuple[str, list[Row]]:
     """The snapshot of the data set's plan as of ``at_s`` (None: all of it), and the plan's rows."""
     from cmcan.fleet import plan
-    from cmcan.fleet.query import connect
+    from cmcan.fleet.query import read
 
-    con = connect(root, tables={"timeline", "events", "uplink_summaries", "uplink_events"})
-    try:
-        at = math.inf if at_s is None else at_s
+    at = math.inf if at_s is None else at_s
+
+    def snapshot(con: Any) -> tuple[list[Any], dict[tuple[str, str], float]]:
         rows = plan.plan(plan.facts(con, at), now_s)
-        since = {(m, lv): float(t) for m, lv, t in con.execute(_SINCE, [at]).fetchall()}
-    finally:
-        con.close()
+        return rows, {(m, lv): float(t) for m, lv, t in con.execute(_SINCE, [at]).fetchall()}
+
+    rows, since = read(root, snapshot, {"timeline", "events", "uplink_summaries", "uplink_events"})
     return document(rows, since, now_s), rows

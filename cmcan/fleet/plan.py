@@ -321,13 +321,10 @@ def _num(x: Any) -> float:
 def build(root: Any, at_s: float | None, now_s: float) -> list[Row]:
     """The plan over the data set at ``root`` as of ``at_s`` (None: everything in it), its ages
     counted to ``now_s`` (the plan's time: ``at_s`` where given)."""
-    from cmcan.fleet.query import connect
+    from cmcan.fleet.query import read
 
-    con = connect(root, tables={"timeline", "uplink_summaries", "uplink_events"})
-    try:
-        return plan(facts(con, math.inf if at_s is None else at_s), now_s)
-    finally:
-        con.close()
+    tables = {"timeline", "uplink_summaries", "uplink_events"}
+    return read(root, lambda con: plan(facts(con, math.inf if at_s is None else at_s), now_s), tables)
 
 
 def group_text(group: str) -> str:

@@ -22,9 +22,11 @@ from __future__ import annotations
 import csv
 import io
 import json
+import logging
 import math
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from cmcan.errors import CmcanError, Kind
 from cmcan.fleet import dataset as ds
@@ -359,6 +361,48 @@ def connect(root: str | Path, verify: bool = True, tables: set[str] | None = Non
     return con
 
 
+T = TypeVar("T")
+READ_TRIES = 3  # a reading and two more on a fresh listing (see read)
+log = logging.getLogger("cmcan.fleet")
+
+
+def _uplink_listing(root: Path) -> tuple[tuple[str, int, int], ...]:
+    """The ingest's commit records as they stand (name, size, change time): a fold or the removal of
+    what it replaced changes them."""
+    from cmcan.fleet.uplinkstore import record_paths
+
+    out = []
+    for p in record_paths(root):
+        try:
+            st = p.stat()
+        except OSError:  # removed since it was listed: that is a change too
+            continue
+        out.append((p.name, st.st_size, st.st_mtime_ns))
+    return tuple(out)
+
+
+def read(root: str | Path, fn: Callable[[Any], T], tables: set[str] | None = None, verify: bool = True) -> T:
+    """``fn(con)`` on a connection to the data set (:func:`connect`). A running ``cmcan fleet ingest``
+    removes the flat files a fold replaced :data:`cmcan.fleet.uplinkstore.READER_GRACE_S` after it; a
+    reader slower than that finds a file it listed gone. So where the reading failed and the ingest's
+    commit records changed meanwhile, it is done again on a fresh listing (at most
+    :data:`READ_TRIES` in all); a failure over unchanged records is what the data set holds, raised."""
+    root = Path(root)
+    for attempt in range(1, READ_TRIES + 1):
+        before = _uplink_listing(root)
+        try:
+            con = connect(root, verify, tables)
+            try:
+                return fn(con)
+            finally:
+                con.close()
+        except Exception as exc:
+            if attempt == READ_TRIES or _uplink_listing(root) == before:
+                raise
+            log.info("the data set's uplink rows were folded while they were read (%s): reading again", exc)
+    raise AssertionError("unreachable")  # the loop returns or raises
+
+
 def _derived_views(con: Any) -> None:
     con.execute(
         """CREATE VIEW machine_logs AS
@@ -413,9 +457,8 @@ def check_statement(con: Any, sql: str) -> None:
 
 def run_sql(root: str | Path, sql: str, verify: bool = True) -> tuple[list[str], list[tuple[Any, ...]]]:
     duckdb = require_duckdb()
-    tables = plan_statement(sql)
-    con = connect(root, verify, tables)
-    try:
+
+    def run(con: Any) -> tuple[list[str], list[tuple[Any, ...]]]:
         try:
             rel = con.sql(sql)
             if rel is None:  # a statement without a result
@@ -425,8 +468,8 @@ def run_sql(root: str | Path, sql: str, verify: bool = True) -> tuple[list[str],
             raise QueryRefused(f"query refused: {_first_line(exc)}") from None
         except duckdb.Error as exc:  # DuckDB's own message says what is wrong with the statement
             raise CmcanError(f"query failed: {_first_line(exc)}", Kind.DATA) from None
-    finally:
-        con.close()
+
+    return read(root, run, plan_statement(sql), verify)
 
 
 # -- printing -------------------------------------------------------------------------------------------

@@ -30,7 +30,7 @@ from cmcan.errors import CmcanError, Kind
 from cmcan.fitcheck import DOES_NOT_FIT, FIT_BAND_PCT
 from cmcan.fleet import plan as service
 from cmcan.fleet.dataset import writing
-from cmcan.fleet.query import connect, require_duckdb
+from cmcan.fleet.query import read, require_duckdb
 from cmcan.monitor.baseline import Mode
 from cmcan.monitor.prognosis import IMMINENT, STATE_CODES, TREND
 from cmcan.monitor.tick import PROGNOSIS_HOURS
@@ -331,11 +331,7 @@ def plan_section(rows: list[service.Row], spark: dict[str, bytes]) -> list[str]:
 
 def build(root: str | Path, trend_h: float = 50.0, max_machines: int = 50) -> str:
     """The report's HTML."""
-    con = connect(root)
-    try:
-        return _build(con, root, trend_h, max_machines)
-    finally:
-        con.close()
+    return read(root, lambda con: _build(con, root, trend_h, max_machines))
 
 
 def _build(con: Any, root: str | Path, trend_h: float, max_machines: int) -> str:
