@@ -16,6 +16,12 @@ command line :mod:`cmcan.cli.fleet_train`.
   median absolute deviation (MAD), which one or two such machines cannot move; it is named, left out
   of the fit and of the spread, and the type is fitted again on the rest until no machine is left
   out anew. The spread written is the standard deviation of the offsets of the machines kept.
+- The median cannot judge a type where half the machines arrive leaking (two of four). Each machine
+  is therefore also judged against the **reference**, the model its logs were replayed with (the
+  type's shipped model, trained on a healthy unit): :func:`off_reference` names a machine whose mean
+  residual against it lies further than the largest offset a healthy series unit can have
+  (:data:`OUTLIER_Z` times :data:`SCALE_FLOOR_SHARE` of the type's median flow), unless more than half
+  of the type lie that far off (then the reference does not fit the type and only the median judges).
 """
 
 from __future__ import annotations
@@ -61,6 +67,10 @@ class MachinePoints:
     operating_h: NDArray[np.float64]
     rows: int  # timeline rows read
     refused: dict[str, int]  # rows left out, by rule (REFUSALS)
+    # The replay model's prediction of each point (the quantity's unit) and that model's hash; None
+    # when the data set has no such column or the machine's rows were replayed with several models.
+    reference: NDArray[np.float64] | None = None
+    reference_model: str | None = None
 
     def __len__(self) -> int:
         return len(self.measured)
@@ -189,6 +199,12 @@ def machine_points(machine: str, cols: Mapping[str, NDArray[Any]], until_h: floa
     keep, refused = healthy_rows(cols, until_h)
     order = np.lexsort((np.asarray(cols["time_s"], dtype=np.float64)[keep], np.asarray(cols["operating_h"])[keep]))
     x = np.column_stack([np.asarray(cols[c], dtype=np.float64)[keep] for c in MODEL_INPUTS]).reshape(-1, 4)
+    reference, reference_model = None, None
+    if "predicted" in cols and "model_hash" in cols:
+        models = set(np.asarray(cols["model_hash"], dtype=object)[keep].tolist())
+        if len(models) == 1:  # one replay model: one reference to judge the machine against
+            reference = np.asarray(cols["predicted"], dtype=np.float64)[keep][order]
+            reference_model = str(models.pop())
     return MachinePoints(
         machine,
         np.ascontiguousarray(x[order]),
@@ -196,6 +212,8 @@ def machine_points(machine: str, cols: Mapping[str, NDArray[Any]], until_h: floa
         np.asarray(cols["operating_h"], dtype=np.float64)[keep][order],
         rows=len(cols["ticks"]),
         refused=refused,
+        reference=reference,
+        reference_model=reference_model,
     )
 
 
@@ -258,6 +276,25 @@ def outlying(offsets_lpm: Mapping[str, float], floor_lpm: float) -> dict[str, di
     return out
 
 
+def off_reference(reference_offsets_lpm: Mapping[str, float], bound_lpm: float) -> dict[str, Any]:
+    """The judgment against the reference (the model the machines were replayed with): each machine's
+    mean residual against it, the machines further than ``bound_lpm`` from it, and whether the rule
+    was applied: not when more than half of the machines lie that far off (the reference then does
+    not fit the type, a median of the type does; a leak is a minority's defect)."""
+    far = {m: o for m, o in sorted(reference_offsets_lpm.items()) if abs(o) > bound_lpm}
+    applied = bool(reference_offsets_lpm) and 2 * len(far) <= len(reference_offsets_lpm)
+    out = {}
+    for m, o in far.items() if applied else ():
+        why = "arrives leaking: delivers less than the type" if o < 0 else "delivers more than the type"
+        out[m] = {"reference_offset_lpm": float(o), "why": f"{why} (off the reference model)"}
+    return {
+        "applied": applied,
+        "bound_lpm": float(bound_lpm),
+        "offset_lpm": {m: float(o) for m, o in sorted(reference_offsets_lpm.items())},
+        "outliers": out,
+    }
+
+
 def selection_info(until_h: float | None, excluded: Sequence[str], min_points: int) -> dict[str, Any]:
     """How the points were chosen, for ``training["selection"]``."""
     return {
@@ -267,6 +304,18 @@ def selection_info(until_h: float | None, excluded: Sequence[str], min_points: i
         "excluded": sorted(excluded),
         "min_points": min_points,
     }
+
+
+def _judge_on_reference(
+    points: Sequence[MachinePoints], lpm_per_unit: float, bound_lpm: float
+) -> dict[str, Any] | None:
+    """:func:`off_reference` on the machines' mean residuals against their replay model, when every
+    machine has one and it is the same model; else None."""
+    models = {mp.reference_model for mp in points}
+    if len(models) != 1 or None in models or any(mp.reference is None for mp in points):
+        return None
+    offsets = {mp.machine: float(np.mean((mp.measured - mp.reference) * lpm_per_unit)) for mp in points}  # type: ignore[operator]
+    return {"model": models.pop(), **off_reference(offsets, bound_lpm)}
 
 
 @dataclass(frozen=True)
@@ -295,7 +344,13 @@ def fit_type(
     oil = Oil(facts.oil_nu40_cst, facts.oil_nu100_cst)
     flow = np.concatenate([mp.measured for mp in kept]) * facts.lpm_per_unit
     floor_lpm = SCALE_FLOOR_SHARE * float(np.median(np.abs(flow))) if len(flow) else 0.0
+    reference = _judge_on_reference(kept, facts.lpm_per_unit, OUTLIER_Z * floor_lpm)
     left_out: dict[str, dict[str, Any]] = {}
+    if reference is not None:  # an absolute judgment: once, before the fits
+        first = {m: v for m, v in reference["outliers"].items() if m not in keep}
+        if len(kept) - len(first) >= MIN_MACHINES:
+            left_out.update({m: dict(v) for m, v in first.items()})
+            kept = [mp for mp in kept if mp.machine not in first]
     while True:  # each round leaves machines out or ends: at most one round per machine
         x = np.concatenate([mp.x for mp in kept]).astype(np.float64)
         y = np.concatenate([mp.measured for mp in kept]).astype(np.float64)
@@ -307,11 +362,26 @@ def fit_type(
             break
         left_out.update(new)
         kept = [mp for mp in kept if mp.machine not in new]
+    v_kept = np.array(list(offsets.values()), dtype=np.float64)
+    center = float(np.median(v_kept))
+    scale = max(MAD_TO_SD * float(np.median(np.abs(v_kept - center))), floor_lpm)
     for m, v in left_out.items():  # as the final model sees it
         mp = next(p for p in points if p.machine == m)
         v["offset_lpm"] = float(np.mean((mp.measured - model.predict(mp.x)) * facts.lpm_per_unit))
+        v.setdefault("robust_z", (v["offset_lpm"] - center) / scale if scale > 0 else 0.0)
+        if reference is not None:
+            v.setdefault("reference_offset_lpm", reference["offset_lpm"][m])
     stats = residual_figures(model, x, y, "D_trn")
     spread = unit_spread(residual_lpm, left_out)
+    spread["rule"] += (
+        f"; or further than {OUTLIER_Z * SCALE_FLOOR_SHARE:.1%} of the median flow from the reference model "
+        "(the one the logs were replayed with), unless more than half of the machines are: left out"
+    )
+    spread["reference"] = (
+        {"applied": False, "why": "the machines were not all replayed with one model"}
+        if reference is None
+        else {k: reference[k] for k in ("model", "applied", "bound_lpm", "offset_lpm")}
+    )
     training = {
         "fingerprint": fingerprint(x, y),
         "source": source,
