@@ -210,7 +210,7 @@ def test_off_reference_bound_and_majority():
     assert not off_reference(offsets | {"e": 4.0}, 2.8)["applied"] and off_reference({}, 1.0)["outliers"] == {}
 
 
-def test_a_machine_replayed_with_two_models_has_no_reference():
+def test_a_machine_replayed_with_two_models_or_its_own_baseline_has_no_reference():
     n = 30
     cols = {
         "time_s": np.arange(n, dtype=float),
@@ -229,6 +229,12 @@ def test_a_machine_replayed_with_two_models_has_no_reference():
     }
     mp = machine_points("m1", cols)
     assert mp.reference_model == "a" and np.all(mp.reference == 990.0)
+    cols["baseline_state"] = np.zeros(n, dtype=np.int8)  # no baseline: the model's own prediction
+    assert machine_points("m1", cols).reference_model == "a"
+    cols["baseline_state"][-1] = 2  # monitoring: the prediction corrected by the machine's own baseline
+    assert machine_points("m1", cols).reference is None
+    cols["baseline_state"][-1] = 1  # learning judges on the type model
+    assert machine_points("m1", cols).reference_model == "a"
     cols["model_hash"] = np.array(["a"] * (n - 1) + ["b"], dtype=object)
     assert machine_points("m1", cols).reference is None
     del cols["predicted"]

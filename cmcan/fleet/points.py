@@ -25,8 +25,9 @@ from cmcan.roles import MODEL_INPUTS
 
 TIMELINE_COLUMNS = ("time_s", "log_time_h", "ticks", "evaluated", "gate", "warning_level", "measured", *MODEL_INPUTS)
 # Read where the data set has them: the replay model's prediction and its hash, the reference each
-# machine is judged against (cmcan.fleet.train.off_reference).
-REFERENCE_COLUMNS = ("predicted", "model_hash")
+# machine is judged against (cmcan.fleet.train.off_reference), and the baseline's state (a monitoring
+# baseline corrected that prediction by the machine's own).
+REFERENCE_COLUMNS = ("predicted", "model_hash", "baseline_state")
 FACT_COLUMNS = ("quantity", "motor_disp_cc", "oil_nu40_cst", "oil_nu100_cst")
 
 

@@ -37,6 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cmcan.errors import CmcanError, Kind
+from cmcan.monitor.baseline import Mode
 from cmcan.roles import MODEL_INPUTS
 
 MIN_MACHINES = 2  # a spread needs two units
@@ -68,7 +69,8 @@ class MachinePoints:
     rows: int  # timeline rows read
     refused: dict[str, int]  # rows left out, by rule (REFUSALS)
     # The replay model's prediction of each point (the quantity's unit) and that model's hash; None
-    # when the data set has no such column or the machine's rows were replayed with several models.
+    # when the data set has no such column, the machine's rows were replayed with several models, or
+    # some with an on-board baseline monitoring (their prediction is then the machine's own).
     reference: NDArray[np.float64] | None = None
     reference_model: str | None = None
 
@@ -202,7 +204,8 @@ def machine_points(machine: str, cols: Mapping[str, NDArray[Any]], until_h: floa
     reference, reference_model = None, None
     if "predicted" in cols and "model_hash" in cols:
         models = set(np.asarray(cols["model_hash"], dtype=object)[keep].tolist())
-        if len(models) == 1:  # one replay model: one reference to judge the machine against
+        own = "baseline_state" in cols and bool(np.any(np.asarray(cols["baseline_state"])[keep] == Mode.MONITORING))
+        if len(models) == 1 and not own:  # one replay model: one reference to judge the machine against
             reference = np.asarray(cols["predicted"], dtype=np.float64)[keep][order]
             reference_model = str(models.pop())
     return MachinePoints(
