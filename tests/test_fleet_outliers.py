@@ -26,6 +26,7 @@ from cmcan.fleet.train import (
     machine_points,
     off_reference,
     outlying,
+    reference_shape,
 )
 from cmcan.sim.physics import DriveParams, steady_motor_speed_rpm
 
@@ -200,14 +201,53 @@ def test_machines_replayed_with_different_models_are_not_judged_on_them(half_lea
 
 def test_off_reference_bound_and_majority():
     offsets = {"a": 0.5, "b": -0.9, "c": -3.1, "d": 2.9}
-    assert off_reference(offsets, 3.0)["outliers"] == {
-        "c": {
-            "reference_offset_lpm": -3.1,
-            "why": "arrives leaking: delivers less than the type (off the reference model)",
-        }
-    }
+    got = off_reference(offsets, 3.0)["outliers"]  # no shapes: the mean alone
+    assert list(got) == ["c"] and got["c"]["reference_offset_lpm"] == -3.1 and "arrives leaking" in got["c"]["why"]
     assert off_reference(offsets, 2.8)["applied"]  # two of four: not more than half
     assert not off_reference(offsets | {"e": 4.0}, 2.8)["applied"] and off_reference({}, 1.0)["outliers"] == {}
+
+
+def test_off_reference_names_only_a_part_beyond_the_bound():
+    """Off in the mean, but no part of it beyond the bound (a unit whose tolerances add up): not named;
+    a leak's part beyond it: leaking; the flow's part beyond it: delivers less, or more."""
+    offsets = {"tol": -3.5, "leak": -3.5, "disp": -3.5, "high": 3.5, "h1": 0.0, "h2": 0.1, "h3": 0.2, "h4": 0.3}
+    shapes = {"tol": (-2.0, -2.0), "leak": (1.0, -6.0), "disp": (-3.4, 0.0), "high": (3.4, 0.5)}
+    got = off_reference(offsets, 3.0, shapes)["outliers"]
+    assert sorted(got) == ["disp", "high", "leak"]
+    assert "arrives leaking" in got["leak"]["why"] and "pressure" in got["leak"]["why"]
+    assert got["disp"]["why"].startswith("delivers less") and got["high"]["why"].startswith("delivers more")
+
+
+def test_reference_shape_tells_a_leak_from_a_displacement():
+    rng = np.random.default_rng(3)
+    ms = [machine("m", rng, 0.0)]
+    x = ms[0].x
+    q = x[:, 0] * x[:, 1] / 1000.0
+    leak = -6.0 * np.sqrt(x[:, 2] / 480.0)  # an orifice, 6 l/min at 480 bar
+    disp = -0.04 * q  # 4 % less per revolution
+    flow_part, leak_part = reference_shape(x, leak)
+    assert leak_part == pytest.approx(-6.0) and abs(flow_part) < 1e-6
+    flow_part, leak_part = reference_shape(x, disp)
+    assert flow_part == pytest.approx(-0.04 * q.mean()) and abs(leak_part) < 1e-6
+    same = x.copy()
+    same[:, 2] = 300.0  # one pressure: the shapes cannot be told apart
+    assert reference_shape(same, disp[:POINTS]) == (pytest.approx(disp.mean()),) * 2
+
+
+def test_a_unit_off_by_its_displacement_is_not_named_leaking():
+    """Three units (too few for the median) and one whose motor swallows 4.5 % more per revolution: off
+    the reference by more than 3.5 % of the flow, in the flow's shape: named as delivering less, not as
+    leaking; at 2.5 % it is a unit's tolerance and kept."""
+    rng = np.random.default_rng(9)
+    ms = fleet(9, 3, {}, unit_sd_lpm=0.3)
+    for factor, named in ((1.045, True), (1.025, False)):
+        odd = with_reference([*ms, machine("m099", rng, 0.0, disp_factor=factor)])
+        sp = fit_type(odd, FACTS, "mid", "test").training["unit_spread"]
+        assert (list(sp["outliers"]) == ["m099"]) is named
+        if named:
+            assert sp["outliers"]["m099"]["why"].startswith("delivers less than the type, in proportion to the flow")
+        shape = sp["reference"]["shape_lpm"]["m099"]
+        assert abs(shape["leak_at_ref_dp"]) < 0.5 * abs(shape["flow"])
 
 
 def test_a_machine_replayed_with_two_models_or_its_own_baseline_has_no_reference():

@@ -20,8 +20,11 @@ command line :mod:`cmcan.cli.fleet_train`.
   is therefore also judged against the **reference**, the model its logs were replayed with (the
   type's shipped model, trained on a healthy unit): :func:`off_reference` names a machine whose mean
   residual against it lies further than the largest offset a healthy series unit can have
-  (:data:`OUTLIER_Z` times :data:`SCALE_FLOOR_SHARE` of the type's median flow), unless more than half
-  of the type lie that far off (then the reference does not fit the type and only the median judges).
+  (:data:`OUTLIER_Z` times :data:`SCALE_FLOOR_SHARE` of the type's median flow) *and* one part of whose
+  residual lies that far too (:func:`reference_shape`): a leak's part grows with the pressure, a
+  displacement's or a speed gain's with the flow (a unit whose tolerances add up, each within its own,
+  is off in the mean but in neither part); unless more than half of the type lie that far off
+  (then the reference does not fit the type and only the median judges).
 """
 
 from __future__ import annotations
@@ -51,6 +54,12 @@ MAD_TO_SD = 1.4826  # the MAD of a normal sample times this estimates its standa
 # to be; with ten or so machines the MAD alone is too uncertain to judge on (it would name healthy
 # units). Above it, 3.5 robust SDs: a unit 3.5 % of its flow or more off its type.
 SCALE_FLOOR_SHARE = 0.01
+# A leak's share of the residual is stated as an orifice's flow at this delta pressure (as the
+# simulator states arriving leaks; the paper's rig ran at it): the pressure these drives run up to.
+LEAK_REF_DP_BAR = 480.0
+# Points whose ideal flow and sqrt(dp) move together this closely cannot tell a leak from a
+# displacement: the shape is not judged then (the mean decides alone).
+SHAPE_MAX_CORRELATION = 0.95
 MIN_POINTS_PER_MACHINE = 20  # fewer: a machine's offset is noise
 # Why a row is left out, in the order the rules are applied (the counts say which rule took it).
 REFUSALS = ("not_all_evaluated", "outside_envelope", "no_operating_point", "not_ok", "after_warning", "after_until_h")
@@ -279,16 +288,51 @@ def outlying(offsets_lpm: Mapping[str, float], floor_lpm: float) -> dict[str, di
     return out
 
 
-def off_reference(reference_offsets_lpm: Mapping[str, float], bound_lpm: float) -> dict[str, Any]:
+def reference_shape(x: NDArray[np.float64], residual_lpm: NDArray[np.float64]) -> tuple[float, float]:
+    """A machine's residual against the reference split by shape, least squares on its points:
+    ``a * Q_geo + b * sqrt(dp / LEAK_REF_DP_BAR)``. Returns (the flow-shaped part at the machine's mean
+    ideal flow, the pressure-shaped part at :data:`LEAK_REF_DP_BAR`), both l/min: a displacement or a
+    speed sensor's gain moves the first (the same share of every flow), a leak the second (an orifice
+    at the loop's pressure; a healthy unit's gap leakage differs from its type's by a share of a
+    healthy leakage, a few % of the flow at full pressure). Points that cannot tell the two apart
+    (the two columns correlated beyond :data:`SHAPE_MAX_CORRELATION`, or constant): the mean for both."""
+    from cmcan.model.physics import ideal_flow_lpm
+
+    mean = float(np.mean(residual_lpm))
+    q = ideal_flow_lpm(x)
+    s = np.sqrt(np.clip(x[:, 2], 0.0, None) / LEAK_REF_DP_BAR)
+    if len(q) < 3 or np.ptp(q) <= 0 or np.ptp(s) <= 0 or abs(np.corrcoef(q, s)[0, 1]) > SHAPE_MAX_CORRELATION:
+        return mean, mean
+    (a, b), *_ = np.linalg.lstsq(np.column_stack([q, s]), residual_lpm, rcond=None)
+    return float(a * np.mean(q)), float(b)
+
+
+def off_reference(
+    reference_offsets_lpm: Mapping[str, float],
+    bound_lpm: float,
+    shapes_lpm: Mapping[str, tuple[float, float]] | None = None,
+) -> dict[str, Any]:
     """The judgment against the reference (the model the machines were replayed with): each machine's
-    mean residual against it, the machines further than ``bound_lpm`` from it, and whether the rule
-    was applied: not when more than half of the machines lie that far off (the reference then does
-    not fit the type, a median of the type does; a leak is a minority's defect)."""
+    mean residual against it; named, the machines further than ``bound_lpm`` from it with one part of
+    their residual's shape beyond the bound too (``shapes_lpm``, :func:`reference_shape`: below, the
+    pressure-shaped part, a leak, or the flow-shaped one; above, the flow-shaped one; none given: the
+    mean alone). A unit off by its displacement, its sensors and its gaps together, each within its
+    tolerance, is off in the mean but in neither part alone;
+    and whether the rule was applied: not when more than half of the machines lie that far off (the
+    reference then does not fit the type, a median of the type does; a leak is a minority's defect)."""
     far = {m: o for m, o in sorted(reference_offsets_lpm.items()) if abs(o) > bound_lpm}
     applied = bool(reference_offsets_lpm) and 2 * len(far) <= len(reference_offsets_lpm)
     out = {}
     for m, o in far.items() if applied else ():
-        why = "arrives leaking: delivers less than the type" if o < 0 else "delivers more than the type"
+        flow_part, leak_part = (shapes_lpm or {}).get(m, (o, o))
+        if o < 0 and leak_part < -bound_lpm:
+            why = "arrives leaking: delivers less than the type, more so the higher the pressure"
+        elif o < 0 and flow_part < -bound_lpm:
+            why = "delivers less than the type, in proportion to the flow"
+        elif o > 0 and flow_part > bound_lpm:
+            why = "delivers more than the type, in proportion to the flow"
+        else:  # off, but no part of it beyond what a unit's own tolerances give: the median judges it
+            continue
         out[m] = {"reference_offset_lpm": float(o), "why": f"{why} (off the reference model)"}
     return {
         "applied": applied,
@@ -317,8 +361,12 @@ def _judge_on_reference(
     models = {mp.reference_model for mp in points}
     if len(models) != 1 or None in models or any(mp.reference is None for mp in points):
         return None
-    offsets = {mp.machine: float(np.mean((mp.measured - mp.reference) * lpm_per_unit)) for mp in points}  # type: ignore[operator]
-    return {"model": models.pop(), **off_reference(offsets, bound_lpm)}
+    residual = {mp.machine: (mp.measured - mp.reference) * lpm_per_unit for mp in points}  # type: ignore[operator]
+    offsets = {m: float(np.mean(r)) for m, r in residual.items()}
+    shapes = {mp.machine: reference_shape(mp.x, residual[mp.machine]) for mp in points}
+    judged = off_reference(offsets, bound_lpm, shapes)
+    judged["shape_lpm"] = {m: {"flow": round(a, 4), "leak_at_ref_dp": round(b, 4)} for m, (a, b) in shapes.items()}
+    return {"model": models.pop(), **judged}
 
 
 @dataclass(frozen=True)
@@ -378,12 +426,14 @@ def fit_type(
     spread = unit_spread(residual_lpm, left_out)
     spread["rule"] += (
         f"; or further than {OUTLIER_Z * SCALE_FLOOR_SHARE:.1%} of the median flow from the reference model "
-        "(the one the logs were replayed with), unless more than half of the machines are: left out"
+        "(the one the logs were replayed with) with a residual of that shape (below: its part growing with "
+        f"sqrt(dp) beyond it at {LEAK_REF_DP_BAR:g} bar; above: its part growing with the flow), unless more "
+        "than half of the machines are that far: left out"
     )
     spread["reference"] = (
         {"applied": False, "why": "the machines were not all replayed with one model"}
         if reference is None
-        else {k: reference[k] for k in ("model", "applied", "bound_lpm", "offset_lpm")}
+        else {k: reference[k] for k in ("model", "applied", "bound_lpm", "offset_lpm", "shape_lpm")}
     )
     training = {
         "fingerprint": fingerprint(x, y),
