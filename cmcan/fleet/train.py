@@ -426,9 +426,8 @@ def fit_type(
     spread = unit_spread(residual_lpm, left_out)
     spread["rule"] += (
         f"; or further than {OUTLIER_Z * SCALE_FLOOR_SHARE:.1%} of the median flow from the reference model "
-        "(the one the logs were replayed with) with a residual of that shape (below: its part growing with "
-        f"sqrt(dp) beyond it at {LEAK_REF_DP_BAR:g} bar; above: its part growing with the flow), unless more "
-        "than half of the machines are that far: left out"
+        f"(the one the logs were replayed with) and its residual's part growing with sqrt(dp) (at {LEAK_REF_DP_BAR:g} "
+        "bar) or with the flow beyond it too, unless more than half of the machines are that far: left out"
     )
     spread["reference"] = (
         {"applied": False, "why": "the machines were not all replayed with one model"}
