@@ -209,13 +209,21 @@ def test_off_reference_bound_and_majority():
 
 def test_off_reference_names_only_a_part_beyond_the_bound():
     """Off in the mean, but no part of it beyond the bound (a unit whose tolerances add up): not named;
-    a leak's part beyond it: leaking; the flow's part beyond it: delivers less, or more."""
-    offsets = {"tol": -3.5, "leak": -3.5, "disp": -3.5, "high": 3.5, "h1": 0.0, "h2": 0.1, "h3": 0.2, "h4": 0.3}
-    shapes = {"tol": (-2.0, -2.0), "leak": (1.0, -6.0), "disp": (-3.4, 0.0), "high": (3.4, 0.5)}
+    a leak's part beyond it: leaking, even where a unit delivering more hides it in the mean; the
+    flow's part and the mean beyond it: delivers less, or more."""
+    offsets = {"tol": -3.5, "leak": -3.5, "hidden": -2.0, "disp": -3.5, "high": 3.5}
+    offsets |= {f"h{i}": 0.1 * i for i in range(6)}
+    shapes = {"tol": (-2.0, -2.0), "leak": (1.0, -6.0), "hidden": (2.5, -6.0), "disp": (-3.4, 0.0), "high": (3.4, 0.5)}
     got = off_reference(offsets, 3.0, shapes)["outliers"]
-    assert sorted(got) == ["disp", "high", "leak"]
-    assert "arrives leaking" in got["leak"]["why"] and "pressure" in got["leak"]["why"]
+    assert sorted(got) == ["disp", "hidden", "high", "leak"]
+    assert all("arrives leaking" in got[m]["why"] and "pressure" in got[m]["why"] for m in ("leak", "hidden"))
     assert got["disp"]["why"].startswith("delivers less") and got["high"]["why"].startswith("delivers more")
+    shapes["h0"] = (0.0, -3.1)  # five of eleven would be named: applied; six: the reference does not fit
+    assert off_reference(offsets, 3.0, shapes)["applied"]
+    shapes["h1"] = (0.0, -3.1)
+    assert off_reference(offsets, 3.0, shapes) | {"offset_lpm": {}} == {
+        "applied": False, "bound_lpm": 3.0, "offset_lpm": {}, "outliers": {}
+    }  # fmt: skip
 
 
 def test_reference_shape_tells_a_leak_from_a_displacement():

@@ -20,10 +20,10 @@ command line :mod:`cmcan.cli.fleet_train`.
   is therefore also judged against the **reference**, the model its logs were replayed with (the
   type's shipped model, trained on a healthy unit): :func:`off_reference` names a machine whose mean
   residual against it lies further than the largest offset a healthy series unit can have
-  (:data:`OUTLIER_Z` times :data:`SCALE_FLOOR_SHARE` of the type's median flow) *and* one part of whose
-  residual lies that far too (:func:`reference_shape`): a leak's part grows with the pressure, a
-  displacement's or a speed gain's with the flow (a unit whose tolerances add up, each within its own,
-  is off in the mean but in neither part); unless more than half of the type lie that far off
+  (:data:`OUTLIER_Z` times :data:`SCALE_FLOOR_SHARE` of the type's median flow) in the part that grows
+  with the pressure (a leak, :func:`reference_shape`), or in the mean and the part that grows with the
+  flow (a displacement, a speed gain; a unit whose tolerances add up, each within its own, is off in
+  the mean but in neither part); unless more than half of the type would be named
   (then the reference does not fit the type and only the median judges).
 """
 
@@ -313,27 +313,29 @@ def off_reference(
     shapes_lpm: Mapping[str, tuple[float, float]] | None = None,
 ) -> dict[str, Any]:
     """The judgment against the reference (the model the machines were replayed with): each machine's
-    mean residual against it; named, the machines further than ``bound_lpm`` from it with one part of
-    their residual's shape beyond the bound too (``shapes_lpm``, :func:`reference_shape`: below, the
-    pressure-shaped part, a leak, or the flow-shaped one; above, the flow-shaped one; none given: the
-    mean alone). A unit off by its displacement, its sensors and its gaps together, each within its
-    tolerance, is off in the mean but in neither part alone;
-    and whether the rule was applied: not when more than half of the machines lie that far off (the
+    mean residual against it; named, the machines with a part of their residual's shape beyond
+    ``bound_lpm`` (``shapes_lpm``, :func:`reference_shape`; none given: the mean stands for both): the
+    pressure-shaped part below it (a leak, whatever the flow part makes of the mean: a unit that
+    delivers 2 % more can carry a leak its mean does not show), or the flow-shaped part with the mean
+    beyond it (delivers less, or more, in proportion to the flow). A unit off by its displacement, its
+    sensors and its gaps together, each within its tolerance, is off in the mean but in neither part.
+    And whether the rule was applied: not when more than half of the machines would be named (the
     reference then does not fit the type, a median of the type does; a leak is a minority's defect)."""
-    far = {m: o for m, o in sorted(reference_offsets_lpm.items()) if abs(o) > bound_lpm}
-    applied = bool(reference_offsets_lpm) and 2 * len(far) <= len(reference_offsets_lpm)
     out = {}
-    for m, o in far.items() if applied else ():
+    for m, o in sorted(reference_offsets_lpm.items()):
         flow_part, leak_part = (shapes_lpm or {}).get(m, (o, o))
-        if o < 0 and leak_part < -bound_lpm:
+        if leak_part < -bound_lpm:
             why = "arrives leaking: delivers less than the type, more so the higher the pressure"
-        elif o < 0 and flow_part < -bound_lpm:
+        elif o < -bound_lpm and flow_part < -bound_lpm:
             why = "delivers less than the type, in proportion to the flow"
-        elif o > 0 and flow_part > bound_lpm:
+        elif o > bound_lpm and flow_part > bound_lpm:
             why = "delivers more than the type, in proportion to the flow"
-        else:  # off, but no part of it beyond what a unit's own tolerances give: the median judges it
+        else:  # no part beyond what a unit's own tolerances give: the median judges it
             continue
         out[m] = {"reference_offset_lpm": float(o), "why": f"{why} (off the reference model)"}
+    applied = bool(reference_offsets_lpm) and 2 * len(out) <= len(reference_offsets_lpm)
+    if not applied:
+        out = {}
     return {
         "applied": applied,
         "bound_lpm": float(bound_lpm),
@@ -426,8 +428,8 @@ def fit_type(
     spread = unit_spread(residual_lpm, left_out)
     spread["rule"] += (
         f"; or further than {OUTLIER_Z * SCALE_FLOOR_SHARE:.1%} of the median flow from the reference model "
-        f"(the one the logs were replayed with) and its residual's part growing with sqrt(dp) (at {LEAK_REF_DP_BAR:g} "
-        "bar) or with the flow beyond it too, unless more than half of the machines are that far: left out"
+        f"(the one the logs were replayed with) in its residual's part growing with sqrt(dp) (at {LEAK_REF_DP_BAR:g} "
+        "bar), or in the mean and the part growing with the flow, unless more than half would be: left out"
     )
     spread["reference"] = (
         {"applied": False, "why": "the machines were not all replayed with one model"}
