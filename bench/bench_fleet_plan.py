@@ -16,7 +16,8 @@ For each seed and unit-spread scale, through the real command line only:
   or trend), its p10 to end of life never later than 1.2 x its true remaining hours + 5 h (the p50 is
   printed beside it);
 - a machine that failed before the cut warns now;
-- a healthy machine (no failure ahead, no arriving leak) shows no trend and no warning;
+- a healthy machine (no failure ahead, no arriving leak) shows no trend and no warning, and is not
+  flagged (``baseline_suspect``, ``does_not_fit``);
 - a machine arriving with a leak is flagged (``baseline_suspect``, or a warning now);
 - ``fleet train`` names both arriving leaks as outliers;
 - every healthy machine's baseline, on the default learning settings, leaves learning (monitors on
@@ -128,8 +129,9 @@ def plan_at_cut(work: Path, sim: Path, trained: dict[str, dict[str, Any]], cut_h
 
 def judge(truth: dict[str, Any], rows: list[dict[str, Any]], trained: dict[str, Any], cut_h: float, within_h: float):
     by = {r["machine"]: r for r in rows}
-    lines, tally = [], {"caught": [0, 0], "not_late": [0, 0], "failed_warns": [0, 0], "healthy_quiet": [0, 0],
-                        "leaks_flagged": [0, 0], "healthy_learned_50h": [0, 0]}  # fmt: skip
+    keys = ("caught", "not_late", "failed_warns", "healthy_quiet", "healthy_unflagged", "leaks_flagged",
+            "healthy_learned_50h")  # fmt: skip
+    lines, tally = [], {k: [0, 0] for k in keys}
     for m in truth["machines"]:
         name = m["machine"]
         r = by.get(name)
@@ -162,6 +164,12 @@ def judge(truth: dict[str, Any], rows: list[dict[str, Any]], trained: dict[str, 
             tally["healthy_quiet"][0] += quiet
             tally["healthy_quiet"][1] += 1
             verdict.append("healthy: " + ("quiet" if quiet else "TREND OR WARNING"))
+            # nor flagged: a type model that left a leak out must not judge the healthy ones too strictly
+            unflagged = not {"baseline_suspect", "does_not_fit"} & set(r["flags"])
+            tally["healthy_unflagged"][0] += unflagged
+            tally["healthy_unflagged"][1] += 1
+            if not unflagged:
+                verdict.append("FLAGGED " + ",".join(r["flags"]))
         if not leak and not fails:
             h = r.get("monitoring_from_h")
             learned = h is not None and h <= LEARNED_WITHIN_H

@@ -171,6 +171,7 @@ def _summary(
                 "rows": mp.rows,
                 "refused": mp.refused,
                 "offset_lpm": offset[mp.machine]["offset_lpm"],
+                "reference_offset_lpm": spread["reference"].get("offset_lpm", {}).get(mp.machine),
                 "left_out": spread["outliers"].get(mp.machine, {}).get("why"),
             }
             for mp in points
@@ -196,8 +197,21 @@ def _print(s: dict[str, Any]) -> None:
         f"  unit spread: offset SD {sp['offset_sd_lpm']:.3g} l/min over {sp['machines']} machines, "
         f"largest |offset| {sp['offset_max_abs_lpm']:.3g} l/min ({worst})"
     )
+    ref = sp["reference"]
+    if ref["applied"]:
+        print(
+            f"  judged against the replay model too: a machine more than {ref['bound_lpm']:.3g} l/min off it "
+            "is left out"
+        )
+    else:
+        print(f"  not judged against the replay model: {ref.get('why') or 'more than half of the machines lie off it'}")
     for m, d in s["machines"].items():
         out = f"; left out: {d['left_out']}" if d["left_out"] else ""
-        print(f"  {m}: {d['points']} points of {d['rows']} rows, offset {d['offset_lpm']:+.3f} l/min{out}")
+        vs = (
+            f" ({d['reference_offset_lpm']:+.3f} against the replay model)"
+            if d["reference_offset_lpm"] is not None
+            else ""
+        )
+        print(f"  {m}: {d['points']} points of {d['rows']} rows, offset {d['offset_lpm']:+.3f} l/min{vs}{out}")
     if sp["outliers"]:
         print(f"  left out of the type ({sp['rule']}): {', '.join(sp['outliers'])}")

@@ -24,6 +24,10 @@ from cmcan.fleet.train import DriveFacts, MachinePoints, machine_points
 from cmcan.roles import MODEL_INPUTS
 
 TIMELINE_COLUMNS = ("time_s", "log_time_h", "ticks", "evaluated", "gate", "warning_level", "measured", *MODEL_INPUTS)
+# Read where the data set has them: the replay model's prediction and its hash, the reference each
+# machine is judged against (cmcan.fleet.train.off_reference), and the baseline's state (a monitoring
+# baseline corrected that prediction by the machine's own).
+REFERENCE_COLUMNS = ("predicted", "model_hash", "baseline_state")
 FACT_COLUMNS = ("quantity", "motor_disp_cc", "oil_nu40_cst", "oil_nu100_cst")
 
 
@@ -103,18 +107,18 @@ def read_machine(root: str, logs: MachineLogs, until_h: float, verify: bool) -> 
                         "replay its logs"
                     )
                     continue
-                t = pq.read_table(f, columns=list(TIMELINE_COLUMNS), page_checksum_verification=True)
+                names = [*TIMELINE_COLUMNS, *(c for c in REFERENCE_COLUMNS if c in have)]
+                t = pq.read_table(f, columns=names, page_checksum_verification=True)
             except (OSError, pa.ArrowException) as exc:
                 problems.append(f"{f}: not readable ({str(exc).splitlines()[0][:120]})")
                 continue
-            cols = {c: t.column(c).to_numpy(zero_copy_only=False) for c in TIMELINE_COLUMNS}
+            cols = {c: t.column(c).to_numpy(zero_copy_only=False) for c in names}
             cols["operating_h"] = offset_h + np.asarray(cols["log_time_h"], dtype=np.float64)
             parts.append(cols)
     if problems:
         return problems
-    cols = {
-        c: np.concatenate([p[c] for p in parts]) if parts else np.array([]) for c in (*TIMELINE_COLUMNS, "operating_h")
-    }
+    names = [*TIMELINE_COLUMNS, *(c for c in REFERENCE_COLUMNS if parts and all(c in p for p in parts)), "operating_h"]
+    cols = {c: np.concatenate([p[c] for p in parts]) if parts else np.array([]) for c in names}
     return machine_points(logs.machine, cols, until_h)
 
 

@@ -16,6 +16,15 @@ command line :mod:`cmcan.cli.fleet_train`.
   median absolute deviation (MAD), which one or two such machines cannot move; it is named, left out
   of the fit and of the spread, and the type is fitted again on the rest until no machine is left
   out anew. The spread written is the standard deviation of the offsets of the machines kept.
+- The median cannot judge a type where half the machines arrive leaking (two of four). Each machine
+  is therefore also judged against the **reference**, the model its logs were replayed with (the
+  type's shipped model, trained on a healthy unit): :func:`off_reference` names a machine whose mean
+  residual against it lies further than the largest offset a healthy series unit can have
+  (:data:`OUTLIER_Z` times :data:`SCALE_FLOOR_SHARE` of the type's median flow) in the part that grows
+  with the pressure (a leak, :func:`reference_shape`), or in the mean and the part that grows with the
+  flow (a displacement, a speed gain; a unit whose tolerances add up, each within its own, is off in
+  the mean but in neither part); unless more than half of the type would be named
+  (then the reference does not fit the type and only the median judges).
 """
 
 from __future__ import annotations
@@ -31,6 +40,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cmcan.errors import CmcanError, Kind
+from cmcan.monitor.baseline import Mode
 from cmcan.roles import MODEL_INPUTS
 
 MIN_MACHINES = 2  # a spread needs two units
@@ -44,6 +54,12 @@ MAD_TO_SD = 1.4826  # the MAD of a normal sample times this estimates its standa
 # to be; with ten or so machines the MAD alone is too uncertain to judge on (it would name healthy
 # units). Above it, 3.5 robust SDs: a unit 3.5 % of its flow or more off its type.
 SCALE_FLOOR_SHARE = 0.01
+# A leak's share of the residual is stated as an orifice's flow at this delta pressure (as the
+# simulator states arriving leaks; the paper's rig ran at it): the pressure these drives run up to.
+LEAK_REF_DP_BAR = 480.0
+# Points whose ideal flow and sqrt(dp) move together this closely cannot tell a leak from a
+# displacement: the shape is not judged then (the mean decides alone).
+SHAPE_MAX_CORRELATION = 0.95
 MIN_POINTS_PER_MACHINE = 20  # fewer: a machine's offset is noise
 # Why a row is left out, in the order the rules are applied (the counts say which rule took it).
 REFUSALS = ("not_all_evaluated", "outside_envelope", "no_operating_point", "not_ok", "after_warning", "after_until_h")
@@ -61,6 +77,11 @@ class MachinePoints:
     operating_h: NDArray[np.float64]
     rows: int  # timeline rows read
     refused: dict[str, int]  # rows left out, by rule (REFUSALS)
+    # The replay model's prediction of each point (the quantity's unit) and that model's hash; None
+    # when the data set has no such column, the machine's rows were replayed with several models, or
+    # some with an on-board baseline monitoring (their prediction is then the machine's own).
+    reference: NDArray[np.float64] | None = None
+    reference_model: str | None = None
 
     def __len__(self) -> int:
         return len(self.measured)
@@ -189,6 +210,13 @@ def machine_points(machine: str, cols: Mapping[str, NDArray[Any]], until_h: floa
     keep, refused = healthy_rows(cols, until_h)
     order = np.lexsort((np.asarray(cols["time_s"], dtype=np.float64)[keep], np.asarray(cols["operating_h"])[keep]))
     x = np.column_stack([np.asarray(cols[c], dtype=np.float64)[keep] for c in MODEL_INPUTS]).reshape(-1, 4)
+    reference, reference_model = None, None
+    if "predicted" in cols and "model_hash" in cols:
+        models = set(np.asarray(cols["model_hash"], dtype=object)[keep].tolist())
+        own = "baseline_state" in cols and bool(np.any(np.asarray(cols["baseline_state"])[keep] == Mode.MONITORING))
+        if len(models) == 1 and not own:  # one replay model: one reference to judge the machine against
+            reference = np.asarray(cols["predicted"], dtype=np.float64)[keep][order]
+            reference_model = str(models.pop())
     return MachinePoints(
         machine,
         np.ascontiguousarray(x[order]),
@@ -196,6 +224,8 @@ def machine_points(machine: str, cols: Mapping[str, NDArray[Any]], until_h: floa
         np.asarray(cols["operating_h"], dtype=np.float64)[keep][order],
         rows=len(cols["ticks"]),
         refused=refused,
+        reference=reference,
+        reference_model=reference_model,
     )
 
 
@@ -258,6 +288,62 @@ def outlying(offsets_lpm: Mapping[str, float], floor_lpm: float) -> dict[str, di
     return out
 
 
+def reference_shape(x: NDArray[np.float64], residual_lpm: NDArray[np.float64]) -> tuple[float, float]:
+    """A machine's residual against the reference split by shape, least squares on its points:
+    ``a * Q_geo + b * sqrt(dp / LEAK_REF_DP_BAR)``. Returns (the flow-shaped part at the machine's mean
+    ideal flow, the pressure-shaped part at :data:`LEAK_REF_DP_BAR`), both l/min: a displacement or a
+    speed sensor's gain moves the first (the same share of every flow), a leak the second (an orifice
+    at the loop's pressure; a healthy unit's gap leakage differs from its type's by a share of a
+    healthy leakage, a few % of the flow at full pressure). Points that cannot tell the two apart
+    (the two columns correlated beyond :data:`SHAPE_MAX_CORRELATION`, or constant): the mean for both."""
+    from cmcan.model.physics import ideal_flow_lpm
+
+    mean = float(np.mean(residual_lpm))
+    q = ideal_flow_lpm(x)
+    s = np.sqrt(np.clip(x[:, 2], 0.0, None) / LEAK_REF_DP_BAR)
+    if len(q) < 3 or np.ptp(q) <= 0 or np.ptp(s) <= 0 or abs(np.corrcoef(q, s)[0, 1]) > SHAPE_MAX_CORRELATION:
+        return mean, mean
+    (a, b), *_ = np.linalg.lstsq(np.column_stack([q, s]), residual_lpm, rcond=None)
+    return float(a * np.mean(q)), float(b)
+
+
+def off_reference(
+    reference_offsets_lpm: Mapping[str, float],
+    bound_lpm: float,
+    shapes_lpm: Mapping[str, tuple[float, float]] | None = None,
+) -> dict[str, Any]:
+    """The judgment against the reference (the model the machines were replayed with): each machine's
+    mean residual against it; named, the machines with a part of their residual's shape beyond
+    ``bound_lpm`` (``shapes_lpm``, :func:`reference_shape`; none given: the mean stands for both): the
+    pressure-shaped part below it (a leak, whatever the flow part makes of the mean: a unit that
+    delivers 2 % more can carry a leak its mean does not show), or the flow-shaped part with the mean
+    beyond it (delivers less, or more, in proportion to the flow). A unit off by its displacement, its
+    sensors and its gaps together, each within its tolerance, is off in the mean but in neither part.
+    And whether the rule was applied: not when more than half of the machines would be named (the
+    reference then does not fit the type, a median of the type does; a leak is a minority's defect)."""
+    out = {}
+    for m, o in sorted(reference_offsets_lpm.items()):
+        flow_part, leak_part = (shapes_lpm or {}).get(m, (o, o))
+        if leak_part < -bound_lpm:
+            why = "arrives leaking: delivers less than the type, more so the higher the pressure"
+        elif o < -bound_lpm and flow_part < -bound_lpm:
+            why = "delivers less than the type, in proportion to the flow"
+        elif o > bound_lpm and flow_part > bound_lpm:
+            why = "delivers more than the type, in proportion to the flow"
+        else:  # no part beyond what a unit's own tolerances give: the median judges it
+            continue
+        out[m] = {"reference_offset_lpm": float(o), "why": f"{why} (off the reference model)"}
+    applied = bool(reference_offsets_lpm) and 2 * len(out) <= len(reference_offsets_lpm)
+    if not applied:
+        out = {}
+    return {
+        "applied": applied,
+        "bound_lpm": float(bound_lpm),
+        "offset_lpm": {m: float(o) for m, o in sorted(reference_offsets_lpm.items())},
+        "outliers": out,
+    }
+
+
 def selection_info(until_h: float | None, excluded: Sequence[str], min_points: int) -> dict[str, Any]:
     """How the points were chosen, for ``training["selection"]``."""
     return {
@@ -267,6 +353,22 @@ def selection_info(until_h: float | None, excluded: Sequence[str], min_points: i
         "excluded": sorted(excluded),
         "min_points": min_points,
     }
+
+
+def _judge_on_reference(
+    points: Sequence[MachinePoints], lpm_per_unit: float, bound_lpm: float
+) -> dict[str, Any] | None:
+    """:func:`off_reference` on the machines' mean residuals against their replay model, when every
+    machine has one and it is the same model; else None."""
+    models = {mp.reference_model for mp in points}
+    if len(models) != 1 or None in models or any(mp.reference is None for mp in points):
+        return None
+    residual = {mp.machine: (mp.measured - mp.reference) * lpm_per_unit for mp in points}  # type: ignore[operator]
+    offsets = {m: float(np.mean(r)) for m, r in residual.items()}
+    shapes = {mp.machine: reference_shape(mp.x, residual[mp.machine]) for mp in points}
+    judged = off_reference(offsets, bound_lpm, shapes)
+    judged["shape_lpm"] = {m: {"flow": round(a, 4), "leak_at_ref_dp": round(b, 4)} for m, (a, b) in shapes.items()}
+    return {"model": models.pop(), **judged}
 
 
 @dataclass(frozen=True)
@@ -295,7 +397,13 @@ def fit_type(
     oil = Oil(facts.oil_nu40_cst, facts.oil_nu100_cst)
     flow = np.concatenate([mp.measured for mp in kept]) * facts.lpm_per_unit
     floor_lpm = SCALE_FLOOR_SHARE * float(np.median(np.abs(flow))) if len(flow) else 0.0
+    reference = _judge_on_reference(kept, facts.lpm_per_unit, OUTLIER_Z * floor_lpm)
     left_out: dict[str, dict[str, Any]] = {}
+    if reference is not None:  # an absolute judgment: once, before the fits
+        first = {m: v for m, v in reference["outliers"].items() if m not in keep}
+        if len(kept) - len(first) >= MIN_MACHINES:
+            left_out.update({m: dict(v) for m, v in first.items()})
+            kept = [mp for mp in kept if mp.machine not in first]
     while True:  # each round leaves machines out or ends: at most one round per machine
         x = np.concatenate([mp.x for mp in kept]).astype(np.float64)
         y = np.concatenate([mp.measured for mp in kept]).astype(np.float64)
@@ -307,11 +415,27 @@ def fit_type(
             break
         left_out.update(new)
         kept = [mp for mp in kept if mp.machine not in new]
+    v_kept = np.array(list(offsets.values()), dtype=np.float64)
+    center = float(np.median(v_kept))
+    scale = max(MAD_TO_SD * float(np.median(np.abs(v_kept - center))), floor_lpm)
     for m, v in left_out.items():  # as the final model sees it
         mp = next(p for p in points if p.machine == m)
         v["offset_lpm"] = float(np.mean((mp.measured - model.predict(mp.x)) * facts.lpm_per_unit))
+        v.setdefault("robust_z", (v["offset_lpm"] - center) / scale if scale > 0 else 0.0)
+        if reference is not None:
+            v.setdefault("reference_offset_lpm", reference["offset_lpm"][m])
     stats = residual_figures(model, x, y, "D_trn")
     spread = unit_spread(residual_lpm, left_out)
+    spread["rule"] += (
+        f"; or further than {OUTLIER_Z * SCALE_FLOOR_SHARE:.1%} of the median flow from the reference model "
+        f"(the one the logs were replayed with) in its residual's part growing with sqrt(dp) (at {LEAK_REF_DP_BAR:g} "
+        "bar), or in the mean and the part growing with the flow, unless more than half would be: left out"
+    )
+    spread["reference"] = (
+        {"applied": False, "why": "the machines were not all replayed with one model"}
+        if reference is None
+        else {k: reference[k] for k in ("model", "applied", "bound_lpm", "offset_lpm", "shape_lpm")}
+    )
     training = {
         "fingerprint": fingerprint(x, y),
         "source": source,

@@ -265,7 +265,10 @@ class FleetSpec:
     # Healthy machines that arrive with a leak from hour 0, of a share of the type's rated flow (at
     # 2000 rpm) drawn in arriving_leak_pct, at 480 bar. Healthy leakage of these drives is about 3 %
     # of rated flow at 480 bar and 60 C, its spread (leak_sigma 0.2) about +-0.6 % (1 sigma): 4 to
-    # 8 % stands well clear of it and well below a worn unit's loss of function (25 %).
+    # 8 % stands well clear of it and well below a worn unit's loss of function (25 %). Not clear of a
+    # unit's displacement tolerance in the mean ratio (+-2 % of the flow, where the leak shows as about
+    # 0.7 x its share at the duty's pressures): fleet train tells them apart by the part that grows
+    # with the pressure (docs/fleet.md, "What size of arriving leak is named").
     arriving_leaks: int = 0
     arriving_leak_pct: tuple[float, float] = (4.0, 8.0)
     # The faults degrading machines develop, in turn (of DEGRADATIONS), and the operating hour before
