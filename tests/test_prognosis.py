@@ -359,6 +359,41 @@ def test_a_wear_that_speeds_up_is_never_booked_late(seed):
     assert all(q[0] <= left for left, q in on), on  # the p10 holds the truth from below
 
 
+def sparse_hours(until_h, per_bin=12):
+    """A logger's bursts: ``per_bin`` ticks at the start of every half hour (the fleet's time-lapse)."""
+    return np.concatenate([t + np.arange(per_bin) * 0.002 for t in np.arange(0.0, until_h, 0.5)])
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_a_small_wear_on_a_sparse_noisy_history_is_caught_once_significant(seed):
+    """2.5 l/min over the last 20 h of 100 (the ratio 1 % down) on bursts whose points scatter by some
+    0.85 l/min: the rise is 3 points' spreads, far under the 5 a gate in those units asked (the fleet
+    plan's missed wear), and clearly significant: a trend."""
+    h = sparse_hours(100.0)
+    e = _estimate(h, 2.5 * np.clip((h - 80.0) / 20.0, 0, 1), seed, 1.2)
+    assert e.state in (TREND, IMMINENT) and e.direction == LOW
+    assert e.t_stat >= REF.t_min and e.rise_lpm < 5.0 * e.noise_lpm
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_significant_but_tiny_drift_is_no_trend(seed):
+    """0.3 l/min over the last 30 h on a clean history (0.13 % of the ratio): significant many times
+    over, but no wear worth a plan entry (under min_rise_lpm and min_fall_pct); without those two
+    gates the same history would trend."""
+    h = sparse_hours(100.0)
+    leak = 0.3 * np.clip((h - 70.0) / 30.0, 0, 1)
+    e = _estimate(h, leak, seed, 0.05)
+    assert e.t_stat >= REF.t_min and e.rise_lpm < REF.min_rise_lpm and e.fall_pct < REF.min_fall_pct
+    assert e.state == NONE
+    assert _estimate(h, leak, seed, 0.05, min_rise_lpm=0.0, min_fall_pct=0.0).state in (TREND, IMMINENT)
+
+
+def _estimate(h, leak, seed, noise_lpm, **params):
+    p = Prognosis(PrognosisParams(**params))
+    p.add_columns(*ticks(h, leak, seed=seed, noise_lpm=noise_lpm))
+    return p.estimate()
+
+
 def test_hours_to_the_low_warning_follow_the_ratio():
     """The low warning (ratio 98 %) is 4.68 l/min of extra leakage at 234 l/min: with x = 40 s^3 from
     40 h to 160 h, reached at 98.7 h. At 85 h, over ten noise draws, the interval of the hours to it

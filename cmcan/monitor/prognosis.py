@@ -31,8 +31,10 @@ faster; onset ``t0`` and shape ``k`` come from a grid, ``b`` and ``c`` (``c >= 0
 
 - No trend unless the best cell's rise is significant (``c`` over its standard error, inflated for
   the residuals' lag-1 autocorrelation, at least ``t_min``: the grid search and correlated points
-  make 2 far too lax) and larger than both ``min_rise_lpm`` and ``rise_sigmas`` times the residuals'
-  spread (the noise floor).
+  make 2 far too lax), and relevant: at least ``min_rise_lpm`` and, on the low side, the measured
+  ratio's fall over the same onset and shape at least ``min_fall_pct`` (a share of the flow, so it
+  scales with the machine). No gate in units of the points' own spread: that depends on the logger's
+  sampling and the duty's pressure, not on the wear.
 - The interval: the points weighed by their noise (a floor plus a share of the wear leakage, the
   share estimated from the worn stretch's residuals, at most ``level_rel``), curves are drawn from
   the fit's posterior (a cell by its likelihood, so every onset and shape the data do not rule out is
@@ -136,9 +138,13 @@ class PrognosisParams:
     onsets: int = 48
     onset_ratio: float = 1.07
     t_min: float = 6.0  # significance of the rise (grid search and autocorrelation make 2 too lax)
-    min_rise_lpm: float = 1.5  # the smallest rise reported as a trend
-    min_rise_pct: float = 1.0  # ... on the high side: of the share of displacement the motor lacks, %
-    rise_sigmas: float = 5.0  # ... and at least this many times the residuals' spread
+    # Significant is not yet relevant: a rise must also be wear worth a plan entry. On the low side
+    # in both units a machine has: the referred leakage (at least the referral's own error against the
+    # truth, 0.14-0.41 l/min on the benchmark) and the measured ratio, which scales with the machine's
+    # flow (a tenth of the low warning's 2 % margin; healthy machines wander +-0.15 % after learning)
+    min_rise_lpm: float = 0.5
+    min_fall_pct: float = 0.2  # the measured ratio's fall over the same onset and shape, % of the flow
+    min_rise_pct: float = 1.0  # the high side's: of the share of displacement the motor lacks, %
     draws: int = 400  # curves drawn for the interval
     sigma_floor_lpm: float = 0.05  # the noise assumed at least (a history smoother than the filter's)
     sigma_floor_pct: float = 0.01  # ... of that share
@@ -158,6 +164,11 @@ class PrognosisParams:
     # 0: off.
     hindcast_share: float = 0.25
     hindcast_min_h: float = 4.0
+    # ... asking only fits whose rise was at least this: a fit from the first l/min of a rise has not
+    # yet seen its bend and reads its own unresolved shape as the law's error (a cubic wear fitted at a
+    # quarter of its rise as a near-straight line ran 2-3x slow, and the p50 was booked at a quarter of
+    # the truth). The detection's smallest rise until a trend could be reported from 0.5 l/min
+    hindcast_min_rise_lpm: float = 1.5
     # Pool the estimates of the last pool_h hours (at most a quarter of the hours left), taken every
     # pool_every_h: off, as its lag costs more near the end than the referred leakage's scatter
     pool_h: float = 0.0
@@ -244,6 +255,7 @@ class Estimate:
     shape_k: float = math.nan
     noise_lpm: float = 0.0  # the residuals' spread
     # rise_lpm, t_stat and noise_lpm are the low side's; onset_h and shape_k the reported side's
+    fall_pct: float = 0.0  # the low side's: the measured ratio's fall over its onset and shape (%)
     rise_pct: float = 0.0  # the high side's fitted rise (of the share of displacement the motor lacks, %)
     t_stat_high: float = 0.0
 
@@ -646,7 +658,9 @@ def estimate(
     mix = _mix(p, h, leak, sums) if sums is not None else None
     if mix is not None:
         leak = mix.leak
-    d_low = _detect(p, h, leak, _LEAK)
+    # the low side's relevance is also judged on the measured ratio's fall (100 - ratio, %)
+    fall = 100.0 - np.asarray(ratio, dtype=np.float64)
+    d_low = _detect(p, h, leak, _LEAK, fall)
     # The high side follows the ratio above 100 %: flow a healthy drive cannot deliver, which a leak,
     # however it swings with the oil and the pressure, never gives (it only lowers the ratio). As the
     # share of displacement the motor lacks (100 - 10^4 / ratio, %), linear in a drifting control
@@ -655,6 +669,7 @@ def estimate(
     base = Estimate(
         at_h=T,
         rise_lpm=d_low.c,
+        fall_pct=d_low.fall,
         t_stat=d_low.t_stat,
         onset_h=d_low.onset_h,
         shape_k=d_low.shape_k,
@@ -667,7 +682,7 @@ def estimate(
         warn, eol = _leak_thresholds(p, leak, ratio)
         if mix is not None and p.eol_kind == "leak_lpm":  # a ratio's leakage moves with the referral
             eol /= mix.factor
-        sides.append((LOW, d_low, _track_hours(p, h, leak, d_low, (warn, eol), _LEAK)))
+        sides.append((LOW, d_low, _track_hours(p, h, leak, d_low, (warn, eol), _LEAK, fall)))
     if d_high.trend:
         ys = (float(_short_pct(np.array(p.high_pct))), float(_short_pct(np.array(p.eol_high_pct))))
         sides.append((HIGH, d_high, _track_hours(p, h, excess, d_high, ys, _RATIO)))
@@ -696,6 +711,7 @@ def _track_hours(
     d: _Detected,
     ys: tuple[float, float],
     track: _Track,
+    fall: NDArray[np.float64] | None = None,
 ) -> tuple[Triple, Triple]:
     """Hours (p10, p50, p90) until a trending side reaches its warning and its end of life, ``ys``.
     Pooled with the estimates of the last few hours (each less the hours since): one taken on a warm
@@ -703,7 +719,7 @@ def _track_hours(
     quarter of the hours left): older estimates lag an accelerating wear."""
     T = float(h[-1])
     tw, te = _draw_hours(p, d, h, y, ys, track, p.seed)
-    late = _hindcast(p, h, y, d, track)
+    late = _hindcast(p, h, y, d, track, fall)
     if late != 1.0:
         rng = np.random.default_rng(p.seed - 1)
         scale = np.exp(rng.normal(0.0, abs(math.log(late)), len(tw))) / max(late, 1.0)
@@ -715,7 +731,7 @@ def _track_hours(
         m = int(np.searchsorted(h, T - lag, side="right"))
         if m < p.min_points + 2:
             break
-        di = _detect(p, h[:m], y[:m], track)
+        di = _detect(p, h[:m], y[:m], track, None if fall is None else fall[:m])
         if not di.trend:
             continue
         tw, te = _draw_hours(p, di, h[:m], y[:m], ys, track, p.seed + i)
@@ -731,7 +747,14 @@ def _level_now(d: _Detected, y: NDArray[np.float64]) -> tuple[float, float]:
     return b, b + d.c
 
 
-def _hindcast(p: PrognosisParams, h: NDArray[np.float64], y: NDArray[np.float64], d: _Detected, track: _Track) -> float:
+def _hindcast(
+    p: PrognosisParams,
+    h: NDArray[np.float64],
+    y: NDArray[np.float64],
+    d: _Detected,
+    track: _Track,
+    fall: NDArray[np.float64] | None = None,
+) -> float:
     """How much slower than the truth the law ran over the last stretch: the hours the fit of the
     history as it stood then takes to today's level, over the hours it took (1: no hindcast, no
     earlier fit with a trend, or none that reaches today's level)."""
@@ -745,8 +768,8 @@ def _hindcast(p: PrognosisParams, h: NDArray[np.float64], y: NDArray[np.float64]
         m = int(np.searchsorted(h, T - lag, side="right"))
         if m < p.min_points + 2 or not h[m - 1] - h[0] >= p.min_history_h:
             continue
-        old = _detect(p, h[:m], y[:m], track)
-        if not old.trend:
+        old = _detect(p, h[:m], y[:m], track, None if fall is None else fall[:m])
+        if not (old.trend and old.c >= getattr(p, track.hindcast_min_rise)):
             continue
         b_old, _ = _level_now(old, y[:m])
         took = T - float(h[m - 1])
@@ -763,10 +786,11 @@ class _Track:
 
     min_rise: str  # the PrognosisParams field
     sigma_floor: str
+    hindcast_min_rise: str  # ... the smallest rise of a fit the hindcast asks
 
 
-_LEAK = _Track("min_rise_lpm", "sigma_floor_lpm")  # the leakage at the reference conditions, l/min
-_RATIO = _Track("min_rise_pct", "sigma_floor_pct")  # the ratio, %
+_LEAK = _Track("min_rise_lpm", "sigma_floor_lpm", "hindcast_min_rise_lpm")  # the leakage at reference, l/min
+_RATIO = _Track("min_rise_pct", "sigma_floor_pct", "min_rise_pct")  # the ratio, %
 
 
 @dataclass(frozen=True)
@@ -784,9 +808,22 @@ class _Detected:
     ks: tuple[float, ...]
     basis: NDArray[np.float64]
     resid: NDArray[np.float64]
+    fall: float = math.nan  # the measured ratio's fall over the same cell (%; NaN: not judged)
 
 
-def _detect(p: PrognosisParams, h: NDArray[np.float64], y: NDArray[np.float64], track: _Track) -> _Detected:
+def _detect(
+    p: PrognosisParams,
+    h: NDArray[np.float64],
+    y: NDArray[np.float64],
+    track: _Track,
+    fall: NDArray[np.float64] | None = None,
+) -> _Detected:
+    """The grid's best cell for ``y`` and whether it is a trend: significant (``t_min``), at least
+    ``min_points`` long, and relevant (at least the track's smallest rise; with ``fall``, the ratio's
+    deficit, also the measured ratio's fall fitted over the same onset and shape at least
+    ``min_fall_pct``). No gate in units of the points' own spread: that spread depends on how densely
+    the logger samples (ticks per bin) and on the referral's gain at the machine's duty, not on the
+    wear, and the significance already weighs the rise against it."""
     n = len(h)
     grid = _grid(p, h)
     t0s, ks, basis = grid.t0s, grid.ks, grid.basis
@@ -800,8 +837,15 @@ def _detect(p: PrognosisParams, h: NDArray[np.float64], y: NDArray[np.float64], 
     # a rise shorter than min_points fits a fresh ramp as it is (the grid reaches closer: an older
     # onset forced on it would bend the curve and cut the hours short), but is not reported yet
     long_enough = t0s[g] <= float(h[n - p.min_points])
-    trend = c > 0 and long_enough and t_stat >= p.t_min and c >= max(getattr(p, track.min_rise), p.rise_sigmas * sigma)
-    return _Detected(trend, c, t_stat, t0s[g], ks[g], sigma, g, t0s, ks, basis, resid)
+    trend = c > 0 and long_enough and t_stat >= p.t_min and c >= getattr(p, track.min_rise)
+    fell = math.nan
+    if fall is not None:
+        # the same cell's least-squares rise of the ratio's deficit (its suu, the basis' moments, are
+        # the grid's: one product)
+        fc = fall - float(fall @ np.ones(n)) / n
+        fell = float(basis[g] @ fc - grid.u_mean[g] * float(fc.sum())) / f.suu[g] if f.suu[g] > 0 else 0.0
+        trend = trend and fell >= p.min_fall_pct
+    return _Detected(trend, c, t_stat, t0s[g], ks[g], sigma, g, t0s, ks, basis, resid, fell)
 
 
 def _draw_hours(
