@@ -90,6 +90,19 @@ def test_a_unit_arriving_with_a_leak_is_suspect_and_warns(unit):
     assert mon.snapshot()["baseline"]["state"] == "baseline_suspect"
 
 
+def test_a_leak_a_unit_reading_high_hides_in_the_mean_is_suspect_by_its_pressure_part():
+    # the motor speed sensor reads 4 % high (the flow part), an orifice leak of 6 l/min at 480 bar: every
+    # bin's mean within the allowance, what the baseline learned less its flow part beyond it
+    leak = {"type": "leakage", "start_h": 0.0, "extra_lpm": 6.0, "ref_dp_bar": 480}
+    sensors = {"errors": {"motor_speed_rpm": {"gain_pct": 4.0}}}
+    _, frames = sim_frames("two_set_validation", duration_h=0.12, events=[leak], sensors=sensors)
+    cfg = _cfg(suspect_lpm=3.5)
+    a, b = (_run(cfg, as_frames(frames), engine)[3].baseline for engine in ("streaming", "columnar"))
+    assert json.dumps(a.to_dict()) == json.dumps(b.to_dict())
+    assert a.mode == Mode.SUSPECT and a.suspect_by == ("pressure",)
+    assert abs(a.distance_lpm) < 3.5 < -a.pressure_part_lpm
+
+
 def test_cm_baseline_goes_on_the_bus_on_each_change_and_every_second(unit):
     import cantools
 

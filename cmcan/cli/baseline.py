@@ -67,6 +67,8 @@ def _status(doc: dict[str, Any] | None) -> dict[str, Any]:
         "bins": len(n),
         "theta": doc["theta"],
         "distance_lpm": doc["distance_lpm"],
+        "pressure_part_lpm": doc.get("pressure_part_lpm"),
+        "suspect_by": doc.get("suspect_by"),
         "finished_t_s": doc["finished_t_s"],
         "earlier_baselines": len(doc.get("history", [])),
     }
@@ -97,8 +99,10 @@ def run(args: argparse.Namespace) -> int:
             f"{st['coverage_pct']:.0f} % ({st['bins_covered']} of {st['bins']} bins, {st['bins_needed']} needed)"
         )
         print(
-            f"  distance from the type model {st['distance_lpm']:+.2f} l/min (suspect beyond "
-            f"{st['suspect_lpm']:.2f}); earlier baselines: {st['earlier_baselines']}"
+            f"  distance from the type model {st['distance_lpm']:+.2f} l/min, pressure part "
+            f"{st['pressure_part_lpm']:+.2f} l/min (suspect beyond {st['suspect_lpm']:.2f}, the pressure part below "
+            f"minus it{'; suspect by its ' + ' and '.join(st['suspect_by']) if st['suspect_by'] else ''}); "
+            f"earlier baselines: {st['earlier_baselines']}"
         )
     else:
         print(f"  {st['note']}")

@@ -266,7 +266,10 @@ def run_one(args: argparse.Namespace) -> int:
                 f"holding {bl['min_points']} ticks each and {bl['min_hours']:g} operating hours; judged meanwhile "
                 f"at {bl['learning_low_pct']:g} / {bl['learning_high_pct']:g} %"
             )
-            print(f"  baseline  suspect beyond {bl['suspect_lpm']:.3g} l/min from the type model: {bl['suspect_from']}")
+            print(
+                f"  baseline  suspect beyond {bl['suspect_lpm']:.3g} l/min from the type model in a bin's mean, or "
+                f"with the pressure part of its learned correction below minus that: {bl['suspect_from']}"
+            )
         pr = result["prognosis"]
         if pr is None:
             print("  prognosis off (no hours to service: prognosis.enabled)")

@@ -423,7 +423,8 @@ def _print(log: str, res: ReplaySummary, summary: dict[str, Any]) -> None:
     if b is not None:  # the on-board baseline where configured (docs/commissioning.md)
         print(
             f"  baseline {b['state']}: {b['learned_h']:.2f} h learned, {b['coverage_pct']:.0f} % of the envelope, "
-            f"distance from the type model {b['distance_lpm']:+.2f} l/min"
+            f"distance from the type model {b['distance_lpm']:+.2f} l/min, pressure part {b['pressure_part_lpm']:+.2f}"
+            + (f" (suspect by its {' and '.join(b['suspect_by'])})" if b["suspect_by"] else "")
         )
 
 

@@ -384,9 +384,12 @@ class Daemon:
             return False
         if bl.mode == Mode.SUSPECT:
             log.warning(
-                "baseline_suspect: this machine lies %+.2f l/min from its type model (units of the type differ by up "
-                "to %.2f l/min): the type model stays its reference; check the drive for a leak or a sensor",
+                "baseline_suspect (%s): this machine lies %+.2f l/min from its type model, the part of it that does "
+                "not grow with the flow %+.2f l/min (units of the type differ by up to %.2f l/min): the type model "
+                "stays its reference; check the drive for a leak or a sensor",
+                " and ".join(bl.suspect_by) or "mean",
                 bl.distance_lpm,
+                bl.pressure_part_lpm,
                 bl.p.suspect_lpm,
             )
         elif bl.mode == Mode.MONITORING:

@@ -26,10 +26,23 @@ Learning ends when ``coverage_pct`` of the bins hold ``min_points`` ticks each (
 ``min_hours`` of operation have passed while learning, never after a fixed time alone. The hours are
 operating hours on the prognosis's clock (:mod:`cmcan.monitor.operating`): a logger that records
 bursts some minutes apart, or a machine whose ticks mostly fall outside the envelope, still runs them.
-Then the guard: a bin whose mean residual lies further than ``suspect_lpm`` from the type model (a
-machine that arrived with a leak, a wrong sensor) makes the baseline ``baseline_suspect``: the type
-model stays the reference, the state says by how much (l/min). Otherwise the machine is
-``monitoring`` against its own baseline.
+Then the guard judges two parts of what was learned, each against the same ``suspect_lpm`` (what
+units of the type differ by at a point of the envelope):
+
+- the **mean**: a covered bin whose mean residual lies further than it from the type model (a
+  machine that arrived with a leak, a wrong sensor; ``distance_lpm``);
+- the **pressure part**: the learned correction less its flow part, ``theta_0 + theta_2 * laminar``
+  (:func:`pressure_part`), at the covered bin where it is lowest, below minus it
+  (``pressure_part_lpm``). A unit that delivers a few % more than its type (displacement and speed
+  tolerances: the flow part, ``theta_1``) can carry a leak its mean hides; the leak does not grow
+  with the flow, so the flow part does not carry it. The offset belongs to this part: an orifice
+  leak (sqrt(dp)) over the covered pressures is learned as an offset and a slope, and the speed
+  sensors, which read 0 at standstill, give no offset of their own. Only its low side is judged: a
+  unit that leaks less than its type by more than units differ is no fault the type model misses.
+
+Either beyond makes the baseline ``baseline_suspect`` (``suspect_by`` names the parts): the type model
+stays the reference, the state says by how much (l/min). Otherwise the machine is ``monitoring``
+against its own baseline.
 
 One tick at a time (:meth:`Baseline.learn`), or a stretch of ticks (:meth:`Baseline.learn_columns`)
 with the same additions in the same order: the same state bit for bit.
@@ -52,10 +65,11 @@ from cmcan.oil import VG46, Oil
 from cmcan.roles import DP, MODEL_INPUTS, PUMP_DISP, PUMP_SPEED, TEMP
 from cmcan.schema import Num, Obj, Seq, setting
 
-FORMAT = "cmcan-baseline/1"
+FORMAT = "cmcan-baseline/1"  # fields added since (pressure_part_lpm, suspect_by) have defaults: the same format
 N_FEATURES = 3
 FEATURES = ("offset_lpm", "geometric_per_100lpm", "laminar_leak_lpm")
 BIN_ROLES = (PUMP_SPEED, DP, TEMP)  # the envelope the coverage is counted over
+SUSPECT_PARTS = ("mean", "pressure")  # what the guard judges (suspect_by names those beyond the allowance)
 HISTORY_MAX = 16
 Q_SCALE_LPM = 100.0  # the geometric term per 100 l/min: its coefficient of the order of the others
 _IX = {r: MODEL_INPUTS.index(r) for r in MODEL_INPUTS}
@@ -105,7 +119,8 @@ class BaselineSettings:
     )
     suspect_lpm: float | None = setting(
         Num(0.01, 10000, "l/min", default=None),
-        "a covered bin's mean residual further than this from the type model: suspect; default: "
+        "a covered bin's mean residual further than this from the type model, or the learned correction's "
+        "pressure part (offset and laminar leak) below minus this: suspect; default: "
         "suspect_sigmas x the type's unit-to-unit spread in the model's metadata, else 2 % of nominal flow",
     )
     suspect_sigmas: float = setting(Num(1, 20, default=4.0), "the allowance in the type's unit-to-unit spreads")
@@ -125,7 +140,7 @@ class BaselineParams:
     min_points: int  # ticks a bin needs to count as covered
     coverage_pct: float  # share of the bins that must be covered
     min_hours: float  # operating hours while learning at least (the operating clock)
-    suspect_lpm: float  # a bin's mean residual further than this from the type model: suspect
+    suspect_lpm: float  # a bin's mean residual, or the correction's pressure part, further than this: suspect
     lpm_per_unit: float  # the output quantity's unit in l/min (V_M / 1000 for motor speed)
     period_s: float  # one tick
     max_gap_s: float = 3600.0  # the operating clock's: a longer gap between ticks is the machine off
@@ -182,6 +197,27 @@ class Fit:
     theta: tuple[float, float, float]  # l/min per feature (FEATURES)
     distance_lpm: float  # the covered bin's mean residual of largest magnitude (signed)
     bins_covered: int
+    pressure_part_lpm: float = 0.0  # the correction less its flow part, at the covered bin where it is lowest
+
+
+def pressure_part(
+    p: BaselineParams, n: NDArray[np.int64], sxx: NDArray[np.float64], theta: tuple[float, float, float]
+) -> float:
+    """The learned correction less its flow part, ``theta_0 + theta_2 * laminar``, at the covered bin
+    (its mean laminar feature) where it is lowest, in l/min: negative, the unit leaks more than its
+    type. 0 with no bin covered."""
+    cov = n >= p.min_points
+    if not cov.any():
+        return 0.0
+    laminar = sxx[cov, 0, 2] / n[cov]  # sxx[b, 0, j] sums feature j (feature 0 is 1): the bin's mean
+    return float(np.min(theta[0] + theta[2] * laminar))
+
+
+def suspect_parts(f: Fit, allowance_lpm: float) -> tuple[str, ...]:
+    """The parts of a fit beyond the guard's allowance (:data:`SUSPECT_PARTS`): the mean either way,
+    the pressure part on its low side (a leak)."""
+    beyond = (abs(f.distance_lpm) > allowance_lpm, f.pressure_part_lpm < -allowance_lpm)
+    return tuple(name for name, b in zip(SUSPECT_PARTS, beyond, strict=True) if b)
 
 
 def fit(
@@ -198,7 +234,8 @@ def fit(
     theta = np.linalg.solve(a + lam * np.eye(N_FEATURES), b)
     means = sy[cov] / n[cov]
     far = int(np.argmax(np.abs(means)))
-    return Fit((float(theta[0]), float(theta[1]), float(theta[2])), float(means[far]), int(cov.sum()))
+    th = (float(theta[0]), float(theta[1]), float(theta[2]))
+    return Fit(th, float(means[far]), int(cov.sum()), pressure_part(p, n, sxx, th))
 
 
 class Baseline:
@@ -218,6 +255,8 @@ class Baseline:
         self.clock = OperatingClock(p.max_gap_s)
         self.theta = (0.0, 0.0, 0.0)
         self.distance_lpm = 0.0
+        self.pressure_part_lpm = 0.0
+        self.suspect_by: tuple[str, ...] = ()  # the parts the guard found beyond its allowance
         self.started_t_s: float | None = None  # frame time of the first learned tick
         self.finished_t_s: float | None = None
         self.history: list[dict[str, Any]] = []
@@ -271,6 +310,8 @@ class Baseline:
             "min_hours": self.p.min_hours,
             "theta": dict(zip(FEATURES, self.theta, strict=True)),
             "distance_lpm": self.distance_lpm,
+            "pressure_part_lpm": self.pressure_part_lpm,
+            "suspect_by": list(self.suspect_by),
             "suspect_lpm": self.p.suspect_lpm,
             "started_t_s": self.started_t_s,
             "finished_t_s": self.finished_t_s,
@@ -393,9 +434,10 @@ class Baseline:
 
     def _finish(self, t_s: float) -> None:
         f = fit(self.p, self.n, self.sxx, self.sxy, self.sy)
-        self.theta, self.distance_lpm = f.theta, f.distance_lpm
+        self.theta, self.distance_lpm, self.pressure_part_lpm = f.theta, f.distance_lpm, f.pressure_part_lpm
         self.finished_t_s = t_s
-        self.mode = Mode.SUSPECT if abs(f.distance_lpm) > self.p.suspect_lpm else Mode.MONITORING
+        self.suspect_by = suspect_parts(f, self.p.suspect_lpm)
+        self.mode = Mode.SUSPECT if self.suspect_by else Mode.MONITORING
 
     # -- reset, persistence -------------------------------------------------------------------------
 
@@ -406,6 +448,8 @@ class Baseline:
                 "state": MODE_NAMES[self.mode],
                 "theta": dict(zip(FEATURES, self.theta, strict=True)),
                 "distance_lpm": self.distance_lpm,
+                "pressure_part_lpm": self.pressure_part_lpm,
+                "suspect_by": list(self.suspect_by),
                 "learned_h": self.learned_h,
                 "coverage_pct": self.coverage_pct,
                 "started_t_s": self.started_t_s,
@@ -434,6 +478,8 @@ class Baseline:
             "block": self.block,
             "theta": list(self.theta),
             "distance_lpm": self.distance_lpm,
+            "pressure_part_lpm": self.pressure_part_lpm,
+            "suspect_by": list(self.suspect_by),
             "started_t_s": self.started_t_s,
             "finished_t_s": self.finished_t_s,
             "history": self.history,
@@ -455,6 +501,10 @@ class Baseline:
             raise BaselineStateError(f"baseline.state: {state!r:.40} is not one of {', '.join(_MODE_OF)}")
         theta = _floats(d.get("theta"), "baseline.theta", N_FEATURES)
         distance = _floats([d.get("distance_lpm")], "baseline.distance_lpm", 1)[0]
+        saved_pressure = d.get("pressure_part_lpm")  # None: saved before the guard judged it
+        if saved_pressure is not None:
+            saved_pressure = _floats([saved_pressure], "baseline.pressure_part_lpm", 1)[0]
+        suspect_by = _suspect_by(d.get("suspect_by"), _MODE_OF[state])
         ticks = d.get("learned_ticks")
         if isinstance(ticks, bool) or not isinstance(ticks, int) or ticks < 0:
             raise BaselineStateError(f"baseline.learned_ticks: expected a count, got {ticks!r:.40}")
@@ -467,6 +517,7 @@ class Baseline:
             old = cls(p)
             old.clock.operating_s = learning_s
             old.mode, old.theta, old.distance_lpm = _MODE_OF[state], tuple(theta), distance  # type: ignore[assignment]
+            old.pressure_part_lpm, old.suspect_by = saved_pressure or 0.0, suspect_by
             old.learned_ticks, old.started_t_s, old.finished_t_s = ticks, started, finished
             old.history = hist[-HISTORY_MAX:]
             old.covered = 0
@@ -486,6 +537,9 @@ class Baseline:
         bl.mode = _MODE_OF[state]
         bl.theta = (theta[0], theta[1], theta[2])
         bl.distance_lpm = distance
+        # an older file's: what its learned correction says, from the same statistics (its state stays)
+        bl.pressure_part_lpm = pressure_part(p, n, sxx, bl.theta) if saved_pressure is None else saved_pressure
+        bl.suspect_by = suspect_by
         bl.started_t_s, bl.finished_t_s = started, finished
         bl.history = hist[-HISTORY_MAX:]
         block = d.get("block")
@@ -504,6 +558,16 @@ def _saved_clock(clock: Any, ticks_s: float) -> tuple[float, float]:
         return OperatingClock.state_from(clock, "baseline.clock")
     except ValueError as exc:
         raise BaselineStateError(str(exc)) from None
+
+
+def _suspect_by(v: Any, mode: Mode) -> tuple[str, ...]:
+    """The saved parts beyond the allowance; a file saved before they were named: a suspect one was
+    judged on its mean alone."""
+    if v is None:
+        return ("mean",) if mode == Mode.SUSPECT else ()
+    if not isinstance(v, list) or not all(isinstance(a, str) and a in SUSPECT_PARTS for a in v):
+        raise BaselineStateError(f"baseline.suspect_by: expected a list of {', '.join(SUSPECT_PARTS)}, got {v!r:.60}")
+    return tuple(v)
 
 
 def _floats(v: Any, name: str, n: int) -> list[float]:
