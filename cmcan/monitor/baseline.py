@@ -501,10 +501,7 @@ class Baseline:
             raise BaselineStateError(f"baseline.state: {state!r:.40} is not one of {', '.join(_MODE_OF)}")
         theta = _floats(d.get("theta"), "baseline.theta", N_FEATURES)
         distance = _floats([d.get("distance_lpm")], "baseline.distance_lpm", 1)[0]
-        saved_pressure = d.get("pressure_part_lpm")  # None: saved before the guard judged it
-        if saved_pressure is not None:
-            saved_pressure = _floats([saved_pressure], "baseline.pressure_part_lpm", 1)[0]
-        suspect_by = _suspect_by(d.get("suspect_by"), _MODE_OF[state])
+        saved_pressure, suspect_by = _saved_guard(d, _MODE_OF[state])
         ticks = d.get("learned_ticks")
         if isinstance(ticks, bool) or not isinstance(ticks, int) or ticks < 0:
             raise BaselineStateError(f"baseline.learned_ticks: expected a count, got {ticks!r:.40}")
@@ -560,14 +557,18 @@ def _saved_clock(clock: Any, ticks_s: float) -> tuple[float, float]:
         raise BaselineStateError(str(exc)) from None
 
 
-def _suspect_by(v: Any, mode: Mode) -> tuple[str, ...]:
-    """The saved parts beyond the allowance; a file saved before they were named: a suspect one was
-    judged on its mean alone."""
+def _saved_guard(d: dict[str, Any], mode: Mode) -> tuple[float | None, tuple[str, ...]]:
+    """The guard's saved pressure part (None: saved before the guard judged it) and the parts beyond
+    the allowance (a file saved before they were named: a suspect one was judged on its mean alone)."""
+    pressure = d.get("pressure_part_lpm")
+    if pressure is not None:
+        pressure = _floats([pressure], "baseline.pressure_part_lpm", 1)[0]
+    v = d.get("suspect_by")
     if v is None:
-        return ("mean",) if mode == Mode.SUSPECT else ()
+        return pressure, ("mean",) if mode == Mode.SUSPECT else ()
     if not isinstance(v, list) or not all(isinstance(a, str) and a in SUSPECT_PARTS for a in v):
         raise BaselineStateError(f"baseline.suspect_by: expected a list of {', '.join(SUSPECT_PARTS)}, got {v!r:.60}")
-    return tuple(v)
+    return pressure, tuple(v)
 
 
 def _floats(v: Any, name: str, n: int) -> list[float]:
