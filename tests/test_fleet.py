@@ -393,3 +393,27 @@ def test_the_embedded_cluster_leaves_glibc_malloc_thresholds_alone():
     finally:
         close_client(client)
     assert env == {"MALLOC_TRIM_THRESHOLD_": None, "OMP_NUM_THREADS": "1"}
+
+
+def test_a_dask_close_that_times_out_is_said_not_the_commands_end(caplog):
+    """Under load the client's or cluster's close can time out after the work is written (Dask raises
+    TimeoutError): logged, the cluster still closed, nothing raised."""
+    from cmcan.fleet.run import close_client
+
+    closed = []
+
+    class Part:
+        def __init__(self, name, fails):
+            self.name, self.fails = name, fails
+
+        def close(self, timeout):
+            closed.append(self.name)
+            if self.fails:
+                raise TimeoutError(f"timed out after {timeout:g} s.")
+
+    client = Part("client", fails=True)
+    client.cluster = Part("cluster", fails=True)
+    with caplog.at_level("WARNING", logger="cmcan.fleet"):
+        close_client(client)
+    assert closed == ["client", "cluster"]
+    assert "did not close within 10 s" in caplog.text and "cluster" in caplog.text

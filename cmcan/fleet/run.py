@@ -36,6 +36,7 @@ from cmcan.fleet.sources import Refused
 from cmcan.fleet.task import LogJob, Options, hash_key, path_key, probe_log, process_log, safe_reason
 
 log = logging.getLogger("cmcan.fleet")
+CLOSE_TIMEOUT_S = 10.0  # closing the Dask client or cluster, after the work
 IN_FLIGHT_PER_THREAD = 2
 WORKERS_END_S = 15.0  # how long a cleanup after the workers were stopped waits for them to end
 
@@ -148,12 +149,17 @@ def make_client(scheduler: str | None, workers: int | None, memory_limit: str = 
 
 
 def close_client(client: Any) -> None:
+    """The client closed, and an embedded cluster with it. Called when the work is done (or given up):
+    a close that times out on a loaded machine is said, never the command's end (an embedded
+    cluster's workers are daemonic: they end with this process)."""
     cluster = getattr(client, "cluster", None)
-    try:
-        client.close(timeout=10)
-    finally:
-        if cluster is not None:
-            cluster.close(timeout=10)
+    for what, part in (("client", client), ("cluster", cluster)):
+        if part is None:
+            continue
+        try:
+            part.close(timeout=CLOSE_TIMEOUT_S)
+        except (TimeoutError, OSError) as exc:
+            log.warning("the Dask %s did not close within %g s (%s); its work is done", what, CLOSE_TIMEOUT_S, exc)
 
 
 def check_target(root: Path) -> None:
