@@ -73,6 +73,7 @@ SUSPECT_PARTS = ("mean", "pressure")  # what the guard judges (suspect_by names 
 HISTORY_MAX = 16
 Q_SCALE_LPM = 100.0  # the geometric term per 100 l/min: its coefficient of the order of the others
 _IX = {r: MODEL_INPUTS.index(r) for r in MODEL_INPUTS}
+REF_DP_BAR, REF_TEMP_C = 300.0, 50.0  # where the laminar feature is 1 (its coefficient in l/min there)
 
 
 class Mode(IntEnum):
@@ -145,8 +146,8 @@ class BaselineParams:
     period_s: float  # one tick
     max_gap_s: float = 3600.0  # the operating clock's: a longer gap between ticks is the machine off
     oil: Oil = VG46
-    ref_dp_bar: float = 300.0
-    ref_temp_c: float = 50.0
+    ref_dp_bar: float = REF_DP_BAR
+    ref_temp_c: float = REF_TEMP_C
     ridge: float = 1e-3  # relative to the mean diagonal: keeps an unexcited term near the type model
     block_ticks: int = 600  # the learning's end is checked once per block of this many ticks (a minute)
     # the warning thresholds while the type model judges alone (learning, suspect): wider
@@ -167,14 +168,23 @@ class BaselineParams:
 
 def features(p: BaselineParams, x: NDArray[np.float64]) -> NDArray[np.float64]:
     """(n, 3) features of operating points ``x`` (n, 4) in the model's input order."""
+    return unit_features(x, p.oil, p.ref_dp_bar, p.ref_temp_c)
+
+
+def unit_features(
+    x: NDArray[np.float64], oil: Oil = VG46, ref_dp_bar: float = REF_DP_BAR, ref_temp_c: float = REF_TEMP_C
+) -> NDArray[np.float64]:
+    """(n, 3) columns of what a unit differs from its type by (:data:`FEATURES`) at operating points
+    ``x`` (n, 4) in the model's input order: the baseline learns them on board, ``fleet train``
+    fits them per machine beside the type model."""
     x = np.asarray(x, dtype=np.float64)
     q_geo = x[:, _IX[PUMP_SPEED]] * x[:, _IX[PUMP_DISP]] / 1000.0
-    nu_ref = p.oil.kinematic_viscosity_cst(np.array([p.ref_temp_c]))
-    fluidity = nu_ref / p.oil.kinematic_viscosity_cst(x[:, _IX[TEMP]])
+    nu_ref = oil.kinematic_viscosity_cst(np.array([ref_temp_c]))
+    fluidity = nu_ref / oil.kinematic_viscosity_cst(x[:, _IX[TEMP]])
     out = np.empty((len(x), N_FEATURES))
     out[:, 0] = 1.0
     out[:, 1] = q_geo / Q_SCALE_LPM
-    out[:, 2] = x[:, _IX[DP]] / p.ref_dp_bar * fluidity
+    out[:, 2] = x[:, _IX[DP]] / ref_dp_bar * fluidity
     return out
 
 
