@@ -45,9 +45,11 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import yaml
 
 from cmcan.monitor.baseline import Mode
+from cmcan.sim.degradation import wear_lpm
 
 CAUGHT = ("warning_now", "imminent", "trend")
 LATE_FACTOR, LATE_SLACK_H = 1.2, 5.0
@@ -127,6 +129,24 @@ def plan_at_cut(work: Path, sim: Path, trained: dict[str, dict[str, Any]], cut_h
     return rows
 
 
+def size_at(events: list[dict[str, Any]], h: float) -> str:
+    """What the machine's degradation amounts to at operating hour ``h``, against its size at failure
+    (the simulator's truth; a wear's leakage at its reference point)."""
+    out = []
+    for ev in events:
+        if ev["type"] == "wear" and "shape" in ev:  # a truth from before the simulator wrote the defaults: no size
+            now = float(wear_lpm(ev, np.array([h]))[0])
+            out.append(f"{ev['component']} leak {now:.2f} of {ev['fail_extra_lpm']:g} l/min")
+        elif ev["type"] == "misposition":
+            pct = (
+                ev["pct"]
+                if ev["mode"] == "step"
+                else ev["pct"] * min(max((h - ev["start_h"]) / (ev["end_h"] - ev["start_h"]), 0.0), 1.0)
+            )
+            out.append(f"misposition {pct:.2f} of {ev['pct']:g} %")
+    return ", ".join(out)
+
+
 def judge(truth: dict[str, Any], rows: list[dict[str, Any]], trained: dict[str, Any], cut_h: float, within_h: float):
     by = {r["machine"]: r for r in rows}
     keys = ("caught", "not_late", "failed_warns", "healthy_quiet", "healthy_unflagged", "leaks_flagged",
@@ -153,7 +173,12 @@ def judge(truth: dict[str, Any], rows: list[dict[str, Any]], trained: dict[str, 
             caught = r["group"] in CAUGHT
             tally["caught"][0] += caught
             tally["caught"][1] += 1
-            verdict.append(f"fails in {remaining:.0f} h: " + ("caught" if caught else "MISSED"))
+            size = size_at(m.get("events", []), cut_h)
+            verdict.append(
+                f"fails in {remaining:.0f} h: "
+                + ("caught" if caught else "MISSED")
+                + (f" ({size} at the cut)" if size and not caught else "")
+            )
             if p10 is not None:
                 late = p10 > LATE_FACTOR * remaining + LATE_SLACK_H
                 tally["not_late"][0] += not late

@@ -464,7 +464,8 @@ def plan_fleet(spec: FleetSpec) -> list[MachinePlan]:
             "hours": spec.hours,
             "degrading": bool(events),
             "degradation": kind,
-            "events": events,
+            # as simulated: every key its value, the defaults too (the wear's shape and law)
+            "events": [dict(e) for e in s.events[: len(events)]],
             "failures": failures,
         }
         if unit is not None:
