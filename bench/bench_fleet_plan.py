@@ -17,8 +17,9 @@ For each seed and unit-spread scale, through the real command line only:
   printed beside it);
 - a machine that failed before the cut warns now;
 - a healthy machine (no failure ahead, no arriving leak) shows no trend and no warning, and is not
-  flagged (``baseline_suspect``, ``does_not_fit``);
-- a machine arriving with a leak is flagged (``baseline_suspect``, or a warning now);
+  flagged (``baseline_suspect``, ``does_not_fit``, ``left_out_of_type``);
+- a machine arriving with a leak is flagged (``baseline_suspect``, ``left_out_of_type``: fleet train
+  named it, or a warning now);
 - ``fleet train`` names both arriving leaks as outliers;
 - every healthy machine's baseline, on the default learning settings, leaves learning (monitors on
   its own baseline) within 50 operating hours.
@@ -52,6 +53,7 @@ from cmcan.monitor.baseline import Mode
 from cmcan.sim.degradation import wear_lpm
 
 CAUGHT = ("warning_now", "imminent", "trend")
+JUDGED_FLAGS = ("baseline_suspect", "does_not_fit", "left_out_of_type")  # the plan's verdicts on a unit
 LATE_FACTOR, LATE_SLACK_H = 1.2, 5.0
 LEARNED_WITHIN_H = 50.0
 
@@ -190,7 +192,7 @@ def judge(truth: dict[str, Any], rows: list[dict[str, Any]], trained: dict[str, 
             tally["healthy_quiet"][1] += 1
             verdict.append("healthy: " + ("quiet" if quiet else "TREND OR WARNING"))
             # nor flagged: a type model that left a leak out must not judge the healthy ones too strictly
-            unflagged = not {"baseline_suspect", "does_not_fit"} & set(r["flags"])
+            unflagged = not set(JUDGED_FLAGS) & set(r["flags"])
             tally["healthy_unflagged"][0] += unflagged
             tally["healthy_unflagged"][1] += 1
             if not unflagged:
@@ -202,7 +204,7 @@ def judge(truth: dict[str, Any], rows: list[dict[str, Any]], trained: dict[str, 
             tally["healthy_learned_50h"][1] += 1
             verdict.append(f"monitoring from {'-' if h is None else f'{h:.0f}'} h" + ("" if learned else " (LATE)"))
         if leak:
-            flagged = "baseline_suspect" in r["flags"] or r["warning_level"] == "low"
+            flagged = bool({"baseline_suspect", "left_out_of_type"} & set(r["flags"])) or r["warning_level"] == "low"
             tally["leaks_flagged"][0] += flagged
             tally["leaks_flagged"][1] += 1
             verdict.append("arrives leaking: " + ("flagged" if flagged else "NOT FLAGGED"))

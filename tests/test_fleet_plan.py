@@ -100,8 +100,18 @@ def test_a_machine_not_heard_for_a_week_is_flagged_stale():
 ROWS = 24
 
 
-def _log(root: Path, machine: str, day: int, level: list[str], state: list[int], p50: list[float], **cols) -> None:
-    """One 8 h log on calendar day ``day``: ``ROWS`` timeline rows with these columns."""
+def _log(
+    root: Path,
+    machine: str,
+    day: int,
+    level: list[str],
+    state: list[int],
+    p50: list[float],
+    summary: dict | None = None,
+    **cols,
+) -> None:
+    """One 8 h log on calendar day ``day``: ``ROWS`` timeline rows with these columns (``summary``: more
+    of its logs row)."""
     from cmcan.fleet import dataset as ds
 
     first_s = T0_S + day * DAY_S
@@ -145,6 +155,7 @@ def _log(root: Path, machine: str, day: int, level: list[str], state: list[int],
             "fit": "fits",
             "fit_median_pct": 100.0,
             "end_of_life": "wear: the CM ratio at 90 %",
+            **(summary or {}),
         },
         ds.day_of(first_s),
     )
@@ -212,3 +223,46 @@ def test_the_plan_as_a_table_and_a_bad_time(dataset, capsys):
     code, doc = _plan(capsys, str(dataset), "--at", "yesterday")
     assert code == 64
     assert "--at 'yesterday'" in doc["err"]
+
+
+def test_a_machine_fleet_train_left_out_is_flagged_and_cannot_be_judged():
+    """A leak within the on-board guard's allowance is learnt as the machine's own baseline; the type
+    model's training named it all the same: the plan says so, and does not rank it with the quiet."""
+    why = "arrives leaking: delivers less than the type (does not fit the type)"
+    rows = plan([facts("quiet"), facts("named", type_verdict=why)], T0_S + 10 * DAY_S)
+    named = next(r for r in rows if r.machine == "named")
+    assert named.group == "cannot_judge" and "left_out_of_type" in named.flags and named.rank == 1
+    assert "left_out_of_type" not in next(r for r in rows if r.machine == "quiet").flags
+
+
+def test_the_verdict_is_read_from_the_replay_models_metadata():
+    from types import SimpleNamespace
+
+    from cmcan.fleet.task import type_verdict
+
+    why = "arrives leaking: delivers less than the type (off the reference model)"
+    model = SimpleNamespace(meta=SimpleNamespace(training={"unit_spread": {"outliers": {"m4": {"why": why}}}}))
+    assert type_verdict(model, "m4") == why
+    assert type_verdict(model, "m1") is None
+    # a model of cmcan train (no spread), of an older fleet train (outliers a list), none at all
+    for training in ({}, {"unit_spread": {"outliers": ["m4"]}}, None, {"unit_spread": None}):
+        assert type_verdict(SimpleNamespace(meta=SimpleNamespace(training=training)), "m4") is None
+    assert type_verdict(None, "m4") is None
+
+
+def test_the_logs_type_verdict_reaches_the_plan(tmp_path, capsys):
+    pytest.importorskip("duckdb")
+    pytest.importorskip("pyarrow")
+    from cmcan.fleet import dataset as ds
+
+    root = ds.open_dataset(tmp_path / "ds", create=True)
+    why = "arrives leaking: delivers less than the type (off the reference model)"
+    _log(root, "m-leak", 0, ["ok"] * ROWS, [NO] * ROWS, [math.nan] * ROWS)
+    _log(root, "m-ok", 0, ["ok"] * ROWS, [NO] * ROWS, [math.nan] * ROWS)
+    # the leaking machine's later log, replayed with the type model that names it
+    _log(root, "m-leak", 1, ["ok"] * ROWS, [NO] * ROWS, [math.nan] * ROWS, summary={"type_verdict": why})
+    code, doc = _plan(capsys, str(root), "--json", "--at", "2026-01-02T12:00")
+    assert code == 0
+    rows = {r["machine"]: r for r in doc["machines"]}
+    assert rows["m-leak"]["flags"] == ["left_out_of_type"] and rows["m-leak"]["group"] == "cannot_judge"
+    assert rows["m-ok"]["flags"] == [] and rows["m-ok"]["group"] == "no_trend"

@@ -26,8 +26,9 @@ from cmcan.monitor.baseline import MODE_NAMES, Mode
 from cmcan.monitor.prognosis import DIRECTION_CODES, IMMINENT, NONE, STATE_CODES, TREND
 
 # The ranking's groups, most urgent first: a warning now; the prognosis imminent; a trend; a machine
-# whose ratio cannot be judged (its baseline suspect, its configuration or model not fitting, its
-# sensors at fault); its baseline still learning; no trend; no prognosis configured.
+# whose ratio cannot be judged (its baseline suspect, its configuration or model not fitting, left out
+# of its type model by fleet train, its sensors at fault); its baseline still learning; no trend; no
+# prognosis configured.
 GROUPS = ("warning_now", "imminent", "trend", "cannot_judge", "learning", "no_trend", "no_prognosis")
 WARNING_LEVELS = ("low", "high")
 UTILISATION_DAYS = 14.0  # the recent days the utilisation is taken over
@@ -58,6 +59,7 @@ class Facts:
     recent_days: float = 1.0  # those days (at least one)
     fit: str = "unknown"
     end_of_life: str | None = None
+    type_verdict: str | None = None  # why fleet train left it out of its type model (its latest log's)
     source: str = LOGS  # where its latest state came from: its logs, or its gateway's uplink
 
 
@@ -111,7 +113,7 @@ def group_of(f: Facts) -> str:
         return "imminent"
     if state == TREND and not math.isnan(f.to_eol_h[1]):
         return "trend"
-    if f.baseline_state == Mode.SUSPECT or f.fit == DOES_NOT_FIT or f.level == "fault":
+    if f.baseline_state == Mode.SUSPECT or f.fit == DOES_NOT_FIT or f.type_verdict or f.level == "fault":
         return "cannot_judge"
     if f.baseline_state == Mode.LEARNING:
         return "learning"
@@ -126,6 +128,8 @@ def flags_of(f: Facts, now_s: float) -> list[str]:
         out.append("does_not_fit")
     if f.baseline_state == Mode.SUSPECT:
         out.append("baseline_suspect")
+    if f.type_verdict:
+        out.append("left_out_of_type")
     if f.baseline_state == Mode.LEARNING:
         out.append("learning")
     if f.level == "fault":
@@ -201,14 +205,14 @@ def facts(con: Any, at_s: float) -> list[Facts]:
 
 def merge(from_logs: Sequence[Facts], from_uplink: Sequence[Facts]) -> list[Facts]:
     """One :class:`Facts` per machine: the one heard last (the logs on a tie); a machine's uplink
-    state keeps what only its logs know (the fit check, what end of life means)."""
+    state keeps what only its logs know (the fit check, what end of life means, fleet train's verdict)."""
     out = {f.machine: f for f in from_logs}
     for u in from_uplink:
         f = out.get(u.machine)
         if f is None:
             out[u.machine] = u
         elif u.last_heard_s > f.last_heard_s:
-            out[u.machine] = dataclasses.replace(u, fit=f.fit, end_of_life=f.end_of_life)
+            out[u.machine] = dataclasses.replace(u, fit=f.fit, end_of_life=f.end_of_life, type_verdict=f.type_verdict)
     return [out[m] for m in sorted(out)]
 
 
@@ -279,17 +283,18 @@ def log_facts(con: Any, at_s: float) -> list[Facts]:
                           (max(r.time_s) - min(r.time_s)) / 86400.0 AS recent_days
                    FROM r JOIN heard USING (machine)
                    WHERE r.time_s >= heard.last_s - {UTILISATION_DAYS * 86400.0} GROUP BY r.machine),
-        eol AS (SELECT machine, arg_max(end_of_life, first_time_s) AS end_of_life
+        eol AS (SELECT machine, arg_max(end_of_life, first_time_s) AS end_of_life,
+                       arg_max(type_verdict, first_time_s) AS type_verdict
                 FROM logs WHERE first_time_s <= ? GROUP BY machine)
         SELECT heard.machine, heard.last_s, heard.op_h, heard.level, ev.v, recent.recent_h, recent.recent_days,
-               mf.fit, eol.end_of_life
+               mf.fit, eol.end_of_life, eol.type_verdict
         FROM heard LEFT JOIN ev USING (machine) LEFT JOIN recent USING (machine)
              LEFT JOIN machines mf USING (machine) LEFT JOIN eol USING (machine)
         ORDER BY heard.machine""",
         [at_s, at_s],
     ).fetchall()
     out = []
-    for machine, last_s, op_h, level, v, recent_h, recent_days, fit, eol in rows:
+    for machine, last_s, op_h, level, v, recent_h, recent_days, fit, eol, verdict in rows:
         filt, base, state, direction, to_warning, p10, p50, p90 = (
             (_num(x) for x in v) if v else (math.nan, 0, 0, 0, math.nan, math.nan, math.nan, math.nan)
         )
@@ -309,6 +314,7 @@ def log_facts(con: Any, at_s: float) -> list[Facts]:
                 recent_days=max(_num(recent_days), 1.0) if recent_days is not None else 1.0,
                 fit=fit or "unknown",
                 end_of_life=eol,
+                type_verdict=verdict,
             )
         )
     return out

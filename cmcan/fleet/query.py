@@ -119,6 +119,7 @@ EMPTY: dict[str, dict[str, str]] = {
         "eol_value": _F,
         "eol_high_pct": _F,
         "end_of_life": _S,
+        "type_verdict": _S,
         "timeline_rate_hz": _F,
         "engine": _S,
         "replay_s": _F,

@@ -564,6 +564,8 @@ def _replay_and_commit(
         **_learning_band(inp.cfg),
         # what the prognosis counts to, where it is on (``cmcan fleet plan`` says it per machine)
         **_end_of_life(inp.cfg),
+        # fleet train's verdict on this machine in the model's metadata (the plan flags it)
+        "type_verdict": type_verdict(inp.model, job.machine),
         "timeline_rate_hz": float(opt.rate_hz),
         "engine": opt.engine,
         "replay_s": time.monotonic() - started,
@@ -604,6 +606,18 @@ def _learning_band(cfg: Any) -> dict[str, Any]:
         return {"learning_low_pct": None, "learning_high_pct": None}
     b = cfg.baseline.settings
     return {"learning_low_pct": float(b.learning_low_pct), "learning_high_pct": float(b.learning_high_pct)}
+
+
+def type_verdict(model: Any, machine: str) -> str | None:
+    """Why ``cmcan fleet train`` left ``machine`` out of the type model (the model's training metadata
+    names it: arrives leaking, does not fit the type), else None: a unit the on-board guard may learn
+    as its own baseline when its leak lies within the type's allowance, named on the plan all the same."""
+    training = getattr(getattr(model, "meta", None), "training", None)
+    spread = training.get("unit_spread") if isinstance(training, dict) else None
+    outliers = spread.get("outliers") if isinstance(spread, dict) else None
+    v = outliers.get(machine) if isinstance(outliers, dict) else None
+    why = v.get("why") if isinstance(v, dict) else None
+    return why if isinstance(why, str) and why else None
 
 
 def _end_of_life(cfg: Any) -> dict[str, Any]:
