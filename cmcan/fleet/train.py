@@ -7,9 +7,11 @@ command line :mod:`cmcan.cli.fleet_train`.
   row evaluated inside the envelope, a finite operating point, warning level ok, before the machine's
   first ratio warning (a drive that warned once was wearing before it did) and before ``until_h``.
 - :func:`fit_type` fits them with the same closed-form fit as ``cmcan train``
-  (:func:`cmcan.model.train.fit`, float64) and measures the **unit-to-unit spread**: each machine's
-  offset, the mean of its residual (measured - predicted) in l/min over its own points, and the
-  spread of those offsets, recorded in the model's ``training["unit_spread"]``.
+  (:func:`cmcan.model.train.fit`, float64), each machine's own unit terms beside it
+  (:func:`fit_with_units`: what the on-board baseline learns, so that the model is the kept machines'
+  average unit and not their differences at their duties), and measures the **unit-to-unit
+  spread**: each machine's offset, the mean of its residual (measured - predicted) in l/min over its
+  own points, and the spread of those offsets, recorded in the model's ``training["unit_spread"]``.
 - A machine whose offset lies far from the others' is not a unit of the type the model may learn
   (:func:`outlying`): a machine that arrives leaking sits well below the type, one whose displacement
   control is set high above it. Its offset is judged against the median of the offsets and their
