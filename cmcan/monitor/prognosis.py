@@ -660,7 +660,9 @@ def estimate(
         leak = mix.leak
     # the low side's relevance is also judged on the measured ratio's fall (100 - ratio, %)
     fall = 100.0 - np.asarray(ratio, dtype=np.float64)
-    d_low = _detect(p, h, leak, _LEAK, fall)
+    # relevant if a share of the leak's law the data do not rule out reads the rise at the floor: the
+    # level is uncertain by as much (the end of life is booked on that side too)
+    d_low = _detect(p, h, leak, _LEAK, fall, 1.0 if mix is None else mix.factor)
     # The high side follows the ratio above 100 %: flow a healthy drive cannot deliver, which a leak,
     # however it swings with the oil and the pressure, never gives (it only lowers the ratio). As the
     # share of displacement the motor lacks (100 - 10^4 / ratio, %), linear in a drifting control
@@ -817,13 +819,14 @@ def _detect(
     y: NDArray[np.float64],
     track: _Track,
     fall: NDArray[np.float64] | None = None,
+    rise_scale: float = 1.0,
 ) -> _Detected:
     """The grid's best cell for ``y`` and whether it is a trend: significant (``t_min``), at least
-    ``min_points`` long, and relevant (at least the track's smallest rise; with ``fall``, the ratio's
-    deficit, also the measured ratio's fall fitted over the same onset and shape at least
-    ``min_fall_pct``). No gate in units of the points' own spread: that spread depends on how densely
-    the logger samples (ticks per bin) and on the referral's gain at the machine's duty, not on the
-    wear, and the significance already weighs the rise against it."""
+    ``min_points`` long, and relevant (its rise times ``rise_scale`` at least the track's smallest
+    rise; with ``fall``, the ratio's deficit, also the measured ratio's fall fitted over the same
+    onset and shape at least ``min_fall_pct``). No gate in units of the points' own spread: that
+    spread depends on how densely the logger samples (ticks per bin) and on the referral's gain at
+    the machine's duty, not on the wear, and the significance already weighs the rise against it."""
     n = len(h)
     grid = _grid(p, h)
     t0s, ks, basis = grid.t0s, grid.ks, grid.basis
@@ -837,7 +840,7 @@ def _detect(
     # a rise shorter than min_points fits a fresh ramp as it is (the grid reaches closer: an older
     # onset forced on it would bend the curve and cut the hours short), but is not reported yet
     long_enough = t0s[g] <= float(h[n - p.min_points])
-    trend = c > 0 and long_enough and t_stat >= p.t_min and c >= getattr(p, track.min_rise)
+    trend = c > 0 and long_enough and t_stat >= p.t_min and c * rise_scale >= getattr(p, track.min_rise)
     fell = math.nan
     if fall is not None:
         # the same cell's least-squares rise of the ratio's deficit (its suu, the basis' moments, are
