@@ -117,12 +117,17 @@ def fleet(tmp_path_factory) -> Built:
     _constant(root, "m-soon-a", TR, 30.0, 60.0, 110.0)  # same p50 as m-soon-b: p10 decides
     _constant(root, "m-never", TR, 300.0, math.inf, math.inf)  # a trend whose p50 never gets there: last
     # m-late: two logs (its second starts at operating hour 10); no trend in the first, an estimate from the
-    # second's row 10, its last row without one (NaN: skipped), then a row not evaluated (not counted)
+    # second's row 10, a row without one (NaN), then the latest row, not evaluated (the gate held the
+    # tick back), with the estimate that came at it: the prognosis estimates on its operating clock,
+    # whatever the gate says of the tick (seed 47's m016 of bench_fleet_plan: imminent on its last rows,
+    # "no trend" in the plan while only evaluated rows were read)
     _constant(root, "m-late", NO, math.nan, math.nan, math.nan)
-    hours = [math.nan] * 10 + [500.0 - i for i in range(8)] + [math.nan, 1.0]
-    state = [NO] * 10 + [TR] * 9 + [NO]
+    hours = [math.nan] * 10 + [500.0 - i for i in range(8)] + [math.nan, 40.0]
+    state = [NO] * 10 + [TR] * 10
     evaluated = [10] * 19 + [0]
-    _log(root, "m-late", 1, 9.5, state, [h - 100 for h in hours], hours, [h + 200 for h in hours], evaluated=evaluated)
+    p10 = [h - 100 for h in hours[:-1]] + [20.0]
+    p90 = [h + 200 for h in hours[:-1]] + [80.0]
+    _log(root, "m-late", 1, 9.5, state, p10, hours, p90, evaluated=evaluated)
     # had a trend, none now: "no trend"
     _log(root, "m-flat", 0, 10.0, [TR] * 10 + [NO] * 10, [50.0] * 20, [90.0] * 10 + [math.nan] * 10, [150.0] * 20)
     _constant(root, "m-off", NOT_CONFIGURED, math.nan, math.nan, math.nan)  # no prognosis configured
@@ -136,10 +141,9 @@ def _table(page: str, table_id: str) -> list[list[str]]:
     return [[cls, *[re.sub(r"<[^>]+>", "", c) for c in re.findall(r"<td[^>]*>(.*?)</td>", r, re.S)]] for cls, r in rows]
 
 
-# the plan: imminent, trend by p10 (m-never's p50 never gets there, its p10 is the largest), then no trend
-# at the latest evaluated row (m-late's last evaluated row has none, m-flat lost its trend) by name, then
-# the machine without a prognosis
-PLAN = ["m-imminent", "m-soon-a", "m-soon-b", "m-never", "m-flat", "m-late", "m-off"]
+# the plan: imminent, trend by p10 (m-late's latest row's 20 h first; m-never's p50 never gets there, its
+# p10 is the largest), then no trend (m-flat lost its trend), then the machine without a prognosis
+PLAN = ["m-imminent", "m-late", "m-soon-a", "m-soon-b", "m-never", "m-flat", "m-off"]
 
 
 def test_the_service_section_is_the_plan_and_everything_follows_its_order(fleet):
@@ -147,7 +151,7 @@ def test_the_service_section_is_the_plan_and_everything_follows_its_order(fleet)
     rows = _table(page, "ranking")
     assert [r[2] for r in rows] == PLAN == [r.machine for r in service.build(fleet.root, None, T0_S)]
     assert [r[1] for r in rows] == [str(i) for i in range(1, len(PLAN) + 1)]
-    assert [r[3] for r in rows] == ["imminent", "trend", "trend", "trend", "no trend", "no trend", "no prognosis"]
+    assert [r[3] for r in rows] == ["imminent", "trend", "trend", "trend", "trend", "no trend", "no prognosis"]
     # one ranking: the statistics and the machines' charts in the plan's order, with the plan's rank
     assert [r[2] for r in _table(page, "statistics")] == PLAN
     assert [r[1] for r in _table(page, "statistics")] == [str(i) for i in range(1, len(PLAN) + 1)]
@@ -162,11 +166,11 @@ def test_each_row_has_the_plans_hours_and_states(fleet):
     assert by_machine["m-imminent"][8] == "12 / 80 / never"
     assert by_machine["m-soon-a"][8] == "30 / 60 / 110"
     assert by_machine["m-never"][8] == "300 / never / never"
-    assert by_machine["m-late"][8] == "&ndash; / &ndash; / &ndash;"  # no estimate at its latest evaluated row
+    assert by_machine["m-late"][8] == "20 / 40 / 80"  # the estimate of its latest row, evaluated or not
     assert by_machine["m-imminent"][4] == "ok" and by_machine["m-imminent"][5] == "not configured"
     assert by_machine["m-off"][6] == "not configured"
     totals = re.search(r"<p id='plan-totals'>(.*?)</p>", fleet.page).group(1)
-    assert totals == "7 machines: 1 imminent, 3 trend, 2 no trend, 1 no prognosis."
+    assert totals == "7 machines: 1 imminent, 4 trend, 1 no trend, 1 no prognosis."
 
 
 def _png_size(img_tag: str) -> tuple[int, int]:
@@ -179,7 +183,7 @@ def test_a_small_chart_for_each_machine_with_estimates(fleet):
     page = fleet.page
     table = re.search(r"<table id='ranking'>(.*?)</table>", page, re.S).group(1)
     charted = [m for m in PLAN if re.search(rf"<a href='#m-{m}'>.*?</tr>", table, re.S).group(0).count("<img")]
-    assert charted == ["m-imminent", "m-soon-a", "m-soon-b", "m-never", "m-flat", "m-late"]  # had estimates
+    assert charted == ["m-imminent", "m-late", "m-soon-a", "m-soon-b", "m-never", "m-flat"]  # had estimates
     imgs = re.findall(r"<img [^>]*>", table)
     w, h = _png_size(imgs[0])
     assert w <= 300 and h <= 130  # small, in a table cell

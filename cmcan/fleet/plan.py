@@ -42,8 +42,9 @@ _BASELINE_NAMES = {int(m): name for m, name in MODE_NAMES.items()}
 
 @dataclass(frozen=True)
 class Facts:
-    """A machine as the data set has it at the plan's time: its latest evaluated row's states and
-    hours (NaN: none), when it was last heard, its operating hours, those of its recent days."""
+    """A machine as the data set has it at the plan's time: its latest row's states and hours (NaN:
+    none), its latest evaluated row's ratio, when it was last heard, its operating hours, those of its
+    recent days."""
 
     machine: str
     last_heard_s: float
@@ -269,16 +270,18 @@ def uplink_facts(con: Any, at_s: float) -> list[Facts]:
 
 def log_facts(con: Any, at_s: float) -> list[Facts]:
     """Every machine heard up to ``at_s`` (epoch s) in its logs as :class:`Facts` (one query over the
-    data set's views; the states and hours of its latest evaluated row, its level at its latest row)."""
+    data set's views; the states, hours and level of its latest row, the ratio of its latest evaluated
+    row: the prognosis estimates on its operating clock, at a row the gate passed or not)."""
     rows = con.execute(
         f"""
         WITH r AS ({_ROWS}),
         heard AS (SELECT machine, max(time_s) AS last_s, min(time_s) AS first_s, max(op_h) AS op_h,
                          arg_max(warning_level, time_s) AS level
                   FROM r GROUP BY machine),
-        ev AS (SELECT machine, arg_max([filt, baseline_state::DOUBLE, prognosis_state::DOUBLE, direction::DOUBLE,
+        ev AS (SELECT machine, arg_max(filt, time_s) AS filt FROM r WHERE evaluated > 0 GROUP BY machine),
+        st AS (SELECT machine, arg_max([baseline_state::DOUBLE, prognosis_state::DOUBLE, direction::DOUBLE,
                                         to_warning, p10, p50, p90], time_s) AS v
-               FROM r WHERE evaluated > 0 GROUP BY machine),
+               FROM r GROUP BY machine),
         recent AS (SELECT r.machine, max(r.op_h) - min(r.op_h) AS recent_h,
                           (max(r.time_s) - min(r.time_s)) / 86400.0 AS recent_days
                    FROM r JOIN heard USING (machine)
@@ -286,17 +289,17 @@ def log_facts(con: Any, at_s: float) -> list[Facts]:
         eol AS (SELECT machine, arg_max(end_of_life, first_time_s) AS end_of_life,
                        arg_max(type_verdict, first_time_s) AS type_verdict
                 FROM logs WHERE first_time_s <= ? GROUP BY machine)
-        SELECT heard.machine, heard.last_s, heard.op_h, heard.level, ev.v, recent.recent_h, recent.recent_days,
-               mf.fit, eol.end_of_life, eol.type_verdict
-        FROM heard LEFT JOIN ev USING (machine) LEFT JOIN recent USING (machine)
+        SELECT heard.machine, heard.last_s, heard.op_h, heard.level, ev.filt, st.v, recent.recent_h,
+               recent.recent_days, mf.fit, eol.end_of_life, eol.type_verdict
+        FROM heard LEFT JOIN ev USING (machine) LEFT JOIN st USING (machine) LEFT JOIN recent USING (machine)
              LEFT JOIN machines mf USING (machine) LEFT JOIN eol USING (machine)
         ORDER BY heard.machine""",
         [at_s, at_s],
     ).fetchall()
     out = []
-    for machine, last_s, op_h, level, v, recent_h, recent_days, fit, eol, verdict in rows:
-        filt, base, state, direction, to_warning, p10, p50, p90 = (
-            (_num(x) for x in v) if v else (math.nan, 0, 0, 0, math.nan, math.nan, math.nan, math.nan)
+    for machine, last_s, op_h, level, filt, v, recent_h, recent_days, fit, eol, verdict in rows:
+        base, state, direction, to_warning, p10, p50, p90 = (
+            (_num(x) for x in v) if v else (0, 0, 0, math.nan, math.nan, math.nan, math.nan)
         )
         out.append(
             Facts(
@@ -304,7 +307,7 @@ def log_facts(con: Any, at_s: float) -> list[Facts]:
                 last_heard_s=float(last_s),
                 operating_h=_num(op_h),
                 level=str(level or "ok"),
-                ratio_filt_pct=filt,
+                ratio_filt_pct=_num(filt),
                 baseline_state=int(base),
                 prognosis_state=int(state),
                 direction=int(direction),
