@@ -265,4 +265,6 @@ def test_the_logs_type_verdict_reaches_the_plan(tmp_path, capsys):
     assert code == 0
     rows = {r["machine"]: r for r in doc["machines"]}
     assert rows["m-leak"]["flags"] == ["left_out_of_type"] and rows["m-leak"]["group"] == "cannot_judge"
+    assert rows["m-leak"]["type_verdict"] == why  # fleet train's words, from its latest log
     assert rows["m-ok"]["flags"] == [] and rows["m-ok"]["group"] == "no_trend"
+    assert rows["m-ok"]["type_verdict"] is None

@@ -85,6 +85,7 @@ class Row:
     end_of_life: str | None
     flags: list[str] = field(default_factory=list)
     source: str = LOGS
+    type_verdict: str | None = None  # fleet train's words where it left the machine out (left_out_of_type)
 
     def to_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -181,6 +182,7 @@ def plan(machines: Sequence[Facts], now_s: float) -> list[Row]:
                 end_of_life=f.end_of_life,
                 flags=flags_of(f, now_s),
                 source=f.source,
+                type_verdict=f.type_verdict,
             )
         )
     return rows
