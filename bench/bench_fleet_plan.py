@@ -50,7 +50,7 @@ import numpy as np
 import yaml
 
 from cmcan.monitor.baseline import Mode
-from cmcan.sim.degradation import wear_lpm
+from cmcan.sim.degradation import misposition_pct, wear_lpm
 
 CAUGHT = ("warning_now", "imminent", "trend")
 JUDGED_FLAGS = ("baseline_suspect", "does_not_fit", "left_out_of_type")  # the plan's verdicts on a unit
@@ -140,11 +140,7 @@ def size_at(events: list[dict[str, Any]], h: float) -> str:
             now = float(wear_lpm(ev, np.array([h]))[0])
             out.append(f"{ev['component']} leak {now:.2f} of {ev['fail_extra_lpm']:g} l/min")
         elif ev["type"] == "misposition":
-            pct = (
-                ev["pct"]
-                if ev["mode"] == "step"
-                else ev["pct"] * min(max((h - ev["start_h"]) / (ev["end_h"] - ev["start_h"]), 0.0), 1.0)
-            )
+            pct = float(misposition_pct(ev, np.array([h]))[0])
             out.append(f"misposition {pct:.2f} of {ev['pct']:g} %")
     return ", ".join(out)
 

@@ -90,16 +90,22 @@ def evaluate(events: list[dict[str, Any]], t_h: NDArray[np.float64], oil: Oil) -
             g[ev["component"]][act] += _laminar_g(ev["extra_lpm"], ev["ref_dp_bar"], ev["ref_temp_c"], oil)
             failed[act] = True
         elif kind == "misposition":
-            if ev["mode"] == "step":
-                mis[act] += ev["pct"]
-            else:
-                mis[act] += ev["pct"] * np.clip((th - start) / (ev["end_h"] - start), 0.0, 1.0)
+            mis[act] += misposition_pct(ev, th)
             if ev["fail_h"] is not None:
                 failed[np.flatnonzero(act)[th >= ev["fail_h"]]] = True
         else:
             raise ValueError(f"unknown event type {kind!r}")
     # A leak on the loop itself (not inside a unit) acts like pump-side leakage on the flow balance.
     return Degradation(g["pump"] + g["loop"], g["motor"], bypass, mis, failed)
+
+
+def misposition_pct(ev: dict[str, Any], th: NDArray[np.float64]) -> NDArray[np.float64]:
+    """A misposition's error of the motor's displacement (%) at operating hours ``th`` from its
+    ``start_h`` on: all at once (``mode: step``) or ramped until ``end_h``."""
+    if ev["mode"] == "step":
+        return np.full(np.shape(th), float(ev["pct"]))
+    start = float(ev["start_h"])
+    return ev["pct"] * np.clip((th - start) / (ev["end_h"] - start), 0.0, 1.0)
 
 
 def wear_progress(ev: dict[str, Any], th: NDArray[np.float64]) -> NDArray[np.float64]:
