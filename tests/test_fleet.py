@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -375,24 +376,32 @@ def test_cli_usage_errors(tmp_path):
 
 
 def _worker_environ() -> dict:
+    import logging
     import os
 
-    return {k: os.environ.get(k) for k in ("MALLOC_TRIM_THRESHOLD_", "OMP_NUM_THREADS")}
+    env: dict = {k: os.environ.get(k) for k in ("MALLOC_TRIM_THRESHOLD_", "OMP_NUM_THREADS")}
+    env["log_level"] = logging.getLogger("distributed.worker").getEffectiveLevel()
+    return env
 
 
 def test_the_embedded_cluster_leaves_glibc_malloc_thresholds_alone():
     """Dask's nanny would set MALLOC_TRIM_THRESHOLD_, which freezes glibc's mmap threshold: a replay's
     chunk arrays are then mapped and faulted in afresh (about 1.6x the CPU per log). One thread per
-    worker stays."""
+    worker stays. Without -v the workers stay quiet below CRITICAL: a heartbeat meeting the scheduler's
+    close logs a traceback at ERROR, which a user would read as the command's failure."""
     pytest.importorskip("distributed")
+    import logging
+
     from cmcan.fleet.run import close_client, make_client
 
+    assert logging.getLogger().getEffectiveLevel() > logging.INFO
     client = make_client(None, 1)
     try:
         env = client.submit(_worker_environ, pure=False).result(timeout=60)
     finally:
         close_client(client)
-    assert env == {"MALLOC_TRIM_THRESHOLD_": None, "OMP_NUM_THREADS": "1"}
+        os.environ.pop("DASK_LOGGING__DISTRIBUTED", None)  # the nanny sets it here too; not for later tests
+    assert env == {"MALLOC_TRIM_THRESHOLD_": None, "OMP_NUM_THREADS": "1", "log_level": logging.CRITICAL}
 
 
 def test_a_dask_close_that_times_out_is_said_not_the_commands_end(caplog):

@@ -116,7 +116,8 @@ def make_client(scheduler: str | None, workers: int | None, memory_limit: str = 
     import dask
     from distributed import Client, LocalCluster
 
-    if logging.getLogger().getEffectiveLevel() > logging.INFO:  # distributed talks at INFO; cmcan -v shows it
+    quiet = logging.getLogger().getEffectiveLevel() > logging.INFO
+    if quiet:  # distributed talks at INFO; cmcan -v shows it
         for name in ("distributed", "tornado"):
             logging.getLogger(name).setLevel(logging.ERROR)
 
@@ -136,6 +137,13 @@ def make_client(scheduler: str | None, workers: int | None, memory_limit: str = 
     # about 1.6x the CPU it costs in one process (bench/bench_fleet.py). glibc's own thresholds here.
     environ = dict(dask.config.get("distributed.nanny.pre-spawn-environ", {}))
     environ.pop("MALLOC_TRIM_THRESHOLD_", None)
+    if quiet:
+        # A worker whose heartbeat meets the scheduler closing (the run ended, or gave up on a full
+        # disk) logs that with a traceback at ERROR; a task's own failure reaches the client as its
+        # exception. A worker reads its log levels from the environment as it starts (LocalCluster's
+        # silence_logs reaches only the nanny's logger there), so without -v it says nothing below
+        # CRITICAL.
+        environ["DASK_LOGGING__DISTRIBUTED"] = "critical"
     dask.config.set({"distributed.nanny.pre-spawn-environ": environ})
     cluster = LocalCluster(
         n_workers=n,
@@ -143,7 +151,7 @@ def make_client(scheduler: str | None, workers: int | None, memory_limit: str = 
         processes=True,
         memory_limit=memory_limit,
         dashboard_address=None,
-        silence_logs=logging.ERROR,
+        silence_logs=logging.ERROR if quiet else logging.INFO,
     )
     return Client(cluster)
 
