@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -142,22 +142,48 @@ def _raw_limits(lay: Layout) -> tuple[float, float]:
     return float(lo), hi_f
 
 
+class _RawSpec(NamedTuple):
+    """What :func:`to_raw` needs of a layout for one value, worked out once (the per-frame encoder
+    keeps one per signal)."""
+
+    offset: float
+    scale: float
+    minimum: float
+    maximum: float
+    raw_lo: float
+    raw_hi: float
+    nan_value: float  # what NaN is sent as: the range minimum, or 0 where there is none
+
+
+def _raw_spec(lay: Layout) -> _RawSpec:
+    lo, hi = _raw_limits(lay)
+    nan_value = lay.minimum if lay.minimum > -math.inf else 0.0
+    return _RawSpec(lay.offset, lay.scale, lay.minimum, lay.maximum, lo, hi, nan_value)
+
+
+def _scalar_raw(spec: _RawSpec, value: Any) -> int:
+    """:func:`to_raw` of one value (the arithmetic the array path does with numpy)."""
+    offset, scale, vmin, vmax, lo, hi, nan_value = spec
+    v = float(value)
+    if v != v:
+        v = nan_value
+    v = vmin if v < vmin else vmax if v > vmax else v
+    r = (v - offset) / scale
+    return round(lo if r < lo else hi if r > hi else r)
+
+
 def to_raw(lay: Layout, value: Any) -> Any:
     """Physical value -> raw, saturated to the signal's range (and to what its bits hold) and rounded
     to its resolution (half to even, like cantools). NaN becomes the range minimum (or 0): encoding
     never fails."""
-    lo, hi = _raw_limits(lay)
+    spec = _raw_spec(lay)
     if isinstance(value, np.ndarray):
-        v = np.clip(np.nan_to_num(value, nan=lay.minimum if lay.minimum > -math.inf else 0.0), lay.minimum, lay.maximum)
-        r = np.clip(np.round((v - lay.offset) / lay.scale), lo, hi)
+        v = np.clip(np.nan_to_num(value, nan=spec.nan_value), lay.minimum, lay.maximum)
+        r = np.clip(np.round((v - lay.offset) / lay.scale), spec.raw_lo, spec.raw_hi)
         if fits_int64(lay):
             return r.astype(np.int64)
         return np.array([int(x) for x in r.tolist()], dtype=object)  # beyond int64: Python ints
-    v = float(value)
-    if v != v:
-        v = lay.minimum if lay.minimum > -math.inf else 0.0
-    v = lay.minimum if v < lay.minimum else lay.maximum if v > lay.maximum else v
-    return round(min(max((v - lay.offset) / lay.scale, lo), hi))
+    return _scalar_raw(spec, value)
 
 
 def quantize(msg: Message, name: str, phys: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -354,19 +380,21 @@ def checked_decoder(lays: Sequence[Layout], size: int) -> Callable[[bytes], tupl
 def frame_encoder(
     lays: Sequence[Layout], size: int, length: int, fill: int = 0
 ) -> Callable[[Mapping[str, float]], bytes]:
-    """One frame from physical values; ``fill`` (the frame as a big-endian integer) ORed in."""
+    """One frame from physical values; ``fill`` (the frame as a big-endian integer) ORed in. Each
+    signal's limits are worked out here once: this is the daemon's per-tick path."""
+    specs = [(lay.name, lay.big_endian, lay.mask, lay.shift, _raw_spec(lay)) for lay in lays]
 
     def encode(values: Mapping[str, float]) -> bytes:
         le = be = 0
-        for lay in lays:
-            v = values.get(lay.name)
+        for name, big, mask, shift, spec in specs:
+            v = values.get(name)
             if v is None:
                 continue
-            raw = to_raw(lay, v)
-            if lay.big_endian:
-                be = insert(be, raw, lay)
+            bits = (_scalar_raw(spec, v) & mask) << shift  # as insert() puts it
+            if big:
+                be |= bits
             else:
-                le = insert(le, raw, lay)
+                le |= bits
         both = int.from_bytes(le.to_bytes(size, "little"), "big") | be | fill
         return both.to_bytes(size, "big")[:length]
 

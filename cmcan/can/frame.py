@@ -25,19 +25,25 @@ class Frame(NamedTuple):
     data: bytes
 
 
+_new_frame = tuple.__new__  # what Frame(...) calls, without its keyword handling: once per received frame
+
+
 def from_message(m: Any, channel: str | None = None) -> Frame:
     """The one conversion from a python-can ``Message`` (read by attribute: no python-can import);
     ``channel`` names the bus it came from (default: the message's own channel)."""
     ch = m.channel if channel is None else channel
-    return Frame(
-        float(m.timestamp),
-        "" if ch is None else str(ch),
-        int(m.arbitration_id),
-        bool(m.is_extended_id),
-        bool(m.is_remote_frame),
-        bool(m.is_error_frame),
-        bool(m.is_fd),
-        bytes(m.data),
+    return _new_frame(
+        Frame,
+        (
+            float(m.timestamp),
+            "" if ch is None else str(ch),
+            int(m.arbitration_id),
+            bool(m.is_extended_id),
+            bool(m.is_remote_frame),
+            bool(m.is_error_frame),
+            bool(m.is_fd),
+            bytes(m.data),
+        ),
     )
 
 

@@ -451,6 +451,8 @@ class Daemon:
         counted and logged, never the daemon's end."""
         st = self.loop
         now = self.clock()
+        # one read for the batch: its frames were all stamped before it was read
+        boot = self.boot_clock() if self.opt.stamps_on_wall_clock else math.nan
         inputs = False
         for link, msg in batch:
             if msg.is_error_frame:
@@ -465,7 +467,7 @@ class Daemon:
                 if msg.arbitration_id & CAN_ERR_RESTARTED and link.name == self.cfg.output_channel:
                     self._node_start(msg.timestamp, "controller restarted after bus-off")
             try:
-                out = self._feed(link, msg, st.last_frame_t)
+                out = self._feed(link, msg, st.last_frame_t, boot)
             except Exception:  # the core must never take the daemon down: log, count, go on
                 self._internal_error()
                 out = []
@@ -479,12 +481,14 @@ class Daemon:
         if self.monitor.node is not None:
             self._node_news()
 
-    def _feed(self, link: Link, msg: can.Message, last_frame_t: float) -> list[Frame]:
+    def _feed(self, link: Link, msg: can.Message, last_frame_t: float, boot_s: float) -> list[Frame]:
         if self.opt.stamps_on_wall_clock:
-            self._watch_wall_clock(msg.timestamp)
-        steps = self.monitor.clock_steps
-        out = self.monitor.feed(from_message(msg, link.name))
-        if self.monitor.clock_steps != steps:  # the core found a step back
+            self._watch_wall_clock(msg.timestamp, boot_s)
+        mon = self.monitor
+        counts = mon.clock.counts  # (Monitor.clock_steps, without a property call per frame)
+        steps = counts["clock_steps"]
+        out = mon.feed(from_message(msg, link.name))
+        if counts["clock_steps"] != steps:  # the core found a step back
             log.warning(
                 "the wall clock stepped back by %.3f s; monitoring goes on on the new time base",
                 last_frame_t - msg.timestamp,
@@ -547,15 +551,16 @@ class Daemon:
         if self.monitor.node is not None:
             self._node_news()
 
-    def _watch_wall_clock(self, frame_t: float) -> None:
+    def _watch_wall_clock(self, frame_t: float, boot_s: float) -> None:
         """A step of the wall clock forward moves the monitor onto the new time base (a step back the
         core finds by itself); otherwise it would look like the machine had been off that long.
 
         Frame time minus boot time is steady while frames are handled as they come; frames handled
         late (a backlog after a stall) make it dip and then come back, never rise above where it
         was. So a step is a rise above the highest value seen since the last step back of the frames'
-        own time (where the core re-bases and the reference starts anew)."""
-        diff = frame_t - self.boot_clock()
+        own time (where the core re-bases and the reference starts anew). ``boot_s`` is the boot
+        clock when the frame's batch was read."""
+        diff = frame_t - boot_s
         if not math.isfinite(diff):
             return
         ref, last = self._wall_minus_boot, self._last_stamp

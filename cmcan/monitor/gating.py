@@ -225,10 +225,27 @@ class _Subject:
     max_age_s: Mapping[str, float] | None
     envelope: Mapping[str, tuple[float, float]] | None
 
-    @property
-    def roles(self) -> list[str]:
-        """The gated roles present: the model's inputs and the measured output."""
-        return [r for r in (*MODEL_INPUTS, self.limits.output_role) if r in self.mean]
+    roles: list[str]  # the gated roles present: the model's inputs and the measured output
+    missing: Any  # how many roles have no fresh sample (two rules ask; worked out once)
+
+
+def _subject(
+    mean: Mapping[str, Any],
+    std: Mapping[str, Any],
+    count: Mapping[str, Any],
+    age_s: Mapping[str, Any],
+    limits: GateLimits,
+    max_age_s: Mapping[str, float] | None,
+    envelope: Mapping[str, tuple[float, float]] | None,
+) -> _Subject:
+    roles = [r for r in (*MODEL_INPUTS, limits.output_role) if r in mean]
+    # no fresh sample: none at all, or the newest older than its maximum age
+    missing: Any = 0
+    ages = max_age_s or {}
+    for r in roles:
+        a = age_s[r]
+        missing = missing + ((a == math.inf) | (a > ages.get(r, math.inf)))
+    return _Subject(mean, std, count, age_s, limits, max_age_s, envelope, roles, missing)
 
 
 def _any(parts: Iterable[Any]) -> Any:
@@ -239,23 +256,13 @@ def _any(parts: Iterable[Any]) -> Any:
     return acc
 
 
-def _missing(s: _Subject) -> Any:
-    """How many roles have no fresh sample: none at all, or the newest older than its maximum age."""
-    n: Any = 0
-    ages = s.max_age_s or {}
-    for r in s.roles:
-        a = s.age_s[r]
-        n = n + ((a == math.inf) | (a > ages.get(r, math.inf)))
-    return n
-
-
 def _no_input(s: _Subject) -> Any:
     # all inputs silent: the machine is off, the bus idle; not a fault
-    return _missing(s) == len(s.roles)
+    return s.missing == len(s.roles)
 
 
 def _stale(s: _Subject) -> Any:
-    return _missing(s) > 0
+    return s.missing > 0
 
 
 def _warming_up(s: _Subject) -> Any:
@@ -332,7 +339,7 @@ def gate_point(
     replay) the same rules over arrays. All inputs silent (the machine is off, the bus idle) is
     ``NO_INPUT``, not a fault; some inputs silent while others arrive is ``STALE_INPUT``.
     """
-    s = _Subject(mean, std, count, age_s, limits, max_age_s, envelope)
+    s = _subject(mean, std, count, age_s, limits, max_age_s, envelope)
     for g, rule in RULES:
         if rule(s):
             return g
@@ -358,7 +365,7 @@ def gate_columns(
 ) -> NDArray[np.int8]:
     """:func:`gate_point` over arrays of operating points: the same :data:`RULES`, each over all
     points, the first that holds per point wins."""
-    s = _Subject(mean, std, count, age_s, limits, max_age_s, envelope)
+    s = _subject(mean, std, count, age_s, limits, max_age_s, envelope)
     roles = s.roles
     n = len(mean[roles[0]]) if roles else 0
     out = np.full(n, Gate.EVALUATING, dtype=np.int8)
