@@ -16,6 +16,10 @@ finite floats.
 
 from __future__ import annotations
 
+import math
+from collections import deque
+from collections.abc import Iterable
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -95,3 +99,61 @@ def _python_sums(values: NDArray[np.float64], lo: NDArray[np.int64], hi: NDArray
         return np.array([float(s << base) for s in sums.tolist()])
     scale = 2 ** (-base)
     return np.array([s / scale for s in sums.tolist()])
+
+
+def _grow(partials: list[float], x: float) -> None:
+    """Add ``x`` to the non-overlapping partials exactly (Shewchuk's algorithm, as ``math.fsum``
+    keeps them): afterwards the partials sum to the old exact sum plus ``x``, with no rounding."""
+    i = 0
+    for y in partials:
+        if abs(x) < abs(y):
+            x, y = y, x
+        hi = x + y
+        lo = y - (hi - x)
+        if lo:
+            partials[i] = lo
+            i += 1
+        x = hi
+    partials[i:] = [x]
+
+
+class RingSum:
+    """The last ``size`` values appended, and ``math.fsum`` of them bit for bit, kept as the exact
+    sum's partials while values come and go: a handful of float operations per value where a sum over
+    the whole ring (300 values) would cost microseconds at every tick. Non-finite values (and a sum
+    beyond the float range) are left to ``math.fsum`` over the ring, which says what they make."""
+
+    __slots__ = ("_odd", "_partials", "ring")
+
+    def __init__(self, size: int, values: Iterable[float] = ()) -> None:
+        self.ring: deque[float] = deque(values, maxlen=size)
+        self._partials: list[float] | None = None  # made when first asked for
+        self._odd = 0  # non-finite values in the ring
+
+    def append(self, x: float) -> None:
+        ring = self.ring
+        if self._partials is not None:
+            if len(ring) == ring.maxlen:
+                self._take(ring[0], -1)
+            self._take(x, 1)
+        ring.append(x)
+
+    def _take(self, x: float, sign: int) -> None:
+        if math.isfinite(x):
+            _grow(self._partials, -x if sign < 0 else x)  # type: ignore[arg-type]
+        else:
+            self._odd += sign
+
+    def total(self) -> float:
+        """``math.fsum(ring)``."""
+        p = self._partials
+        if p is None:
+            p = self._partials = []
+            self._odd = 0
+            for v in self.ring:
+                self._take(v, 1)
+        if self._odd or (p and not math.isfinite(p[-1])):
+            if p and not math.isfinite(p[-1]):
+                self._partials = None  # an overflow: made afresh the next time
+            return math.fsum(self.ring)
+        return math.fsum(p)

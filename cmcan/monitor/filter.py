@@ -1,53 +1,61 @@
 """The moving average of the last N evaluated CM ratios and leakage estimates.
 
 One value at a time (:meth:`RatioFilter.add`), or the values of a stretch of ticks at once
-(:meth:`RatioFilter.add_columns`) with the average at every tick: ``math.fsum`` over the ring, from
-exact sums (:mod:`cmcan.monitor.exactsum`), bit for bit what adding one by one gives.
+(:meth:`RatioFilter.add_columns`) with the average at every tick: ``math.fsum`` over the ring, kept
+as exact partials one value at a time and from exact prefix sums over a stretch
+(:mod:`cmcan.monitor.exactsum`), bit for bit the same.
 """
 
 from __future__ import annotations
 
-import math
 from collections import deque
 from collections.abc import Iterable
 
 import numpy as np
 from numpy.typing import NDArray
 
-from cmcan.monitor.exactsum import window_fsums
+from cmcan.monitor.exactsum import RingSum, window_fsums
 
 
 class RatioFilter:
-    __slots__ = ("leaks", "min_samples", "ratios", "samples")
+    __slots__ = ("_leaks", "_ratios", "min_samples", "samples")
 
     def __init__(
         self, samples: int, min_samples: int, ratios: Iterable[float] = (), leaks: Iterable[float] = ()
     ) -> None:
         self.samples = samples
         self.min_samples = min_samples
-        self.ratios: deque[float] = deque(ratios, maxlen=samples)  # a saved filter, oldest first
-        self.leaks: deque[float] = deque(leaks, maxlen=samples)
+        self._ratios = RingSum(samples, ratios)  # a saved filter, oldest first
+        self._leaks = RingSum(samples, leaks)
+
+    @property
+    def ratios(self) -> deque[float]:
+        return self._ratios.ring
+
+    @property
+    def leaks(self) -> deque[float]:
+        return self._leaks.ring
 
     def add(self, ratio_pct: float, leak_lpm: float) -> None:
-        self.ratios.append(ratio_pct)
-        self.leaks.append(leak_lpm)
+        self._ratios.append(ratio_pct)
+        self._leaks.append(leak_lpm)
 
     def __len__(self) -> int:
-        return len(self.ratios)
+        return len(self._ratios.ring)
 
     @property
     def valid(self) -> bool:
-        return len(self.ratios) >= self.min_samples
+        return len(self._ratios.ring) >= self.min_samples
 
     @property
     def ratio_pct(self) -> float:
-        n = len(self.ratios)
-        return math.fsum(self.ratios) / n if n else 0.0
+        n = len(self._ratios.ring)
+        return self._ratios.total() / n if n else 0.0
 
     @property
     def leak_lpm(self) -> float:
-        n = len(self.leaks)
-        return math.fsum(self.leaks) / n if n else 0.0
+        n = len(self._leaks.ring)
+        return self._leaks.total() / n if n else 0.0
 
     def saved(self) -> tuple[list[float], list[float]]:
         """The ring's contents, oldest first (for the state file)."""
@@ -71,6 +79,6 @@ class RatioFilter:
         with np.errstate(invalid="ignore", divide="ignore"):
             filt = np.where(cnt > 0, sum_r / np.maximum(cnt, 1), 0.0)
             filt_leak = np.where(cnt > 0, sum_l / np.maximum(cnt, 1), 0.0)
-        self.ratios = deque(all_r[-size:], maxlen=size)
-        self.leaks = deque(all_l[-size:], maxlen=size)
+        self._ratios = RingSum(size, all_r[-size:])
+        self._leaks = RingSum(size, all_l[-size:])
         return filt, filt_leak, cnt >= self.min_samples
