@@ -462,7 +462,7 @@ class Monitor:
         if not ok:
             return pt
         raw, leak = ratio_and_leak(pt.measured, pred, lpu)
-        return replace(pt, predicted=pred, ratio_raw_pct=raw, leak_lpm=leak)
+        return pt._replace(predicted=pred, ratio_raw_pct=raw, leak_lpm=leak)
 
     def _corrected_columns(self, pts: Points, mean: Mapping[str, NDArray[np.float64]]) -> Points:
         """:meth:`_corrected` at every evaluated tick of a stretch."""

@@ -26,7 +26,7 @@ import math
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from enum import IntEnum
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -212,8 +212,7 @@ def outside_plausible(role: str, values: Any, limits: GateLimits) -> Any:
 # scoring, the columnar replay: every rule over the whole arrays, the first that holds wins).
 
 
-@dataclass(frozen=True)
-class _Subject:
+class _Subject(NamedTuple):  # (made at every tick: a frozen dataclass's init costs microseconds)
     """What the rules look at: the window statistics (per role a float, or an array over points) and
     the limits they are judged by."""
 
@@ -224,7 +223,6 @@ class _Subject:
     limits: GateLimits
     max_age_s: Mapping[str, float] | None
     envelope: Mapping[str, tuple[float, float]] | None
-
     roles: list[str]  # the gated roles present: the model's inputs and the measured output
     missing: Any  # how many roles have no fresh sample (two rules ask; worked out once)
 
