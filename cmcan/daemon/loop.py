@@ -571,7 +571,8 @@ class Daemon:
         if diff - ref > WALL_STEP_S:
             log.warning("the wall clock stepped forward by %.3f s; monitoring goes on on the new time base", diff - ref)
             self.monitor.shift_time(diff - ref)
-        self._wall_minus_boot = max(ref, diff)
+        if diff > ref:
+            self._wall_minus_boot = diff
 
     def stop(self, signum: int | None = None) -> None:
         """Stop after the current step (safe from a signal handler); the state is saved on the way out."""
@@ -871,7 +872,9 @@ class Daemon:
         if x.bus is None:
             self.stats["tx_dropped"] += 1
             return
-        msg = can.Message(**to_message_kwargs(f._replace(channel=x.name)))
+        kwargs = to_message_kwargs(f)
+        kwargs["channel"] = x.name  # the link it goes out on
+        msg = can.Message(**kwargs)
         try:
             x.bus.send(msg, timeout=self.opt.send_timeout_s)
             self.stats["tx_frames"] += 1
