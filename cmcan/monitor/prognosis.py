@@ -50,6 +50,9 @@ faster; onset ``t0`` and shape ``k`` come from a grid, ``b`` and ``c`` (``c >= 0
   law ran slow: a crack's orifice law, a step of damage, heavier work), divided by ``q``; a law that
   ran fast moves nothing. Late is what a workshop booking cannot take: the interval carries the
   error of the law's form, and its lower end is set to hold the truth from below.
+- Wear does not heal (the low side): the hours are also read through the corners of the levels the
+  history held (:func:`_first_reached_hours`: staged damage, whose flat stretches pull the fit of the
+  hours as they are towards a law standing still), each quantile booked at the earlier reading.
 - State: ``none`` without a trend, ``imminent`` when p10 to end of life is within ``imminent_h``,
   ``trend`` otherwise.
 
@@ -790,13 +793,18 @@ def _first_reached_hours(
     he = _first_reached(h, y, getattr(p, track.sigma_floor))
     corner, first, held = np.unique(he, return_index=True, return_counts=True)
     level = np.add.reduceat(y, first) / held
-    # a corner is a level held, a relevant rise (the track's smallest) above the corner before it: a
-    # slow rise's noise holds levels too, a few tenths apart
+    # a corner is a level held, a relevant rise (the track's smallest) above the corner before it (a
+    # slow rise's noise holds levels too, a few tenths apart), reached by a step: at least half of
+    # that rise within the last two points before it (one may straddle the step). A smooth wear seen
+    # through an oil cycle holds levels too, on the cycle's falling half, and rises between them over
+    # its rising half: hours, not a bin
     keep_corner = np.zeros(len(corner), dtype=bool)
     keep_corner[0] = True
     last = float(level[0])
     for i in range(1, len(corner)):
-        if held[i] >= _HELD_POINTS and float(level[i]) >= last + getattr(p, track.min_rise):
+        rise = float(level[i]) - last
+        jump = float(level[i]) - float(y[max(int(first[i]) - 2, 0)])
+        if held[i] >= _HELD_POINTS and rise >= getattr(p, track.min_rise) and jump >= 0.5 * rise:
             keep_corner[i] = True
             last = float(level[i])
     if np.count_nonzero(keep_corner[1:]) < _CORNERS_MIN:
