@@ -50,6 +50,9 @@ faster; onset ``t0`` and shape ``k`` come from a grid, ``b`` and ``c`` (``c >= 0
   law ran slow: a crack's orifice law, a step of damage, heavier work), divided by ``q``; a law that
   ran fast moves nothing. Late is what a workshop booking cannot take: the interval carries the
   error of the law's form, and its lower end is set to hold the truth from below.
+- Wear does not heal (the low side): the hours are also read through the corners of the levels the
+  history held (:func:`_first_reached_hours`: staged damage, whose flat stretches pull the fit of the
+  hours as they are towards a law standing still), each quantile booked at the earlier reading.
 - State: ``none`` without a trend, ``imminent`` when p10 to end of life is within ``imminent_h``,
   ``trend`` otherwise.
 
@@ -169,6 +172,10 @@ class PrognosisParams:
     # quarter of its rise as a near-straight line ran 2-3x slow, and the p50 was booked at a quarter of
     # the truth). The detection's smallest rise until a trend could be reported from 0.5 l/min
     hindcast_min_rise_lpm: float = 1.5
+    # Wear does not heal: the low side's hours are also read by the law through the hours each level
+    # was first reached (staged damage: through the steps' corners), each quantile booked at the
+    # earlier of the two readings. 0: off
+    first_reached: float = 1.0
     # Pool the estimates of the last pool_h hours (at most a quarter of the hours left), taken every
     # pool_every_h: off, as its lag costs more near the end than the referred leakage's scatter
     pool_h: float = 0.0
@@ -721,12 +728,7 @@ def _track_hours(
     quarter of the hours left): older estimates lag an accelerating wear."""
     T = float(h[-1])
     tw, te = _draw_hours(p, d, h, y, ys, track, p.seed)
-    late = _hindcast(p, h, y, d, track, fall)
-    if late != 1.0:
-        rng = np.random.default_rng(p.seed - 1)
-        scale = np.exp(rng.normal(0.0, abs(math.log(late)), len(tw))) / max(late, 1.0)
-        tw = np.where(tw < _NEVER_H, tw * scale, tw)
-        te = np.where(te < _NEVER_H, te * scale, te)
+    tw, te = _book_hindcast(p, _hindcast(p, h, y, d, track, fall), tw, te)
     warns, eols = [tw], [te]
     pool_h = min(p.pool_h, 0.25 * float(np.median(te)))
     for i, lag in enumerate(np.arange(p.pool_every_h, pool_h + 1e-9, p.pool_every_h).tolist(), start=1):
@@ -740,7 +742,86 @@ def _track_hours(
         since = T - float(h[m - 1])
         warns.append(np.where(tw < _NEVER_H, np.maximum(tw - since, 0.0), tw))
         eols.append(np.where(te < _NEVER_H, np.maximum(te - since, 0.0), te))
-    return _quantiles(np.concatenate(warns)), _quantiles(np.concatenate(eols))
+    q_warn, q_eol = _quantiles(np.concatenate(warns)), _quantiles(np.concatenate(eols))
+    if track.monotone and p.first_reached:
+        env = _first_reached_hours(p, h, y, ys, track)
+        if env is not None:  # each quantile the earlier of the two readings: late is the costly side
+            q_warn, q_eol = _earlier(q_warn, env[0]), _earlier(q_eol, env[1])
+    return q_warn, q_eol
+
+
+def _book_hindcast(
+    p: PrognosisParams, late: float, tw: NDArray[np.float64], te: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The drawn hours spread by the hindcast's factor (a lognormal of ``|ln late|``) and, where the
+    law ran slow (``late > 1``), divided by it."""
+    if late == 1.0:
+        return tw, te
+    rng = np.random.default_rng(p.seed - 1)
+    scale = np.exp(rng.normal(0.0, abs(math.log(late)), len(tw))) / max(late, 1.0)
+    return np.where(tw < _NEVER_H, tw * scale, tw), np.where(te < _NEVER_H, te * scale, te)
+
+
+def _earlier(a: Triple, b: Triple) -> Triple:
+    """Quantile by quantile the earlier of two estimates (NaN, no threshold, in either: ``a``)."""
+    if any(math.isnan(x) for x in a + b):
+        return a
+    return (min(a[0], b[0]), min(a[1], b[1]), min(a[2], b[2]))
+
+
+_HELD_POINTS = 4  # a level held for this many points (2 h at the default bin) is a corner
+_CORNERS_MIN = 2  # ... and the curve is read through the corners once there are this many above the first level
+
+
+def _first_reached_hours(
+    p: PrognosisParams,
+    h: NDArray[np.float64],
+    y: NDArray[np.float64],
+    ys: tuple[float, float],
+    track: _Track,
+) -> tuple[Triple, Triple] | None:
+    """The hours to ``ys`` read the other way wear can be read: the law through the corners of the
+    levels the history held (a level first reached at an hour, :func:`_first_reached`, and held for
+    :data:`_HELD_POINTS` points or more), counted from the newest corner. Staged damage: the law
+    passes through the steps' corners, and its hours count down while a level is held, where the law
+    through the hours as they are sees a law standing still and promises more hours the longer the
+    level is held. Points on the way between two levels (a bin that straddles a step) are left out:
+    the curve passes above them. None where the history holds fewer than :data:`_CORNERS_MIN`
+    corners above its first level (a smooth rise: none; one step: any onset and shape pass through
+    it), or no rise."""
+    T = float(h[-1])
+    he = _first_reached(h, y, getattr(p, track.sigma_floor))
+    corner, first, held = np.unique(he, return_index=True, return_counts=True)
+    level = np.add.reduceat(y, first) / held
+    # a corner is a level held, a relevant rise (the track's smallest) above the corner before it (a
+    # slow rise's noise holds levels too, a few tenths apart), reached by a step: at least half of
+    # that rise within the last two points before it (one may straddle the step). A smooth wear seen
+    # through an oil cycle holds levels too, on the cycle's falling half, and rises between them over
+    # its rising half: hours, not a bin
+    keep_corner = np.zeros(len(corner), dtype=bool)
+    keep_corner[0] = True
+    last = float(level[0])
+    for i in range(1, len(corner)):
+        rise = float(level[i]) - last
+        jump = float(level[i]) - float(y[max(int(first[i]) - 2, 0)])
+        if held[i] >= _HELD_POINTS and rise >= getattr(p, track.min_rise) and jump >= 0.5 * rise:
+            keep_corner[i] = True
+            last = float(level[i])
+    if np.count_nonzero(keep_corner[1:]) < _CORNERS_MIN:
+        return None
+    keep = np.isin(he, corner[keep_corner])
+    # a step came between a corner's first point and the one before it: half way, not a bin late
+    j = np.searchsorted(h, corner)
+    mid = np.where(j > 0, 0.5 * (h[np.maximum(j - 1, 0)] + h[j]), corner)
+    hk, yk = mid[np.searchsorted(corner, he[keep])], y[keep]
+    de = _detect(p, hk, yk, track, onset_h=h)
+    if not de.c > 0:
+        return None
+    tw, te = _draw_hours(p, de, hk, yk, ys, track, p.seed, True)
+    shift = T - float(hk[-1])  # the curve's hours count from its newest corner
+    tw = np.where(tw < _NEVER_H, np.maximum(tw - shift, 0.0), tw)
+    te = np.where(te < _NEVER_H, np.maximum(te - shift, 0.0), te)
+    return _quantiles(tw), _quantiles(te)
 
 
 def _level_now(d: _Detected, y: NDArray[np.float64]) -> tuple[float, float]:
@@ -760,12 +841,27 @@ def _hindcast(
     """How much slower than the truth the law ran over the last stretch: the hours the fit of the
     history as it stood then takes to today's level, over the hours it took (1: no hindcast, no
     earlier fit with a trend, or none that reaches today's level)."""
+    out = [q for q in _hindcast_factors(p, h, y, d, track, fall) if q is not None]
+    return float(max(out, key=lambda q: abs(math.log(q)))) if out else 1.0  # the one most wrong
+
+
+def _hindcast_factors(
+    p: PrognosisParams,
+    h: NDArray[np.float64],
+    y: NDArray[np.float64],
+    d: _Detected,
+    track: _Track,
+    fall: NDArray[np.float64] | None = None,
+) -> list[float | None]:
+    """The hindcast's factors, newest fit first (an eighth, a quarter and half of the worn stretch
+    back, at least ``hindcast_min_h``; None where there is none)."""
     if p.hindcast_share <= 0:
-        return 1.0
+        return []
     T = float(h[-1])
     _, y_now = _level_now(d, y)
-    out = []
+    out: list[float | None] = []
     for share in (0.5 * p.hindcast_share, p.hindcast_share, 2.0 * p.hindcast_share):
+        out.append(None)
         lag = max(p.hindcast_min_h, share * (T - d.onset_h))
         m = int(np.searchsorted(h, T - lag, side="right"))
         if m < p.min_points + 2 or not h[m - 1] - h[0] >= p.min_history_h:
@@ -778,8 +874,8 @@ def _hindcast(
         t = _hours_to(y_now, np.array([b_old]), np.array([old.c]), np.array([old.onset_h]), np.array([old.shape_k]),
                       float(h[m - 1]))[0]  # fmt: skip
         if 0.0 < t < _NEVER_H and took > 0:
-            out.append(min(max(t / took, 0.1), 10.0))
-    return float(max(out, key=lambda q: abs(math.log(q)))) if out else 1.0  # the one most wrong
+            out[-1] = min(max(t / took, 0.1), 10.0)
+    return out
 
 
 @dataclass(frozen=True)
@@ -789,10 +885,41 @@ class _Track:
     min_rise: str  # the PrognosisParams field
     sigma_floor: str
     hindcast_min_rise: str  # ... the smallest rise of a fit the hindcast asks
+    monotone: bool = False  # the value never falls back (wear does not heal): hours by the first-reached hours
 
 
-_LEAK = _Track("min_rise_lpm", "sigma_floor_lpm", "hindcast_min_rise_lpm")  # the leakage at reference, l/min
+_LEAK = _Track("min_rise_lpm", "sigma_floor_lpm", "hindcast_min_rise_lpm", True)  # the leakage at reference, l/min
 _RATIO = _Track("min_rise_pct", "sigma_floor_pct", "min_rise_pct")  # the ratio, %
+
+
+def _first_reached(h: NDArray[np.float64], y: NDArray[np.float64], floor: float) -> NDArray[np.float64]:
+    """Each point's hour moved back to the first hour at which the history's non-decreasing
+    least-squares fit (isotonic regression, pool-adjacent-violators) came within two noise spreads
+    of that point's level: wear does not heal, and a level held is a level reached. Staged damage (a
+    flat stretch after each step) puts a flat stretch's points at its step: the curve through the
+    steps' corners, which the law follows, where the flat points pull a fit of the hours as they are
+    towards a law standing still (its hours grow while the next step nears). On a smooth rise the
+    hours move earlier by the time the rise takes for two spreads (a fraction of an hour near the
+    end): the curve as if two spreads higher, the early side. The spread: successive differences'
+    median (a step or the law's rise hardly moves it), at least ``floor``."""
+    starts: list[int] = []
+    sums: list[float] = []
+    counts: list[int] = []
+    for i, v in enumerate(y.tolist()):
+        starts.append(i)
+        sums.append(v)
+        counts.append(1)
+        # pool while the block before is not below this one (means compared by cross products)
+        while len(sums) > 1 and sums[-2] * counts[-1] >= sums[-1] * counts[-2]:
+            s, c = sums.pop(), counts.pop()
+            starts.pop()
+            sums[-1] += s
+            counts[-1] += c
+    iso = np.repeat(np.array(sums) / np.array(counts, dtype=np.float64), np.array(counts, dtype=np.int64))
+    # median |difference| of two points of spread sigma: 0.954 sigma
+    sigma = max(float(np.median(np.abs(np.diff(y)))) / 0.954 if len(y) > 1 else 0.0, floor)
+    first = np.searchsorted(iso, iso - 2.0 * sigma, side="left")
+    return np.ascontiguousarray(h[first], dtype=np.float64)
 
 
 @dataclass(frozen=True)
@@ -820,6 +947,7 @@ def _detect(
     track: _Track,
     fall: NDArray[np.float64] | None = None,
     rise_scale: float = 1.0,
+    onset_h: NDArray[np.float64] | None = None,
 ) -> _Detected:
     """The grid's best cell for ``y`` and whether it is a trend: significant (``t_min``), at least
     ``min_points`` long, and relevant (its rise times ``rise_scale`` at least the track's smallest
@@ -828,7 +956,7 @@ def _detect(
     spread depends on how densely the logger samples (ticks per bin) and on the referral's gain at
     the machine's duty, not on the wear, and the significance already weighs the rise against it."""
     n = len(h)
-    grid = _grid(p, h)
+    grid = _grid(p, h, onset_h)
     t0s, ks, basis = grid.t0s, grid.ks, grid.basis
     f = _fit_unweighted(grid, y)
     g = int(np.argmin(f.sse))
@@ -859,10 +987,13 @@ def _draw_hours(
     ys: tuple[float, float],
     track: _Track,
     seed: int,
+    corners: bool = False,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Hours from the last point until each drawn curve reaches each of ``ys`` (with the model's
     relative error). The fit weighs each point by its noise: a floor (as before the onset) plus a
-    share of the wear leakage, which swings with the oil's viscosity and the duty's pressure."""
+    share of the wear leakage, which swings with the oil's viscosity and the duty's pressure.
+    ``corners``: the hours are corners of levels held (:func:`_first_reached_hours`), each known to a
+    bin, and the onset is drawn by :func:`_onset_prior`."""
     n, T = len(h), float(h[-1])
     before = d.basis[d.g] == 0.0
     floor = float(np.sqrt(np.mean(d.resid[before] ** 2))) if np.count_nonzero(before) >= 4 else 0.0
@@ -884,8 +1015,15 @@ def _draw_hours(
     # a history the law fits exactly (no scatter at all) would make every weight 0 / 0: a thousandth
     # of the assumed noise floor at least
     s2 = max(float(f.sse[gw]) / max(n - 4, 1) * _inflation(resid_w), _S2_MIN)
+    if corners:
+        # first-reached hours are a step's to within a bin (the bin that straddles it, the one after):
+        # a corner's level is uncertain by the curve's rise over that much time, however flat the
+        # steps are (else the fit's least misfit by a hair picks one onset and shape of those that
+        # pass through the corners alike)
+        slope = float(f.c[gw]) * float(d.ks[gw]) / max(T - float(d.t0s[gw]), p.bin_h)
+        s2 = max(s2, (slope * p.bin_h) ** 2 / 12.0 * float(np.mean(w)))
     rng = np.random.default_rng(seed)
-    cell, bs, cs = _draws(p, f, s2, rng)
+    cell, bs, cs = _draws(p, f, s2, rng, _onset_prior(d.t0s, T) if corners else None)
     t0a, ka = np.array(d.t0s)[cell], np.array(d.ks)[cell]
     spread = np.exp(rng.normal(0.0, p.model_rel, len(cell)))
     out = []
@@ -923,25 +1061,33 @@ class _Grid:
     suu: NDArray[np.float64]  # each row's sum of squares about its mean
 
 
-def _grid(p: PrognosisParams, h: NDArray[np.float64]) -> _Grid:
+def _grid(p: PrognosisParams, h: NDArray[np.float64], onset_h: NDArray[np.float64] | None = None) -> _Grid:
     """Onsets x shapes, and each cell's basis ((h - t0) / (T - t0))^k, 0 before the onset (read-only:
-    an estimate fits both sides over the same hours, and the grid is their larger share of the work)."""
+    an estimate fits both sides over the same hours, and the grid is their larger share of the work).
+    ``onset_h``: the onsets are chosen on these hours (the history's own, where ``h`` are the hours
+    each level was first reached, :func:`_first_reached`: hours held by many points would crowd the
+    onsets onto a few), those not before ``h``'s last left out."""
     h = np.ascontiguousarray(h, dtype=np.float64)
-    return _grid_of(h.tobytes(), p.min_points, p.onsets, p.onset_ratio)
+    on = None if onset_h is None else np.ascontiguousarray(onset_h, dtype=np.float64).tobytes()
+    return _grid_of(h.tobytes(), p.min_points, p.onsets, p.onset_ratio, on)
 
 
 @functools.lru_cache(maxsize=4)
-def _grid_of(h_bytes: bytes, min_points: int, onsets: int, onset_ratio: float) -> _Grid:
+def _grid_of(h_bytes: bytes, min_points: int, onsets: int, onset_ratio: float, onset_bytes: bytes | None) -> _Grid:
     h = np.frombuffer(h_bytes, dtype=np.float64)
     n, T = len(h), float(h[-1])
-    idx = _onsets(h, min_points, onsets, onset_ratio)
+    if onset_bytes is None:
+        idx = _onsets(h, min_points, onsets, onset_ratio)
+        t0_h = [float(h[i]) for i in idx]
+    else:
+        oh = np.frombuffer(onset_bytes, dtype=np.float64)
+        t0_h = [x for x in dict.fromkeys(oh[_onsets(oh, min_points, onsets, onset_ratio)].tolist()) if x < T]
     m = len(_SHAPES)
-    t0s = tuple(np.repeat(h[idx], m).tolist())
-    ks = _SHAPES * len(idx)
-    basis = np.zeros((len(idx) * m, n))
-    u_mean, suu = np.empty(len(idx) * m), np.empty(len(idx) * m)
-    for j, i in enumerate(idx):
-        t0 = float(h[i])
+    t0s = tuple(np.repeat(np.array(t0_h), m).tolist())
+    ks = _SHAPES * len(t0_h)
+    basis = np.zeros((len(t0_h) * m, n))
+    u_mean, suu = np.empty(len(t0_h) * m), np.empty(len(t0_h) * m)
+    for j, t0 in enumerate(t0_h):
         s = np.clip((h - t0) / max(T - t0, 1e-9), 0.0, 1.0)
         # only from the first point past the onset (0 ** k is 0 before it, and most onsets are recent);
         # s ** k as exp(k ln s): one logarithm per point for all shapes (a power costs 3-4 times an
@@ -1025,8 +1171,23 @@ def _inflation(r: NDArray[np.float64]) -> float:
 _S2_MIN = 1e-6  # the weighted residual variance at least (weights are 1 / noise^2: 1 is the floor's)
 
 
+def _onset_prior(t0s: tuple[float, ...], T: float) -> NDArray[np.float64]:
+    """Per cell, a prior weight for its onset where the data cannot place it (a fit through a few
+    corners of staged damage: every onset passes them with a shape of its own, the earlier the
+    steeper): the hours the onset stands for (half the way to the onsets either side; the grid's
+    onsets crowd towards the newest hours, and counting cells would favour a recent onset, a low
+    shape, long hours), times the rise's length ``T - t0``: asymmetric on purpose, the earlier
+    onsets, whose steeper curves end sooner, weigh more."""
+    t0 = np.array(t0s)
+    u = np.unique(t0)
+    if len(u) < 2:
+        return np.ones(len(t0))
+    edges = np.concatenate(([u[0]], 0.5 * (u[1:] + u[:-1]), [u[-1]]))
+    return np.diff(edges)[np.searchsorted(u, t0)] * np.maximum(T - t0, 0.0)
+
+
 def _draws(
-    p: PrognosisParams, f: _Fits, s2: float, rng: np.random.Generator
+    p: PrognosisParams, f: _Fits, s2: float, rng: np.random.Generator, prior: NDArray[np.float64] | None = None
 ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
     """Curves drawn from the fit's posterior: a cell (onset and shape) by its likelihood
     exp(-(SSE - SSE_min) / 2 s2), then its level and rise from their normal distributions (flat
@@ -1034,6 +1195,8 @@ def _draws(
     tell apart are all drawn: that is most of the uncertainty of an extrapolation."""
     logw = -(f.sse - f.sse.min()) / (2.0 * s2)
     w = np.exp(logw - logw.max())
+    if prior is not None:
+        w = w * prior
     w[f.c <= 0] = 0.0
     cell = rng.choice(len(w), size=p.draws, p=w / w.sum())
     level = f.y_mean + rng.normal(0.0, math.sqrt(s2 / f.w_sum), p.draws)
