@@ -217,9 +217,19 @@ def _private_uses(source: str) -> list[str]:
     return found
 
 
+# A third-party library's private names used on purpose (the check cannot tell theirs from ours),
+# each where it is used and why: asammdf has no public way to a chunk's record bytes
+# (cmcan.io.mf4columns._records, with MDF.get where it is absent; both paths tested alike).
+THIRD_PARTY_PRIVATE = {"cmcan.io.mf4columns": {"mdf._mdf._load_data", "mdf._mdf"}}
+
+
 @pytest.mark.parametrize("path", MODULES, ids=module_name)
 def test_no_module_uses_another_ones_private_names(path):
-    assert _private_uses(path.read_text(encoding="utf-8")) == []
+    allowed = THIRD_PARTY_PRIVATE.get(module_name(path), set())
+    found = _private_uses(path.read_text(encoding="utf-8"))
+    assert [f for f in found if f.split(": ", 1)[1] not in allowed] == []
+    if allowed:  # an allowance that is no longer used goes
+        assert {f.split(": ", 1)[1] for f in found} == allowed
 
 
 def test_the_private_name_check_sees_them():

@@ -223,10 +223,19 @@ def _chunk_by_get(mdf: Any, g: _Group, count: int, start_s: float) -> tuple[int,
     return len(rec), [_columns(g.kind, sig.timestamps, fields, raw, start_s)]
 
 
+def _records(mdf: Any, group: Any, offset: int, count: int) -> Iterator[Any]:
+    """The group's record bytes from record ``offset`` on, ``count`` of them, as asammdf's fragments
+    (inflated, transposed back). asammdf's private ``MDF4._load_data``, which its own ``get`` reads
+    through: it has no public way to a chunk's records without copying each channel out of them
+    (:func:`layout_of` checks it is there; the tests read every file through it and through
+    ``MDF.get`` alike, so a change of its meaning fails them)."""
+    return mdf._mdf._load_data(group, record_offset=offset, record_count=count)
+
+
 def _chunk_by_bytes(mdf: Any, g: _Group, count: int, layout: _Layout, start_s: float) -> tuple[int, list[FrameColumns]]:
     group = mdf.groups[g.index]
     n_all, parts = 0, []
-    for fragment in mdf._mdf._load_data(group, record_offset=g.offset, record_count=count):
+    for fragment in _records(mdf, group, g.offset, count):
         n = len(fragment.data) // layout.record_size
         if not n:
             continue
