@@ -117,6 +117,18 @@ class _Bus:
         rows = self.rows() if rows is None else rows
         return sum(1 for _, i, v in rows if i == _RATIO_ID and v["cm_gate"] == _EVALUATING)
 
+    def quiet(self, still_s: float = 3.0, timeout: float = 60.0) -> None:
+        """Until no evaluating tick has come for ``still_s``: the daemon has worked through what was
+        played (in an emulated guest it may trail the player by seconds after the player ends)."""
+        deadline = time.monotonic() + timeout
+        last, since = self.evaluating(), time.monotonic()
+        while time.monotonic() - since < still_s:
+            assert time.monotonic() < deadline, f"{self.path.name}: still evaluating after {timeout:g} s"
+            time.sleep(0.2)
+            n = self.evaluating()
+            if n != last:
+                last, since = n, time.monotonic()
+
     def wait(self, pred, timeout: float, what: str):
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
@@ -296,7 +308,9 @@ def test_baseline_learns_across_sigterm_and_kill_9_reaches_monitoring_and_resets
         mark("play 3, monitoring")
         # (cmcan baseline status reads this same file: its own tests are on the host, one start less here)
 
-        # 4. a reset beside the running daemon (through its reload): learning again, the old one kept
+        # 4. a reset beside the running daemon (through its reload): learning again, the old one kept;
+        # once the daemon has judged the whole log (a tick still queued would be learned afresh)
+        bus.quiet()
         n_before = len(bus.rows())
         r = _cli("reset", "--config", str(cfg), "--reason", "pump replaced", "--wait", "120")
         assert r.returncode == 0, r.stderr
